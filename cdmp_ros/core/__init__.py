@@ -1,0 +1,1 @@
+"""Numerical core of cdmp_ros: numpy and scipy only, no ROS, no pybullet."""

@@ -1,0 +1,1 @@
+"""cdmp_ros.nodes."""

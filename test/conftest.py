@@ -1,0 +1,36 @@
+"""Shared fixtures. ROS processes started by tests obey the network rule: localhost-only
+discovery and a private ROS_DOMAIN_ID (see ../shared/design.md, Environment facts)."""
+import os
+import random
+import sys
+
+import pytest
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# The network rule holds for everything this test session starts, including rclpy in-process.
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 199)))
+os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
+os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+def ros_env(domain_id=None) -> dict:
+    """Environment for a ROS child process: localhost discovery, private domain id."""
+    env = dict(os.environ)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['ROS_DOMAIN_ID'] = str(domain_id if domain_id is not None else os.environ['ROS_DOMAIN_ID'])
+    env['AMENT_PREFIX_PATH'] = sys.prefix
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+@pytest.fixture
+def repo_root():
+    return REPO_ROOT
+
+
+@pytest.fixture
+def rng():
+    import numpy as np
+    return np.random.default_rng(12345)
