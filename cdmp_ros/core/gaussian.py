@@ -1,0 +1,186 @@
+"""Gaussian helpers of the constrained ProMP (paper 003): CDFs with gradients, the Gamma
+approximation, batched Cholesky back-propagation and the unscented transform.
+
+Every function works on batches (leading axes) and returns analytic gradients; the only
+numerical derivative is the scalar d/d(shape) of the regularised incomplete gamma function,
+which scipy does not provide (allowed by the design's numerics notes).
+"""
+from typing import Tuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import special
+
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+
+
+def normal_pdf(x: NDArray) -> NDArray:
+    """Standard normal density."""
+    return np.exp(-0.5 * x * x) / _SQRT_2PI
+
+
+def normal_cdf(x: NDArray) -> NDArray:
+    """Standard normal CDF Phi (Eq. 13, paper 003)."""
+    return special.ndtr(x)
+
+
+def gamma_cdf(E: NDArray, V: NDArray, x: NDArray
+              ) -> Tuple[NDArray, NDArray, NDArray]:
+    """CDF at ``x`` of the Gamma distribution with mean ``E`` and variance ``V``.
+
+    Shape k = E^2 / V and rate beta = E / V (moment matching, Section II-D2, paper 003).
+
+    Parameters
+    ----------
+    E, V, x : ndarray, broadcastable
+        Mean (> 0), variance (> 0) and threshold (>= 0).
+
+    Returns
+    -------
+    P : ndarray
+        P(c <= x) for c ~ Gamma(k, beta).
+    dP_dE, dP_dV : ndarray
+        Gradients of ``P`` w.r.t. ``E`` and ``V``.
+    """
+    E = np.maximum(E, 1e-300)
+    V = np.maximum(V, 1e-300)
+    k = E * E / V
+    beta = E / V
+    u = beta * x
+    P = special.gammainc(k, u)
+    # dP/du = u^(k-1) exp(-u) / Gamma(k)
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        log_dens = (k - 1.0) * np.log(np.maximum(u, 1e-300)) - u - special.gammaln(k)
+        dP_du = np.where(u > 0, np.exp(log_dens), 0.0)
+    # dP/dk: the one scalar derivative without a closed form in scipy (central difference)
+    h = 1e-5 * (1.0 + k)
+    dP_dk = (special.gammainc(k + h, u) - special.gammainc(k - h, u)) / (2.0 * h)
+    dk_dE = 2.0 * E / V
+    dk_dV = -k / V
+    du_dE = x / V
+    du_dV = -u / V
+    dP_dE = dP_dk * dk_dE + dP_du * du_dE
+    dP_dV = dP_dk * dk_dV + dP_du * du_dV
+    return P, dP_dE, dP_dV
+
+
+def quadratic_moments(m: NDArray, S: NDArray, center: NDArray
+                      ) -> Tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Mean and variance of c = |x - center|^2 for x ~ N(m, S), with gradients.
+
+    E[c] = |d|^2 + tr(S),  V[c] = 4 d^T S d + 2 tr(S S),  d = m - center.
+
+    Parameters
+    ----------
+    m : ndarray, shape (n, k)
+    S : ndarray, shape (n, k, k)
+    center : ndarray, shape (n, k) or (k,)
+
+    Returns
+    -------
+    E, V : ndarray, shape (n,)
+    dE_dm : (n, k); dE_dS : (n, k, k); dV_dm : (n, k); dV_dS : (n, k, k)
+    """
+    d = m - center
+    Sd = np.einsum('nij,nj->ni', S, d)
+    E = np.einsum('ni,ni->n', d, d) + np.trace(S, axis1=1, axis2=2)
+    V = 4.0 * np.einsum('ni,ni->n', d, Sd) + 2.0 * np.einsum('nij,nji->n', S, S)
+    eye = np.broadcast_to(np.eye(m.shape[1]), S.shape)
+    dE_dm = 2.0 * d
+    dE_dS = eye
+    dV_dm = 8.0 * Sd
+    dV_dS = 4.0 * np.einsum('ni,nj->nij', d, d) + 4.0 * np.swapaxes(S, 1, 2)
+    return E, V, dE_dm, dE_dS, dV_dm, dV_dS
+
+
+def batched_cholesky(S: NDArray, jitter: float = 1e-12) -> NDArray:
+    """Lower Cholesky factors of a batch (..., k, k) of symmetric PSD matrices."""
+    k = S.shape[-1]
+    scale = np.maximum(np.trace(S, axis1=-2, axis2=-1) / k, 1e-300)
+    return np.linalg.cholesky(S + (jitter * scale)[..., None, None] * np.eye(k))
+
+
+def cholesky_backward(A: NDArray, A_bar: NDArray) -> NDArray:
+    """Back-propagate a gradient through A = chol(S) (Murray 2016), batched.
+
+    Parameters
+    ----------
+    A : ndarray, shape (..., k, k)
+        Lower Cholesky factor.
+    A_bar : ndarray, shape (..., k, k)
+        dF/dA (only the lower triangle is used).
+
+    Returns
+    -------
+    S_bar : ndarray, shape (..., k, k)
+        Symmetric gradient dF/dS (treating S's entries as independent).
+    """
+    k = A.shape[-1]
+    low = np.tril(np.ones((k, k)))
+    P = np.swapaxes(A, -1, -2) @ (A_bar * low)
+    P = P * low - 0.5 * P * np.eye(k)
+    inv = np.linalg.inv(A)
+    inv_T = np.swapaxes(inv, -1, -2)
+    X = inv_T @ P @ inv
+    return 0.5 * (X + np.swapaxes(X, -1, -2))
+
+
+class UnscentedTransform:
+    """Sigma points z_m = m +- alpha sqrt(k) A e_i, weights 1 / (2 alpha^2 k) and
+    W_0 = 1 - 1 / alpha^2 for the centre (Section II-E, paper 003).
+
+    Parameters
+    ----------
+    k : int
+        Dimension of the random variable.
+    alpha : float
+        Spread of the sigma points (alpha = 1: no centre point, all weights positive).
+    """
+
+    def __init__(self, k: int, alpha: float = 1.0):
+        self.k = int(k)
+        self.alpha = float(alpha)
+        self.scale = self.alpha * np.sqrt(self.k)
+        w = 1.0 / (2.0 * self.alpha ** 2 * self.k)
+        self.weights = np.concatenate([[1.0 - 1.0 / self.alpha ** 2], np.full(2 * self.k, w)])
+        # signs (2k+1, k): row 0 centre, rows 1..k plus, rows k+1..2k minus
+        self.offsets = np.concatenate([np.zeros((1, self.k)), np.eye(self.k), -np.eye(self.k)])
+
+    def points(self, m: NDArray, S: NDArray) -> Tuple[NDArray, NDArray]:
+        """Sigma points Z (n, 2k+1, k) of N(m, S), and the Cholesky factors A (n, k, k)."""
+        A = batched_cholesky(S)
+        Z = m[:, None, :] + self.scale * np.einsum('nij,pj->npi', A, self.offsets)
+        return Z, A
+
+    def moments(self, X: NDArray) -> Tuple[NDArray, NDArray]:
+        """Weighted mean (n, q) and covariance (n, q, q) of transformed points X (n, p, q)."""
+        mx = np.einsum('p,npi->ni', self.weights, X)
+        D = X - mx[:, None, :]
+        Sx = np.einsum('p,npi,npj->nij', self.weights, D, D)
+        return mx, Sx
+
+    def backward(self, X: NDArray, mx: NDArray, J: NDArray, A: NDArray,
+                 g_mx: NDArray, g_Sx: NDArray) -> Tuple[NDArray, NDArray]:
+        """Gradients w.r.t. the input mean and covariance.
+
+        Parameters
+        ----------
+        X : (n, p, q) transformed sigma points; mx : (n, q) their mean;
+        J : (n, p, q, k) Jacobians dX/dZ at the sigma points; A : (n, k, k) Cholesky factors;
+        g_mx : (n, q); g_Sx : (n, q, q) gradients w.r.t. the output moments.
+
+        Returns
+        -------
+        g_m : (n, k); g_S : (n, k, k)
+        """
+        D = X - mx[:, None, :]
+        g_Ss = g_Sx + np.swapaxes(g_Sx, 1, 2)
+        # the term through mx vanishes because sum_p W_p (X_p - mx) = 0
+        g_X = self.weights[None, :, None] * (g_mx[:, None, :]
+                                             + np.einsum('nij,npj->npi', g_Ss, D))
+        g_Z = np.einsum('npq,npqk->npk', g_X, J)
+        g_m = g_Z.sum(axis=1)
+        # Z_p = m + scale * A offsets_p  ->  dA[i, j] = scale * sum_p g_Z[p, i] offsets[p, j]
+        g_A = self.scale * np.einsum('npi,pj->nij', g_Z, self.offsets)
+        g_S = cholesky_backward(A, g_A)
+        return g_m, g_S
