@@ -1,0 +1,454 @@
+"""Step-by-step (C)DMP integrator for streaming: ``update(input) -> (output, status)``.
+
+The tick is small-vector work, so it runs on plain Python floats over preallocated lists: no
+numpy call, no allocation of arrays. Everything that depends only on the phase is precomputed
+when the stepper is (re)configured: the forcing profile ``phi_d(u) = sum_j phi_j(u) w_dj`` on
+the grid ``u_k = k * dt / tau`` (linear interpolation between grid points when the phase is
+slowed by the velocity-limit coupling).
+
+The tick never raises: non-finite coupling entries are replaced by zero
+(``StepStatus.INPUT_REJECTED``), accelerations and velocities are clamped to huge finite bounds,
+and a CDMP's exogenous state is saturated at ``+-XI_SAT`` (``StepStatus.SATURATED``), so every
+position is finite and, for a CDMP, strictly inside the limits.
+
+Velocity-limit temporal coupling (beyond paper 000): with ``velocity_limits`` set, the whole
+system runs in a warped time ``d sigma = kappa dt`` with ``0 < kappa <= 1``. After every step
+``kappa = min(1, kappa_prev + recovery_rate * dt, min_d vmax_d / |yd_nominal_d|)``: it drops at
+once when a joint would exceed its limit and recovers towards nominal speed at
+``recovery_rate`` [1/s]. The reported velocity ``yd = kappa * yd_nominal`` never exceeds the
+limits.
+"""
+import enum
+import math
+from typing import List, Optional
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from cdmp_ros.core.basis import U_END
+from cdmp_ros.core.validation import as_array, check_positive
+
+
+class StepStatus(enum.IntFlag):
+    """Status flags of one tick (combinable)."""
+
+    WORKING = 1           #: the nominal duration has not elapsed (u < 1)
+    FINISHED = 2          #: u >= 1: the forcing has decayed, the system converges to the goal
+    SATURATED = 4         #: a CDMP exogenous state hit the saturation bound this tick
+    INPUT_REJECTED = 8    #: a non-finite coupling entry was replaced by zero
+    VELOCITY_LIMITED = 16  #: the phase runs slower than nominal to respect velocity limits
+
+
+_STATUS = [StepStatus(i) for i in range(32)]
+
+
+class StepInput:
+    """Per-tick input. ``coupling``: list of n_dims floats, the coupling term ``P`` of
+    Eq. 13/21 in the internal space (``tau^2`` times an internal acceleration)."""
+
+    __slots__ = ('coupling',)
+
+    def __init__(self, n_dims: int):
+        self.coupling: List[float] = [0.0] * n_dims
+
+
+class StepOutput:
+    """Per-tick output (lists of floats, reused between ticks)."""
+
+    __slots__ = ('t', 'phase', 'u', 'kappa', 'y', 'yd', 'ydd', 'xi', 'xid')
+
+    def __init__(self, n_dims: int):
+        self.t = 0.0
+        self.phase = 1.0
+        self.u = 0.0
+        self.kappa = 1.0
+        self.y = [0.0] * n_dims
+        self.yd = [0.0] * n_dims
+        self.ydd = [0.0] * n_dims
+        self.xi = [0.0] * n_dims
+        self.xid = [0.0] * n_dims
+
+
+class DmpStepper:
+    """Integrates a fitted :class:`~cdmp_ros.core.dmp.DMP` or ``CDMP`` one step per call.
+
+    Parameters
+    ----------
+    prim : DMP or CDMP
+        A fitted primitive.
+    dt : float
+        Step [s].
+    start_y, start_yd, goal_y : array-like, shape (n_dims,), optional
+        Initial position and velocity, goal (defaults: fitted start, zero, fitted goal).
+    tau : float, optional
+        Temporal scaling (default the fitted duration).
+    velocity_limits : array-like, shape (n_dims,), optional
+        Enables the velocity-limit temporal coupling.
+    recovery_rate : float
+        Rate [1/s] at which ``kappa`` recovers towards 1.
+    noise_phi : array-like, shape (n_steps, n_dims), optional
+        Per-tick exploration forcing ``phi(u_k) . eps_k`` added to the forcing profile (PI2).
+    goal_noise : array-like, shape (n_dims,), optional
+        Exploration noise on the internal goal target (Eq. 33).
+    """
+
+    def __init__(self, prim, dt: float, start_y: Optional[ArrayLike] = None,
+                 start_yd: Optional[ArrayLike] = None, goal_y: Optional[ArrayLike] = None,
+                 tau: Optional[float] = None, velocity_limits: Optional[ArrayLike] = None,
+                 recovery_rate: float = 2.0, noise_phi: Optional[ArrayLike] = None,
+                 goal_noise: Optional[ArrayLike] = None):
+        prim._check_fitted()
+        self.prim = prim
+        n = self.n_dims = prim.n_dims
+        self.dt = check_positive('dt', dt)
+        self.tau = prim.tau_ if tau is None else check_positive('tau', tau)
+        self.recovery_rate = check_positive('recovery_rate', recovery_rate)
+        cfg = prim.config
+        self._a = cfg.alpha_y
+        self._ab = cfg.alpha_y * cfg.beta_y
+        self._ag = cfg.alpha_g
+        self._alpha_s = cfg.alpha_s
+        self._h = self.dt / self.tau
+        self._inv_h = 1.0 / self._h
+        # The semi-implicit Euler recursion x_{k+1} = tr x_k - det x_{k-1} + ... must be stable.
+        h = self._h
+        roots = np.roots([1.0, -(2.0 - h * cfg.alpha_y - h * h * cfg.alpha_y * cfg.beta_y),
+                          1.0 - h * cfg.alpha_y])
+        if h * cfg.alpha_y >= 1.0 or np.max(np.abs(roots)) >= 1.0:
+            raise ValueError(f'dt: dt / tau = {h:.3g} is too large for alpha_y = {cfg.alpha_y} '
+                             f'(need dt / tau * alpha_y < 1 and a stable recursion); use a '
+                             f'smaller dt or a larger tau')
+        self._inv_tau = 1.0 / self.tau
+        self._cdmp = prim.kind == 'cdmp'
+        self._yo = self._yd_ = None
+        self._zeros = [0.0] * n
+        self._xclamp = float(prim.x_clamp)
+        if self._cdmp:
+            self._yo = prim.transform.y_o.tolist()
+            self._yd_ = prim.transform.y_delta.tolist()
+        else:
+            self._yo = self._yd_ = [0.0] * n
+        self._vmax = None
+        if velocity_limits is not None:
+            vl = as_array('velocity_limits', velocity_limits, (n,))
+            if np.any(vl <= 0):
+                raise ValueError(f'velocity_limits: expected positive values, got {vl}')
+            self._vmax = vl.tolist()
+        self._noise = None
+        if noise_phi is not None:
+            self._noise = np.asarray(noise_phi, dtype=np.float64).tolist()
+        # Forcing profile on the grid u_k = k h up to U_END (+1 row), Eq. (15)-(16)/(23)-(24).
+        n_rows = int(math.ceil(U_END / self._h)) + 2
+        u_grid = np.arange(n_rows) * self._h
+        table = prim.basis.features(u_grid) @ prim.weights_.T  # (n_rows, n_dims)
+        # Keeps phi * (g - x0) finite for any finite weights.
+        table = np.clip(np.nan_to_num(table, nan=0.0), -1e290, 1e290)
+        self._table = table.tolist()
+        self._n_rows = n_rows
+        self._u_last = float(u_grid[-1])
+        self.input = StepInput(n)
+        self.output = StepOutput(n)
+        self._x = [0.0] * n
+        self._z = [0.0] * n
+        self._g = [0.0] * n
+        self._g0 = [0.0] * n
+        self._x0 = [0.0] * n
+        self._phi = [0.0] * n
+        self._base = [0.0] * n
+        self._clean = [0.0] * n
+        self.reset(start_y, start_yd, goal_y, goal_noise)
+
+    # -- configuration (outside the tick; may allocate) ---------------------------------------
+    def reset(self, start_y=None, start_yd=None, goal_y=None, goal_noise=None) -> None:
+        """Restart the movement from ``start_y`` with velocity ``start_yd``."""
+        prim, n = self.prim, self.n_dims
+        sy = prim.start_y_ if start_y is None else as_array('start_y', start_y, (n,))
+        syd = np.zeros(n) if start_yd is None else as_array('start_yd', start_yd, (n,))
+        gy = prim.goal_y_ if goal_y is None else as_array('goal_y', goal_y, (n,))
+        x0, xd0, g, g0 = prim.initial_state(sy, syd, gy, goal_noise)
+        self._x[:] = x0.tolist()
+        self._x0[:] = x0.tolist()
+        self._z[:] = np.clip(self.tau * xd0, -1e12, 1e12).tolist()
+        self._g[:] = g.tolist()
+        self._g0[:] = g0.tolist()
+        self._u = 0.0
+        self._k = 0
+        self._kappa = 1.0
+        self._t = 0.0
+        self._lookup(0.0, 0)
+        self._finish_outputs(self._zeros, init=True)
+        out = self.output
+        self._lists = (self._x, self._z, self._g, self._g0, self._x0, self._base, out.y,
+                       out.yd, out.ydd, out.xid, self._yo, self._yd_)
+        self._consts = (self._a, self._ab, self._h, self._h * self._ag, self._xclamp,
+                        self._inv_tau, self._inv_tau * self._inv_tau, self._cdmp)
+        out.xi = self._x  # the exogenous state itself (read-only for users)
+        if self._vmax is None:
+            self.update = self._update_fast
+
+    def set_goal(self, goal_y: ArrayLike) -> None:
+        """Change the goal target; the goal state follows through Eq. 14/22 (no jump)."""
+        g0 = self.prim.to_internal(as_array('goal_y', goal_y, (self.n_dims,)))
+        self._g0[:] = g0.tolist()
+
+    @property
+    def goal_internal(self) -> List[float]:
+        return list(self._g0)
+
+    # -- the tick -----------------------------------------------------------------------------
+    def _row(self, u: float, k: int):
+        """Grid rows, interpolation fraction and tail decay of the forcing profile at u."""
+        pos = u * self._inv_h
+        i = int(pos)
+        if i + 1 < self._n_rows:
+            return self._table[i], self._table[i + 1], pos - i, 1.0, self._noise_row(k)
+        r = self._table[-1]
+        return r, r, 0.0, math.exp(-self._alpha_s * (u - self._u_last)), self._noise_row(k)
+
+    def _noise_row(self, k: int):
+        noise = self._noise
+        if noise is not None and k < len(noise):
+            return noise[k]
+        return self._zeros
+
+    def _lookup(self, u: float, k: int) -> None:
+        """Forcing profile at normalised time u into self._phi (+ exploration of tick k)."""
+        r0, r1, fr, decay, nk = self._row(u, k)
+        phi = self._phi
+        for d in range(self.n_dims):
+            a = r0[d]
+            phi[d] = (a + fr * (r1[d] - a)) * decay + nk[d]
+
+    def update(self, inp: StepInput):
+        """Advance one step of ``dt``; returns ``(output, status)``. Never raises."""
+        status = 0
+        P = inp.coupling
+        n = self.n_dims
+        try:
+            bad = len(P) != n or not (-1e300 < sum(P) < 1e300)
+        except TypeError:
+            bad = True
+        if bad:
+            P = self._sanitize(P)
+            status |= 8  # INPUT_REJECTED
+        x, z, g, g0, x0, base = self._x, self._z, self._g, self._g0, self._x0, self._base
+        a, ab = self._a, self._ab
+        kappa = self._kappa
+        hk = self._h * kappa
+        hkag = hk * self._ag
+        xc = self._xclamp
+        u = self._u + hk
+        k = self._k + 1
+        pos = u * self._inv_h
+        i = int(pos)
+        if i + 1 < self._n_rows:
+            table = self._table
+            r0 = table[i]
+            r1 = table[i + 1]
+            fr = pos - i
+            decay = 1.0
+            noise = self._noise
+            nk = noise[k] if noise is not None and k < len(noise) else self._zeros
+        else:
+            r0, r1, fr, decay, nk = self._row(u, k)
+        fast = self._vmax is None
+        out = self.output
+        y, yd, ydd, xo, xdo = out.y, out.yd, out.ydd, out.xi, out.xid
+        inv_tau = self._inv_tau
+        inv_tau2 = inv_tau * inv_tau
+        cdmp = self._cdmp
+        yo, ydel = self._yo, self._yd_
+        for d in range(n):
+            p = P[d]
+            # tau dz/dt = alpha_y (beta_y (g - x) - z) + f + P, Eq. (13)/(21); base = all but P
+            zv = z[d] + hk * (base[d] + p)
+            if not (-1e12 < zv < 1e12):
+                zv = 1e12 if zv > 0 else (-1e12 if zv < 0 else 0.0)
+            xv = x[d] + hk * zv
+            if xv > xc:
+                xv = xc
+                if zv > 0.0:
+                    zv = 0.0
+                status |= 4  # SATURATED
+            elif xv < -xc:
+                xv = -xc
+                if zv < 0.0:
+                    zv = 0.0
+                status |= 4
+            x[d] = xv
+            z[d] = zv
+            gd = g[d]
+            gd += hkag * (g0[d] - gd)  # Eq. (14)/(22)
+            g[d] = gd
+            f0 = r0[d]
+            b = (ab * (gd - xv) - a * zv
+                 + ((f0 + fr * (r1[d] - f0)) * decay + nk[d]) * (gd - x0[d]))  # Eq. (15)-(16)
+            base[d] = b
+            if fast:  # kappa == 1: joint-space outputs in the same pass
+                vel = zv * inv_tau
+                ac = (b + p) * inv_tau2
+                xo[d] = xv
+                xdo[d] = vel
+                if cdmp:
+                    t = math.tanh(xv)
+                    de = ydel[d] * (1.0 - t * t)
+                    y[d] = ydel[d] * t + yo[d]  # Eq. (27)
+                    yd[d] = de * vel  # Eq. (28)
+                    ydd[d] = de * (ac - 2.0 * t * vel * vel)  # Eq. (29)
+                else:
+                    y[d] = xv
+                    yd[d] = vel
+                    ydd[d] = ac
+        self._u = u
+        self._k = k
+        self._t += self.dt
+        if fast:
+            out.t = self._t
+            out.u = u
+            out.phase = math.exp(-self._alpha_s * u)
+        else:
+            status |= self._finish_outputs(P)
+        status |= 1 if u < 1.0 else 2  # WORKING / FINISHED
+        return out, _STATUS[status]
+
+    def _update_fast(self, inp: StepInput):
+        """:meth:`update` without velocity limits (kappa == 1): one pass over the joints."""
+        status = 0
+        P = inp.coupling
+        try:
+            if len(P) != self.n_dims or not (-1e300 < sum(P) < 1e300):
+                P = self._sanitize(P)
+                status = 8  # INPUT_REJECTED
+        except TypeError:
+            P = self._sanitize(P)
+            status = 8
+        x, z, g, g0, x0, base, y, yd, ydd, xdo, yo, ydel = self._lists
+        a, ab, hk, hkag, xc, inv_tau, inv_tau2, cdmp = self._consts
+        k = self._k + 1
+        decay = 1.0
+        if self._noise is not None:
+            row = self._row_at(k * self._h, k)
+        elif k < self._n_rows:
+            row = self._table[k]
+        else:  # exponential tail of the basis beyond U_END
+            row = self._table[-1]
+            decay = math.exp(-self._alpha_s * (k * self._h - self._u_last))
+        tanh = math.tanh
+        for d in range(self.n_dims):
+            p = P[d]
+            # tau dz/dt = alpha_y (beta_y (g - x) - z) + f + P, Eq. (13)/(21); base = all but P
+            zv = z[d] + hk * (base[d] + p)
+            if not -1e12 < zv < 1e12:  # finite and bounded, also for a plain DMP
+                zv = 1e12 if zv > 0 else (-1e12 if zv < 0 else 0.0)
+            xv = x[d] + hk * zv
+            if not -xc <= xv <= xc:
+                xv = xc if xv > 0 else -xc
+                if zv * xv > 0.0:
+                    zv = 0.0
+                status |= 4  # SATURATED
+            x[d] = xv
+            z[d] = zv
+            gd = g[d]
+            gd += hkag * (g0[d] - gd)  # Eq. (14)/(22)
+            g[d] = gd
+            b = ab * (gd - xv) - a * zv + row[d] * decay * (gd - x0[d])  # Eq. (15)-(16)
+            base[d] = b
+            vel = zv * inv_tau
+            xdo[d] = vel
+            if cdmp:
+                t = tanh(xv)
+                de = ydel[d]
+                s = de * (1.0 - t * t)
+                y[d] = de * t + yo[d]  # Eq. (27)
+                yd[d] = s * vel  # Eq. (28)
+                ydd[d] = s * ((b + p) * inv_tau2 - 2.0 * t * vel * vel)  # Eq. (29)
+            else:
+                y[d] = xv
+                yd[d] = vel
+                ydd[d] = (b + p) * inv_tau2
+        self._k = k
+        u = k * self._h
+        self._u = u
+        t_now = k * self.dt
+        self._t = t_now
+        out = self.output
+        out.t = t_now
+        out.u = u
+        out.phase = math.exp(-self._alpha_s * u)
+        return out, _STATUS[status | (1 if u < 1.0 else 2)]
+
+    def _row_at(self, u: float, k: int) -> List[float]:
+        """Forcing profile row at u, with the tail and the exploration of tick k."""
+        r0, r1, fr, decay, nk = self._row(u, k)
+        return [(a + fr * (b - a)) * decay + e for a, b, e in zip(r0, r1, nk)]
+
+    def _sanitize(self, P) -> List[float]:
+        """Coupling of the wrong length or with non-finite/huge entries -> safe list."""
+        clean = self._clean
+        try:
+            vals = list(P)
+        except TypeError:
+            vals = []
+        for d in range(self.n_dims):
+            p = vals[d] if d < len(vals) else 0.0
+            try:
+                p = float(p)
+            except (TypeError, ValueError):
+                p = 0.0
+            clean[d] = p if -1e300 < p < 1e300 else 0.0
+        return clean
+
+    def _finish_outputs(self, P, init: bool = False) -> int:
+        """Kappa update and joint outputs at the current state (Eq. 27-29).
+
+        With ``init`` the acceleration base (everything but P) is computed first.
+        """
+        status = 0
+        out = self.output
+        x, z, g, x0, phi, base = self._x, self._z, self._g, self._x0, self._phi, self._base
+        a, ab = self._a, self._ab
+        inv_tau = self._inv_tau
+        if init:
+            for d in range(self.n_dims):
+                gd = g[d]
+                base[d] = ab * (gd - x[d]) - a * z[d] + phi[d] * (gd - x0[d])
+        kappa = 1.0
+        cdmp = self._cdmp
+        vmax = self._vmax
+        if vmax is not None:
+            kappa = min(1.0, self._kappa + self.recovery_rate * self.dt)
+            for d in range(self.n_dims):
+                v = z[d] * inv_tau
+                if cdmp:
+                    t = math.tanh(x[d])
+                    v *= self._yd_[d] * (1.0 - t * t)
+                v = abs(v)
+                if v * kappa > vmax[d]:
+                    kappa = vmax[d] / v
+            if kappa < 1.0:
+                status |= StepStatus.VELOCITY_LIMITED
+            self._kappa = kappa
+        k2 = kappa * kappa * inv_tau * inv_tau
+        y, yd, ydd, xo, xdo = out.y, out.yd, out.ydd, out.xi, out.xid
+        for d in range(self.n_dims):
+            xv = x[d]
+            vel = kappa * z[d] * inv_tau
+            ac = k2 * (base[d] + P[d])
+            xo[d] = xv
+            xdo[d] = vel
+            if cdmp:
+                t = math.tanh(xv)
+                s = 1.0 - t * t
+                de = self._yd_[d]
+                y[d] = de * t + self._yo[d]  # Eq. (27)
+                yd[d] = de * s * vel  # Eq. (28)
+                ydd[d] = de * s * (ac - 2.0 * t * vel * vel)  # Eq. (29)
+            else:
+                y[d] = xv
+                yd[d] = vel
+                ydd[d] = ac
+        out.t = self._t
+        out.u = self._u
+        out.kappa = kappa
+        out.phase = math.exp(-self._alpha_s * self._u)
+        return status
