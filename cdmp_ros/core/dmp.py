@@ -280,8 +280,9 @@ class DMP:
         g_noise = (np.zeros(self.n_dims) if goal_noise is None
                    else as_array('goal_noise', goal_noise, (self.n_dims,)))
         if coupling is None and velocity_limits is None:
-            traj = self._rollout_vectorised(dt, tau, n_steps, start_y, start_yd, goal_y, eps,
-                                            g_noise)
+            with np.errstate(over='ignore', invalid='ignore'):  # overflow -> stepwise path
+                traj = self._rollout_vectorised(dt, tau, n_steps, start_y, start_yd, goal_y,
+                                                eps, g_noise)
             if traj is not None:
                 return traj
         return self._rollout_stepwise(dt, tau, n_steps, start_y, start_yd, goal_y, eps,
@@ -341,7 +342,8 @@ class DMP:
         noise_phi = None
         if eps is not None:
             Phi = self.basis.features(np.arange(n_steps) * (dt / tau))
-            noise_phi = np.einsum('kj,kdj->kd', Phi, eps)
+            with np.errstate(over='ignore', invalid='ignore'):
+                noise_phi = np.einsum('kj,kdj->kd', Phi, eps)
         st = DmpStepper(self, dt, start_y=start_y, start_yd=start_yd, goal_y=goal_y, tau=tau,
                         velocity_limits=velocity_limits, noise_phi=noise_phi,
                         goal_noise=g_noise)

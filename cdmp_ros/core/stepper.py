@@ -136,11 +136,13 @@ class DmpStepper:
             self._vmax = vl.tolist()
         self._noise = None
         if noise_phi is not None:
-            self._noise = np.asarray(noise_phi, dtype=np.float64).tolist()
+            noise = np.nan_to_num(np.asarray(noise_phi, dtype=np.float64), nan=0.0)
+            self._noise = np.clip(noise, -1e290, 1e290).tolist()
         # Forcing profile on the grid u_k = k h up to U_END (+1 row), Eq. (15)-(16)/(23)-(24).
         n_rows = int(math.ceil(U_END / self._h)) + 2
         u_grid = np.arange(n_rows) * self._h
-        table = prim.basis.features(u_grid) @ prim.weights_.T  # (n_rows, n_dims)
+        with np.errstate(over='ignore', invalid='ignore'):
+            table = prim.basis.features(u_grid) @ prim.weights_.T  # (n_rows, n_dims)
         # Keeps phi * (g - x0) finite for any finite weights.
         table = np.clip(np.nan_to_num(table, nan=0.0), -1e290, 1e290)
         self._table = table.tolist()
