@@ -1,0 +1,142 @@
+"""Single-configuration forward kinematics and Jacobians on plain Python floats.
+
+For one 7-DoF configuration numpy's per-call overhead (about 1 us per ufunc) dominates the
+arithmetic (../shared/design.md, Numerics notes). This module therefore generates, once per
+chain and set of points, a straight-line Python function of the joint positions that performs
+exactly the recursion of :meth:`Chain._frames` on scalar floats, with the constant transforms
+folded in: products with constant 0 are dropped and products with constant +-1 become
+(negated) copies. For the Panda, whose joint origins are rotations by +-pi/2 about x, this
+turns each constant rotation into a renaming of columns. The generated source is kept in
+``kernel.source`` for inspection; test/test_core_kinematics.py checks it against the batched
+numpy path.
+"""
+from typing import Callable, List, Sequence, Tuple, Union
+
+Value = Union[float, str]
+
+
+class _Emitter:
+    """Builds straight-line code; values are float constants or variable names."""
+
+    def __init__(self):
+        self.lines: List[str] = []
+        self.count = 0
+
+    def sum(self, terms: Sequence[Tuple[float, Value, Value]]) -> Value:
+        """Emit ``sum(sign * a * b)``, folding constants; return a constant or a name."""
+        const = 0.0
+        parts = []
+        for sign, a, b in terms:
+            if isinstance(a, float) and isinstance(b, float):
+                const += sign * a * b
+                continue
+            if isinstance(a, float):
+                a, b = b, a
+            if isinstance(b, float):
+                if b == 0.0:
+                    continue
+                if b == 1.0 or b == -1.0:
+                    parts.append((sign * b, a))
+                    continue
+                parts.append((sign, f'{a} * {b!r}'))
+            else:
+                parts.append((sign, f'{a} * {b}'))
+        if not parts:
+            return const
+        if len(parts) == 1 and parts[0][0] == 1.0 and const == 0.0 and ' ' not in parts[0][1]:
+            return parts[0][1]
+        expr = ''
+        for sign, text in parts:
+            if not expr:
+                expr = text if sign > 0 else f'-{text}'
+            else:
+                expr += f' + {text}' if sign > 0 else f' - {text}'
+        if const != 0.0:
+            expr += f' + {const!r}'
+        return self.assign(expr)
+
+    def assign(self, expr: str) -> str:
+        name = f'v{self.count}'
+        self.count += 1
+        self.lines.append(f'    {name} = {expr}')
+        return name
+
+
+def compile_kernel(B, base, prismatic, frames: Sequence[int], coords
+                   ) -> Callable[[Sequence[float]], Tuple[List[float], List[float]]]:
+    """Generate the scalar kernel ``kernel(q) -> (x, jac)`` of a chain and a set of points.
+
+    Parameters
+    ----------
+    B : ndarray (n_dofs, 4, 4)
+        Constant transforms of the internal frames (see :mod:`.chain`).
+    base : ndarray (4, 4)
+        World pose of internal frame 0.
+    prismatic : sequence of bool (n_dofs)
+    frames : sequence of int (n_points)
+        Internal frame of each point.
+    coords : array-like (n_points, 3)
+        Coordinates of each point in its internal frame.
+
+    Returns
+    -------
+    kernel : callable
+        ``kernel(q)`` with ``q`` a sequence of n_dofs floats returns ``x``, a list of
+        3 * n_points floats (row-major (n_points, 3)) and ``jac``, a list of
+        n_points * 3 * n_dofs floats (row-major (n_points, 3, n_dofs)).
+    """
+    n = len(prismatic)
+    em = _Emitter()
+    qn = [f'q{k}' for k in range(n)]
+    em.lines.append(f'    {", ".join(qn)}, = q')
+    R = [[float(base[i, j]) for j in range(3)] for i in range(3)]
+    p = [float(base[i, 3]) for i in range(3)]
+    Rs, ps = [R], [p]
+    for k in range(n):
+        b = B[k]
+        p = [em.sum([(1.0, p[i], 1.0)] + [(1.0, R[i][m], float(b[m, 3])) for m in range(3)])
+             for i in range(3)]
+        M = [[em.sum([(1.0, R[i][m], float(b[m, j])) for m in range(3)]) for j in range(3)]
+             for i in range(3)]
+        if prismatic[k]:
+            p = [em.sum([(1.0, p[i], 1.0), (1.0, M[i][2], qn[k])]) for i in range(3)]
+            R = M
+        else:
+            c = em.assign(f'cos({qn[k]})')
+            s = em.assign(f'sin({qn[k]})')
+            R = [[em.sum([(1.0, M[i][0], c), (1.0, M[i][1], s)]),
+                  em.sum([(1.0, M[i][1], c), (-1.0, M[i][0], s)]),
+                  M[i][2]] for i in range(3)]
+        Rs.append(R)
+        ps.append(p)
+    xs, jac = [], []
+    for k, c in zip(frames, coords):
+        c = [float(v) for v in c]
+        x = [em.sum([(1.0, ps[k][i], 1.0)] + [(1.0, Rs[k][i][m], c[m]) for m in range(3)])
+             for i in range(3)]
+        xs += x
+        cols = []
+        for j in range(n):
+            if j >= k:
+                cols.append((0.0, 0.0, 0.0))
+                continue
+            z = [Rs[j + 1][i][2] for i in range(3)]
+            if prismatic[j]:
+                cols.append(tuple(z))
+                continue
+            d = [em.sum([(1.0, x[i], 1.0), (-1.0, ps[j + 1][i], 1.0)]) for i in range(3)]
+            cols.append((em.sum([(1.0, z[1], d[2]), (-1.0, z[2], d[1])]),
+                         em.sum([(1.0, z[2], d[0]), (-1.0, z[0], d[2])]),
+                         em.sum([(1.0, z[0], d[1]), (-1.0, z[1], d[0])])))
+        for i in range(3):
+            jac += [col[i] for col in cols]
+    body = '\n'.join(em.lines)
+    ret_x = ', '.join(repr(v) if isinstance(v, float) else v for v in xs)
+    ret_j = ', '.join(repr(v) if isinstance(v, float) else v for v in jac)
+    source = (f'def kernel(q):\n{body}\n    return [{ret_x}], [{ret_j}]\n')
+    namespace = {}
+    exec(compile(source, '<cdmp_ros.kinematics.fast>', 'exec'),  # noqa: S102 (generated)
+         {'cos': __import__('math').cos, 'sin': __import__('math').sin}, namespace)
+    kernel = namespace['kernel']
+    kernel.source = source
+    return kernel

@@ -1,0 +1,363 @@
+"""Batched kinematics (cdmp_ros.core.kinematics) and the URDF parser (cdmp_ros.core.urdf).
+
+Independent references: the planar closed form, a double-precision homogeneous-matrix chain
+built with scipy's rotations straight from the URDF, pybullet (FK and calculateJacobian), and
+central finite differences of our own FK for the Jacobians.
+"""
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pybullet
+import pybullet_data
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics import (PANDA_EE_OFFSET, PointOfInterest, chain_from_urdf,
+                                      dual_panda_chains, panda_chain, planar_chain, pose)
+from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string
+
+PANDA_URDF = pybullet_data.getDataPath() + '/franka_panda/panda.urdf'
+
+# pybullet returns the URDF link-frame position (getLinkState[4]) through a single-precision
+# inertial offset (the Panda's first joint at z = 0.333 comes back as float32(0.333); see
+# test_pybullet_is_single_precision); its centre-of-mass poses and Jacobians are double.
+PYBULLET_TOL = 5e-7
+DOUBLE_TOL = 1e-9
+
+CUSTOM_URDF = '''<?xml version="1.0"?>
+<robot name="mixed">
+  <link name="base"/><link name="l1"/><link name="l2"/><link name="l3"/><link name="l4"/>
+  <link name="tool"/><link name="side"/>
+  <joint name="j1" type="revolute">
+    <parent link="base"/><child link="l1"/>
+    <origin xyz="0.1 0 0.2" rpy="0 0 0.3"/><axis xyz="0 0 1"/>
+    <limit lower="-2" upper="2" velocity="1.5" effort="1"/>
+  </joint>
+  <joint name="j2" type="prismatic">
+    <parent link="l1"/><child link="l2"/>
+    <origin xyz="0 0.2 0.1" rpy="0.4 -0.2 0.1"/><axis xyz="1 1 0"/>
+    <limit lower="-0.1" upper="0.3" velocity="0.5" effort="1"/>
+  </joint>
+  <joint name="fixed1" type="fixed">
+    <parent link="l2"/><child link="l3"/><origin xyz="0 0 0.15" rpy="1.2 0 0"/>
+  </joint>
+  <joint name="j3" type="continuous">
+    <parent link="l3"/><child link="l4"/>
+    <origin xyz="0.3 0 0" rpy="0 0.7 0"/><axis xyz="0 -1 0"/>
+    <limit velocity="3.0" effort="1"/>
+  </joint>
+  <joint name="j4" type="revolute">
+    <parent link="l4"/><child link="tool"/>
+    <origin xyz="0 0 0.25" rpy="0 0 0"/><axis xyz="0.2 0.3 -0.9"/>
+    <limit lower="-1" upper="1.5" velocity="2.0" effort="1"/>
+  </joint>
+  <joint name="j5" type="revolute">
+    <parent link="l1"/><child link="side"/>
+    <axis xyz="1 0 0"/><limit lower="-1" upper="1" velocity="1" effort="1"/>
+  </joint>
+</robot>
+'''
+
+
+@pytest.fixture(scope='module')
+def panda():
+    return panda_chain(PANDA_URDF)
+
+
+@pytest.fixture(scope='module')
+def custom_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp('urdf') / 'mixed.urdf'
+    path.write_text(CUSTOM_URDF)
+    return str(path)
+
+
+@pytest.fixture(scope='module')
+def bullet():
+    cid = pybullet.connect(pybullet.DIRECT)
+    robot = pybullet.loadURDF(PANDA_URDF, useFixedBase=True, physicsClientId=cid)
+    index = {pybullet.getJointInfo(robot, i, physicsClientId=cid)[12].decode(): i
+             for i in range(pybullet.getNumJoints(robot, physicsClientId=cid))}
+    yield cid, robot, index
+    pybullet.disconnect(cid)
+
+
+def reference_frames(path, tip, q, base=np.eye(4)):
+    """Double-precision URDF FK with scipy rotations: world pose of every link on the path."""
+    robot = parse_urdf(path)
+    T = base.copy()
+    out = {}
+    i = 0
+    for joint in robot.path(tip):
+        origin = np.eye(4)
+        origin[:3, :3] = Rotation.from_euler('xyz', joint.rpy).as_matrix()  # extrinsic = URDF
+        origin[:3, 3] = joint.xyz
+        motion = np.eye(4)
+        if joint.type in ('revolute', 'continuous'):
+            motion[:3, :3] = Rotation.from_rotvec(np.array(joint.axis) * q[i]).as_matrix()
+        elif joint.type == 'prismatic':
+            motion[:3, 3] = np.array(joint.axis) * q[i]
+        i += joint.type != 'fixed'
+        T = T @ origin @ motion
+        out[joint.child] = T
+    return out
+
+
+def finite_difference_jacobian(chain, q, points, h=1e-6):
+    J = np.empty((len(points), 3, chain.n_dofs))
+    for j in range(chain.n_dofs):
+        dq = np.zeros(chain.n_dofs)
+        dq[j] = h
+        J[:, :, j] = (chain.forward(q + dq, points) - chain.forward(q - dq, points)) / (2 * h)
+    return J
+
+
+# ------------------------------------------------------------------ planar chain
+def test_planar_chain_matches_closed_form(rng):
+    lengths = np.array([1.0, 1.0, 1.0, 1.0])
+    chain = planar_chain(lengths)
+    Q = rng.uniform(-np.pi, np.pi, (5, 6, 4))
+    X, J = chain.forward_and_jacobian(Q, [PointOfInterest('ee'), PointOfInterest('link3')])
+    theta = np.cumsum(Q, axis=-1)
+    ee = np.stack([(lengths * np.cos(theta)).sum(-1), (lengths * np.sin(theta)).sum(-1),
+                   np.zeros(theta.shape[:-1])], -1)
+    np.testing.assert_allclose(X[..., 0, :], ee, atol=1e-12)
+    # link3's frame is at joint 3: sum of the first two links
+    np.testing.assert_allclose(X[..., 1, 0], (np.cos(theta) * lengths)[..., :2].sum(-1),
+                               atol=1e-12)
+    # dx/dq_j = -sum_{i >= j} l_i sin(theta_i), dy/dq_j = sum_{i >= j} l_i cos(theta_i)
+    tail_sin = np.flip(np.cumsum(np.flip(lengths * np.sin(theta), -1), -1), -1)
+    tail_cos = np.flip(np.cumsum(np.flip(lengths * np.cos(theta), -1), -1), -1)
+    np.testing.assert_allclose(J[..., 0, 0, :], -tail_sin, atol=1e-12)
+    np.testing.assert_allclose(J[..., 0, 1, :], tail_cos, atol=1e-12)
+    np.testing.assert_array_equal(J[..., 0, 2, :], 0.0)
+    np.testing.assert_array_equal(J[..., 1, :, 2:], 0.0)   # link3 is not moved by joints 3, 4
+    assert chain.task_axes == (0, 1)
+    np.testing.assert_array_equal(chain.lower, -np.pi)
+
+
+def test_planar_chain_rejects_bad_lengths():
+    with pytest.raises(ValidationError, match='link_lengths'):
+        planar_chain([1.0, -1.0])
+    with pytest.raises(ValidationError, match='limits'):
+        planar_chain([1.0, 1.0], lower=[0.0, 0.0], upper=[1.0, -1.0])
+
+
+# ------------------------------------------------------------------ Panda
+def test_pybullet_is_single_precision(bullet):
+    """Why PYBULLET_TOL is not 1e-9: pybullet returns the URDF's 0.333 m as float32."""
+    cid, robot, index = bullet
+    for i in range(7):
+        pybullet.resetJointState(robot, i, 0.0, physicsClientId=cid)
+    z = pybullet.getLinkState(robot, index['panda_link1'], computeForwardKinematics=1,
+                              physicsClientId=cid)[4][2]
+    assert z == float(np.float32(0.333)) and z != 0.333
+
+
+def test_panda_limits_from_urdf(panda):
+    assert panda.joint_names == [f'panda_joint{i}' for i in range(1, 8)]
+    np.testing.assert_allclose(panda.lower, [-2.9671, -1.8326, -2.9671, -3.1416, -2.9671,
+                                             -0.0873, -2.9671])
+    np.testing.assert_allclose(panda.upper, [2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223,
+                                             2.9671])
+    np.testing.assert_allclose(panda.velocity_limits, [2.175] * 4 + [2.61] * 3)
+    assert panda.ee_link == 'panda_hand'
+
+
+def test_panda_fk_matches_double_reference(panda, rng):
+    Q = rng.uniform(panda.lower, panda.upper, (30, 7))
+    frames = panda.link_frames(Q)
+    for q, F in zip(Q, frames):
+        ref = reference_frames(PANDA_URDF, 'panda_hand', q)
+        for i, link in enumerate(panda.link_names[1:], start=1):
+            np.testing.assert_allclose(F[i], ref[link], atol=DOUBLE_TOL, err_msg=link)
+        tcp = ref['panda_hand'] @ np.r_[PANDA_EE_OFFSET, 1.0]
+        np.testing.assert_allclose(panda.forward(q, [PointOfInterest('ee')])[0], tcp[:3],
+                                   atol=DOUBLE_TOL)
+
+
+def _inertial_origins(path):
+    """URDF <inertial><origin xyz> of every link (pybullet's centre-of-mass frame)."""
+    out = {}
+    for link in ET.parse(path).getroot().findall('link'):
+        origin = link.find('inertial/origin')
+        xyz = origin.get('xyz', '0 0 0') if origin is not None else '0 0 0'
+        out[link.get('name')] = np.array([float(v) for v in xyz.split()])
+    return out
+
+
+def test_panda_fk_and_jacobian_match_pybullet(panda, bullet, rng):
+    """pybullet's centre-of-mass poses (getLinkState[0], [1]) and calculateJacobian are double
+    precision, so they are compared to 1e-9; its URDF-frame position getLinkState[4] carries
+    the single-precision inertial offset and is compared to PYBULLET_TOL."""
+    cid, robot, index = bullet
+    inertial = _inertial_origins(PANDA_URDF)
+    links = ['panda_link1', 'panda_link2', 'panda_link4', 'panda_link6', 'panda_link7',
+             'panda_hand']
+    offset = (0.03, -0.02, 0.05)
+    points = [PointOfInterest(link, offset) for link in links] + [PointOfInterest('ee')]
+    Q = rng.uniform(panda.lower, panda.upper, (15, 7))
+    X, J = panda.forward_and_jacobian(Q, points)
+    for q, Xq, Jq in zip(Q, X, J):
+        for i in range(7):
+            pybullet.resetJointState(robot, i, q[i], physicsClientId=cid)
+        state = pybullet.getLinkState(robot, index['panda_grasptarget'],
+                                      computeForwardKinematics=1, physicsClientId=cid)
+        assert not inertial['panda_grasptarget'].any()
+        np.testing.assert_allclose(Xq[-1], state[0], atol=DOUBLE_TOL)   # the TCP
+        frames = panda.link_frames(q)
+        for i, link in enumerate(links):
+            state = pybullet.getLinkState(robot, index[link], computeForwardKinematics=1,
+                                          physicsClientId=cid)
+            F = frames[panda.link_names.index(link)]
+            np.testing.assert_allclose(F[:3, :3] @ inertial[link] + F[:3, 3], state[0],
+                                       atol=DOUBLE_TOL, err_msg=link)
+            R_bullet = np.array(pybullet.getMatrixFromQuaternion(state[1])).reshape(3, 3)
+            np.testing.assert_allclose(F[:3, :3], R_bullet, atol=DOUBLE_TOL, err_msg=link)
+            np.testing.assert_allclose(F[:3, 3], state[4], atol=PYBULLET_TOL, err_msg=link)
+            np.testing.assert_allclose(Xq[i], F[:3, :3] @ offset + F[:3, 3], atol=1e-12)
+            # pybullet 3.2.7 takes localPosition in the URDF link frame
+            lin, _ = pybullet.calculateJacobian(robot, index[link], list(offset),
+                                                list(q) + [0.0, 0.0], [0.0] * 9, [0.0] * 9,
+                                                physicsClientId=cid)
+            np.testing.assert_allclose(Jq[i], np.array(lin)[:, :7], atol=DOUBLE_TOL,
+                                       err_msg=link)
+        lin, _ = pybullet.calculateJacobian(robot, index['panda_grasptarget'], [0.0] * 3,
+                                            list(q) + [0.0, 0.0], [0.0] * 9, [0.0] * 9,
+                                            physicsClientId=cid)
+        np.testing.assert_allclose(Jq[-1], np.array(lin)[:, :7], atol=DOUBLE_TOL)
+
+
+def test_panda_jacobian_matches_finite_differences(panda, rng):
+    points = [PointOfInterest('ee'), PointOfInterest('panda_link4', (0.1, 0.0, -0.05)),
+              PointOfInterest('panda_link3')]
+    for q in rng.uniform(panda.lower, panda.upper, (5, 7)):
+        _, J = panda.forward_and_jacobian(q, points)
+        np.testing.assert_allclose(J, finite_difference_jacobian(panda, q, points), atol=1e-8)
+
+
+def test_single_path_equals_batched(panda, rng):
+    points = (PointOfInterest('ee'), PointOfInterest('panda_link5', (0.0, 0.1, 0.0)),
+              PointOfInterest('panda_link0'), PointOfInterest('panda_link1', (0.1, 0, 0)))
+    Q = rng.uniform(panda.lower, panda.upper, (2, 3, 7))
+    X, J = panda.forward_and_jacobian(Q, points)
+    assert X.shape == (2, 3, 4, 3) and J.shape == (2, 3, 4, 3, 7)
+    np.testing.assert_allclose(panda.forward(Q, points), X, atol=0)
+    for idx in np.ndindex(2, 3):
+        x1, j1 = panda.forward_and_jacobian(Q[idx], points)
+        np.testing.assert_allclose(x1, X[idx], atol=1e-13)
+        np.testing.assert_allclose(j1, J[idx], atol=1e-13)
+        np.testing.assert_allclose(panda.forward(list(Q[idx]), points), X[idx], atol=1e-13)
+    np.testing.assert_array_equal(J[..., 2, :, :], 0.0)    # the base link does not move
+    np.testing.assert_array_equal(J[..., 3, :, 1:], 0.0)   # link1 only moves with joint 1
+
+
+def test_mixed_joint_types_against_reference(custom_path, rng):
+    base = pose((0.5, -0.2, 0.1), (0.1, 0.2, 0.3))
+    chain = chain_from_urdf(custom_path, 'tool', base_transform=base,
+                            ee_offset=(0.0, 0.05, 0.1))
+    assert chain.joint_names == ['j1', 'j2', 'j3', 'j4']
+    assert list(chain.prismatic) == [False, True, False, False]
+    np.testing.assert_array_equal(chain.lower, [-2.0, -0.1, -np.inf, -1.0])
+    np.testing.assert_array_equal(chain.upper, [2.0, 0.3, np.inf, 1.5])
+    np.testing.assert_array_equal(chain.velocity_limits, [1.5, 0.5, 3.0, 2.0])
+    points = [PointOfInterest('ee'), PointOfInterest('l3', (0.1, 0.2, 0.3)),
+              PointOfInterest('l2')]
+    Q = rng.uniform(-1.0, 1.0, (6, 4)) * [1.0, 0.1, 3.0, 1.0]
+    X, J = chain.forward_and_jacobian(Q, points)
+    for q, Xq, Jq in zip(Q, X, J):
+        ref = reference_frames(custom_path, 'tool', q, base)
+        np.testing.assert_allclose(Xq[0], (ref['tool'] @ [0.0, 0.05, 0.1, 1.0])[:3],
+                                   atol=DOUBLE_TOL)
+        np.testing.assert_allclose(Xq[1], (ref['l3'] @ [0.1, 0.2, 0.3, 1.0])[:3],
+                                   atol=DOUBLE_TOL)
+        frames = chain.link_frames(q)
+        for i, link in enumerate(chain.link_names[1:], start=1):
+            np.testing.assert_allclose(frames[i], ref[link], atol=DOUBLE_TOL)
+        np.testing.assert_allclose(Jq, finite_difference_jacobian(chain, q, points),
+                                   atol=1e-8)
+        x1, j1 = chain.forward_and_jacobian(q, points)
+        np.testing.assert_allclose(j1, Jq, atol=1e-13)
+        np.testing.assert_allclose(x1, Xq, atol=1e-13)
+
+
+def test_dual_panda_cell(rng):
+    left, right = dual_panda_chains(PANDA_URDF)
+    q = rng.uniform(left.lower, left.upper)
+    xl = left.forward(q, [PointOfInterest('ee')])[0]
+    xr = right.forward(q, [PointOfInterest('ee')])[0]
+    # same configuration, mirrored cell: turned by pi about z around x = 1.13 / 2
+    np.testing.assert_allclose(xr, [1.13 - xl[0], -xl[1], xl[2]], atol=1e-12)
+    np.testing.assert_allclose(right.joint_origins(q)[0], [1.13, 0.0, 0.0], atol=1e-15)
+
+
+def test_link_segments_join_joint_origins(panda, rng):
+    q = rng.uniform(panda.lower, panda.upper)
+    origins = panda.joint_origins(q)[1:]
+    segments = panda.link_segments()
+    assert len(segments) == 7
+    ends = panda.forward(q, [PointOfInterest(link, end) for link, _, end in segments])
+    starts = panda.forward(q, [PointOfInterest(link, start) for link, start, _ in segments])
+    np.testing.assert_allclose(starts, origins, atol=1e-12)
+    np.testing.assert_allclose(ends[:-1], origins[1:], atol=1e-12)
+    np.testing.assert_allclose(ends[-1], panda.forward(q, [PointOfInterest('ee')])[0],
+                               atol=1e-12)
+
+
+def test_input_validation(panda):
+    with pytest.raises(ValidationError, match=r'Q: expected shape \(\.\.\., 7\)'):
+        panda.forward(np.zeros(6), [PointOfInterest('ee')])
+    with pytest.raises(ValidationError, match='points\\[0\\].link'):
+        panda.forward(np.zeros(7), [PointOfInterest('nope')])
+    with pytest.raises(ValidationError, match='PointOfInterest.offset'):
+        PointOfInterest('ee', (1.0, 2.0))
+    with pytest.raises(ValidationError, match='Q: expected finite'):
+        panda.forward_and_jacobian(np.full((2, 7), np.nan), [PointOfInterest('ee')])
+    with pytest.raises(ValidationError, match='tip_link'):
+        chain_from_urdf(PANDA_URDF, 'no_such_link')
+    with pytest.raises(ValidationError, match='base_transform'):
+        panda_chain(PANDA_URDF, base_transform=np.ones((4, 4)))
+
+
+# ------------------------------------------------------------------ URDF parser
+def _joint(body, name='j1', jtype='revolute'):
+    return (f'<robot name="r"><link name="a"/><link name="b"/>'
+            f'<joint name="{name}" type="{jtype}">{body}</joint></robot>')
+
+
+GOOD = '<parent link="a"/><child link="b"/>'
+LIMIT = '<limit lower="-1" upper="1" velocity="1" effort="1"/>'
+
+
+@pytest.mark.parametrize('text, match', [
+    (_joint(GOOD + LIMIT, jtype='floating'), "joint 'j1': type"),
+    (_joint('<child link="b"/>' + LIMIT), "joint 'j1': missing <parent"),
+    (_joint('<parent link="x"/><child link="b"/>' + LIMIT), "joint 'j1': parent link 'x'"),
+    (_joint(GOOD), "joint 'j1': missing <limit>"),
+    (_joint(GOOD + '<limit lower="-1" upper="1" effort="1"/>'),
+     "joint 'j1': missing limit velocity"),
+    (_joint(GOOD + '<limit lower="1" upper="-1" velocity="1"/>'),
+     "joint 'j1': limit expected lower < upper"),
+    (_joint(GOOD + '<limit lower="a" upper="1" velocity="1"/>'),
+     "joint 'j1': limit lower expected a number"),
+    (_joint(GOOD + LIMIT + '<origin xyz="0 0"/>'), "joint 'j1': origin xyz expected 3"),
+    (_joint(GOOD + LIMIT + '<origin rpy="0 0 nan"/>'), "joint 'j1': origin rpy expected 3"),
+    (_joint(GOOD + LIMIT + '<axis xyz="0 0 0"/>'), "joint 'j1': axis xyz expected a non-zero"),
+    ('<robot><link name="a"/>', 'malformed XML'),
+    ('<robt/>', 'root element expected <robot>'),
+    ('<robot><link name="a"/><link name="a"/></robot>', "link 'a' defined twice"),
+])
+def test_urdf_errors_name_the_element(text, match):
+    with pytest.raises(ValidationError, match=match):
+        parse_urdf_string(text)
+
+
+def test_urdf_parses_panda():
+    robot = parse_urdf(PANDA_URDF)
+    joint = {j.name: j for j in robot.joints}['panda_joint4']
+    assert (joint.type, joint.parent, joint.child) == ('revolute', 'panda_link3', 'panda_link4')
+    assert joint.xyz == (0.0825, 0.0, 0.0) and joint.rpy == (1.57079632679, 0.0, 0.0)
+    assert (joint.lower, joint.upper, joint.velocity) == (-3.1416, 0.0, 2.175)
+    assert robot.root_link() == 'panda_link0'
+    with pytest.raises(ValidationError, match='urdf path'):
+        parse_urdf('/nonexistent/robot.urdf')
