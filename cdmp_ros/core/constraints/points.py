@@ -1,0 +1,87 @@
+"""Points of interest x_t = T(z_t) of the constrained ProMP (paper 003, Section II-E).
+
+A point of interest maps the joint (or Cartesian) state z_t of the ProMP to the coordinates the
+constraint acts on. Linear maps (selecting dimensions of a Cartesian ProMP, or a joint) give exact
+Gaussian moments; non-linear maps (forward kinematics) are approximated by a Gaussian with the
+unscented transform over the dimensions ``dofs`` they depend on.
+"""
+from typing import Sequence, Tuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdmp_ros.core.errors import ValidationError
+
+
+class Point:
+    """Base class. ``dofs``: indices of z the point depends on; ``n_out``: output dimension."""
+    linear = False
+    dofs: Tuple[int, ...] = ()
+    n_out: int = 0
+
+    def check(self, n_dims: int) -> None:
+        if not self.dofs or min(self.dofs) < 0 or max(self.dofs) >= n_dims:
+            raise ValidationError(f'point.dofs: expected indices in [0, {n_dims}), '
+                                  f'got {list(self.dofs)}')
+
+    def forward_and_jacobian(self, Z: NDArray) -> Tuple[NDArray, NDArray]:
+        """Z (..., len(dofs)) -> X (..., n_out), J (..., n_out, len(dofs))."""
+        raise NotImplementedError
+
+    def forward(self, Z: NDArray) -> NDArray:
+        return self.forward_and_jacobian(Z)[0]
+
+
+class DofPoint(Point):
+    """x_t = z_t[dofs]: joints of a joint-space ProMP or coordinates of a Cartesian ProMP."""
+    linear = True
+
+    def __init__(self, dofs: Sequence[int]):
+        self.dofs = tuple(int(d) for d in dofs)
+        self.n_out = len(self.dofs)
+
+    def forward_and_jacobian(self, Z):
+        J = np.broadcast_to(np.eye(self.n_out), Z.shape[:-1] + (self.n_out, self.n_out))
+        return Z, J
+
+
+class ChainPoint(Point):
+    """A Cartesian point rigidly attached to a link of a kinematic chain whose joints are the
+    ProMP dimensions ``dofs`` (cdmp_ros.core.kinematics.Chain, PointOfInterest)."""
+
+    def __init__(self, chain, point, dofs: Sequence[int] = None):
+        self.chain = chain
+        self.point = point
+        n = chain.n_dofs
+        self.dofs = tuple(range(n)) if dofs is None else tuple(int(d) for d in dofs)
+        if len(self.dofs) != n:
+            raise ValidationError(f'point.dofs: expected {n} indices for the chain, '
+                                  f'got {len(self.dofs)}')
+        self.n_out = 3
+
+    def forward_and_jacobian(self, Z):
+        X, J = self.chain.forward_and_jacobian(Z, [self.point])
+        return X[..., 0, :], J[..., 0, :, :]
+
+
+class DifferencePoint(Point):
+    """x_t = a(z_t) - b(z_t): relative position of two points (mutual avoidance, Eq. 22)."""
+
+    def __init__(self, a: Point, b: Point):
+        if a.n_out != b.n_out:
+            raise ValidationError(f'point: expected equal output sizes, got {a.n_out} and '
+                                  f'{b.n_out}')
+        self.a, self.b = a, b
+        self.dofs = tuple(sorted(set(a.dofs) | set(b.dofs)))
+        self.n_out = a.n_out
+        self.linear = a.linear and b.linear
+        self._ia = np.searchsorted(self.dofs, a.dofs)
+        self._ib = np.searchsorted(self.dofs, b.dofs)
+
+    def forward_and_jacobian(self, Z):
+        Xa, Ja = self.a.forward_and_jacobian(Z[..., self._ia])
+        Xb, Jb = self.b.forward_and_jacobian(Z[..., self._ib])
+        J = np.zeros(Z.shape[:-1] + (self.n_out, len(self.dofs)))
+        J[..., self._ia] += Ja
+        J[..., self._ib] -= Jb
+        return Xa - Xb, J

@@ -1,0 +1,93 @@
+"""Waypoints and repellers (Eq. 17-18), temporally unbound waypoints (Eq. 19) and mutual
+avoidance (Eq. 22), paper 003: Gamma approximation of c_t = |x_t - x_bar|^2 with the mean and
+variance of c_t under the Gaussian approximation of x_t (unscented transform for non-linear
+points of interest, exact for linear ones)."""
+from typing import Optional
+
+import numpy as np
+
+from cdmp_ros.core.constraints.base import Constraint
+from cdmp_ros.core.constraints.points import DifferencePoint, Point
+from cdmp_ros.core.gaussian import gamma_cdf, quadratic_moments
+from cdmp_ros.core.validation import as_array, check_positive
+
+
+class _Sphere(Constraint):
+    inside = True  # waypoint: satisfied inside the ball
+
+    def __init__(self, point: Point, center, radius: float, support=(0.0, 1.0),
+                 alpha: float = 0.999, lambda0: Optional[float] = None,
+                 eta: Optional[float] = None, name: Optional[str] = None):
+        super().__init__(point, support, alpha, lambda0, eta, name)
+        if callable(center):
+            self.center = center
+        else:
+            self.center = as_array('center', center, (point.n_out,))
+        self.radius = check_positive('radius', radius)
+
+    def centers(self, times):
+        if callable(self.center):
+            return np.broadcast_to(np.asarray(self.center(times), float),
+                                   (times.size, self.point.n_out))
+        return np.broadcast_to(self.center, (times.size, self.point.n_out))
+
+    def probability(self, m, S, times):
+        E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, self.centers(times))
+        G, dG_dE, dG_dV = gamma_cdf(E, V, self.radius ** 2)
+        sign = 1.0 if self.inside else -1.0
+        F = G if self.inside else 1.0 - G
+        dF_dm = sign * (dG_dE[:, None] * dE_dm + dG_dV[:, None] * dV_dm)
+        dF_dS = sign * (dG_dE[:, None, None] * dE_dS + dG_dV[:, None, None] * dV_dS)
+        return F, dF_dm, dF_dS
+
+    def _dist2(self, X, times):
+        return np.sum((X - self.centers(times)[None]) ** 2, axis=-1)
+
+    def describe(self):
+        d = super().describe()
+        d['radius'] = self.radius
+        if not callable(self.center):
+            d['center'] = self.center.tolist()
+        return d
+
+
+class Waypoint(_Sphere):
+    """P(|x_t - x_bar|^2 <= d^2) >= alpha at every time of the support (Eq. 17)."""
+    kind = 'waypoint'
+    inside = True
+
+    def satisfied(self, X, times):
+        return self._dist2(X, times) <= self.radius ** 2
+
+
+class Repeller(_Sphere):
+    """P(|x_t - x_bar|^2 > d^2) >= alpha at every time of the support (Eq. 18)."""
+    kind = 'repeller'
+    inside = False
+
+    def satisfied(self, X, times):
+        return self._dist2(X, times) > self.radius ** 2
+
+
+class UnboundWaypoint(_Sphere):
+    """max_t P(|x_t - x_bar|^2 <= d^2) >= alpha over the support (Eq. 19): one multiplier,
+    gradient through t_max = argmax_t of the Gamma approximation."""
+    kind = 'unbound_waypoint'
+    inside = True
+    reduce = 'max'
+
+    def satisfied(self, X, times):
+        return np.any(self._dist2(X, times) <= self.radius ** 2, axis=1)
+
+
+class MutualAvoidance(Repeller):
+    """P(|x1_t - x2_t|^2 > d^2) >= alpha (Eq. 22): a repeller at 0 on the difference of two
+    points of interest of a joint ProMP w = (w1, w2)."""
+    kind = 'mutual_avoidance'
+
+    def __init__(self, point1: Point, point2: Point, distance: float, support=(0.0, 1.0),
+                 alpha: float = 0.999, lambda0: Optional[float] = None,
+                 eta: Optional[float] = None, name: Optional[str] = None):
+        point = DifferencePoint(point1, point2)
+        super().__init__(point, np.zeros(point.n_out), distance, support, alpha, lambda0, eta,
+                         name)
