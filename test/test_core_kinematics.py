@@ -13,6 +13,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.closest import (Box, Sphere, closest_distances,
+                                              link_closest_point,
+                                              segment_box, segment_sphere)
 from cdmp_ros.core.kinematics import (PANDA_EE_OFFSET, PointOfInterest, chain_from_urdf,
                                       dual_panda_chains, panda_chain, planar_chain, pose)
 from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string
@@ -361,3 +364,93 @@ def test_urdf_parses_panda():
     assert robot.root_link() == 'panda_link0'
     with pytest.raises(ValidationError, match='urdf path'):
         parse_urdf('/nonexistent/robot.urdf')
+
+
+# ------------------------------------------------------------------ closest points
+def _box_sd_reference(X, lo, hi):
+    """Signed distance to a box written face by face (independent of the module's formula)."""
+    gap = np.maximum(np.maximum(lo - X, 0.0), X - hi)
+    outside = np.sqrt((gap ** 2).sum(-1))
+    inside = np.all((X > lo) & (X < hi), axis=-1)
+    depth = np.minimum(X - lo, hi - X).min(-1)
+    return np.where(inside, -depth, outside)
+
+
+def _random_segments(rng, n, center, spread):
+    A = center + rng.normal(0.0, spread, (n, 3))
+    B = A + rng.normal(0.0, spread, (n, 3))
+    return A, B
+
+
+def test_segment_box_matches_brute_force(rng):
+    lo, hi = np.array([-0.3, -0.1, 0.2]), np.array([0.4, 0.05, 0.25])   # a board
+    A, B = _random_segments(rng, 200, (lo + hi) / 2, 0.3)
+    A[:50], B[:50] = A[:50] * 0.05 + (lo + hi) / 2, B[:50] * 0.1    # many through the box
+    A[50:60] = B[50:60]                                             # degenerate segments
+    t, dist, surface, normal = segment_box(A, B, lo, hi, link_radius=0.01)
+    ts = np.linspace(0.0, 1.0, 4001)
+    P = A[:, None] + ts[None, :, None] * (B - A)[:, None]
+    brute = _box_sd_reference(P, lo, hi).min(-1) - 0.01
+    resolution = np.linalg.norm(B - A, axis=-1) / 4000
+    assert np.all(dist <= brute + 1e-12)
+    assert np.all(dist >= brute - resolution - 1e-12)
+    assert (brute < 0).sum() > 20 and (brute > 0).sum() > 100     # both regimes exercised
+    X = A + t[:, None] * (B - A)
+    np.testing.assert_allclose(_box_sd_reference(X, lo, hi) - 0.01, dist, atol=1e-12)
+    # the surface point is on the surface, the normal points from it towards the outside
+    np.testing.assert_allclose(_box_sd_reference(surface, lo, hi), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=-1), 1.0)
+    out = dist + 0.01 > 1e-9
+    np.testing.assert_allclose(X[out], surface[out] + (dist[out, None] + 0.01) * normal[out],
+                               atol=1e-12)
+    assert np.all(_box_sd_reference(surface + 1e-6 * normal, lo, hi) > 0)
+
+
+def test_segment_sphere_matches_brute_force(rng):
+    center, radius = np.array([0.3, 0.1, 0.5]), 0.08
+    A, B = _random_segments(rng, 300, center, 0.2)
+    t, dist, surface, normal = segment_sphere(A, B, center, radius, link_radius=0.02)
+    ts = np.linspace(0.0, 1.0, 4001)
+    P = A[:, None] + ts[None, :, None] * (B - A)[:, None]
+    brute = np.linalg.norm(P - center, axis=-1).min(-1) - radius - 0.02
+    resolution = np.linalg.norm(B - A, axis=-1) / 4000
+    assert np.all(dist <= brute + 1e-12) and np.all(dist >= brute - resolution - 1e-12)
+    np.testing.assert_allclose(np.linalg.norm(surface - center, axis=-1), radius)
+    X = A + t[:, None] * (B - A)
+    np.testing.assert_allclose(X, center + (dist[:, None] + radius + 0.02) * normal, atol=1e-12)
+
+
+def test_link_closest_point_gives_attached_point_and_jacobian(panda, rng):
+    q = rng.uniform(panda.lower, panda.upper)
+    segment = panda.link_segments()[1]                    # panda_link2: the upper arm
+    a, b = panda.forward(q, [PointOfInterest(segment[0], segment[1]),
+                             PointOfInterest(segment[0], segment[2])])
+    board = Box.from_center(a + 0.4 * (b - a) + [0.03, 0.0, 0.0], (0.02, 0.4, 0.4))
+    ball = Sphere(tuple(a + 0.7 * (b - a) + [0.0, 0.12, 0.0]), 0.05)
+    for obstacle in (board, ball):
+        cp = link_closest_point(panda, q, segment, obstacle, link_radius=0.04)
+        x, J_o = panda.forward_and_jacobian(q, [cp.poi])
+        np.testing.assert_allclose(x[0], cp.point, atol=1e-12)
+        np.testing.assert_allclose(J_o[0], finite_difference_jacobian(panda, q, [cp.poi])[0],
+                                   atol=1e-8)
+        ts = np.linspace(0.0, 1.0, 5001)[:, None]
+        P = a + ts * (b - a)
+        if isinstance(obstacle, Box):
+            brute = _box_sd_reference(P, np.array(obstacle.lower), np.array(obstacle.upper))
+        else:
+            brute = np.linalg.norm(P - obstacle.center, axis=-1) - obstacle.radius
+        assert abs(cp.distance - (brute.min() - 0.04)) < np.linalg.norm(b - a) / 5000
+    assert link_closest_point(panda, q, segment, board, 0.04).distance < 0   # penetrates
+    D = closest_distances(panda, np.stack([q, q]), panda.link_segments(), [board, ball], 0.04)
+    assert D.shape == (2, 7, 2)
+    np.testing.assert_allclose(D[0, 1], [link_closest_point(panda, q, segment, o, 0.04).distance
+                                         for o in (board, ball)], atol=1e-12)
+
+
+def test_obstacle_validation():
+    with pytest.raises(ValidationError, match='Box'):
+        Box((0, 0, 0), (1, -1, 1))
+    with pytest.raises(ValidationError, match='Sphere.radius'):
+        Sphere((0, 0, 0), -1.0)
+    with pytest.raises(ValidationError, match='Sphere.center'):
+        Sphere((0, 0), 1.0)
