@@ -181,9 +181,8 @@ class Robot:
     def link_pose(self, link: str) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
         """World position ``(3,)`` and quaternion ``(4,)`` (x, y, z, w) of a link frame (URDF)."""
         idx = self.link_index(link)
-        if idx < 0:
-            pos, orn = pybullet.getBasePositionAndOrientation(self.body_id,
-                                                              physicsClientId=self._cid)
+        if idx < 0:  # fixed base: the URDF root frame is where it was loaded
+            return self.base_position.copy(), self.base_orientation.copy()
         else:
             st = pybullet.getLinkState(self.body_id, idx, computeForwardKinematics=True,
                                        physicsClientId=self._cid)

@@ -1,0 +1,142 @@
+"""World lifecycle, robots loaded from URDF (limits, planar arm, dual-Panda cell), stepping."""
+import math
+import time
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pybullet
+import pytest
+
+from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.sim import (add_dual_panda, ComputedTorqueController, panda_spec,
+                          planar_arm_spec, planar_arm_urdf, World, WorldConfig)
+from cdmp_ros.sim.robots import PANDA_URDF
+
+
+def urdf_limits(path, joints):
+    """(lower, upper, velocity, effort) of the named joints, parsed independently of pybullet."""
+    root = ET.parse(path).getroot()
+    out = []
+    for name in joints:
+        lim = root.find(f"joint[@name='{name}']/limit")
+        out.append([float(lim.get(k)) for k in ('lower', 'upper', 'velocity', 'effort')])
+    return np.array(out).T
+
+
+def test_world_closes_its_client():
+    with World() as world:
+        cid = world.client_id
+        assert pybullet.getConnectionInfo(cid)['isConnected'] == 1
+    assert not world.connected
+    assert pybullet.getConnectionInfo(cid)['isConnected'] == 0
+    with pytest.raises(CdmpError, match='closed'):
+        world.step()
+    world.close()  # idempotent
+
+
+def test_world_closes_on_exception_and_worlds_are_independent():
+    with pytest.raises(RuntimeError):
+        with World() as world:
+            cid = world.client_id
+            raise RuntimeError('boom')
+    assert pybullet.getConnectionInfo(cid)['isConnected'] == 0
+    with World() as a, World() as b:
+        ra = a.add_robot(planar_arm_spec())
+        b.add_robot(planar_arm_spec())
+        ra.set_reference([0.5, 0.0, 0.0, 0.0])
+        a.run(0.5)
+        assert a.t == pytest.approx(0.5) and b.t == 0.0
+        assert b.robot('planar_arm').q[0] == 0.0 and ra.q[0] > 0.1
+
+
+def test_panda_limits_come_from_the_urdf():
+    with World() as world:
+        robot = world.add_robot(panda_spec())
+        lo, hi, vel, eff = urdf_limits(PANDA_URDF, robot.joint_names)
+        np.testing.assert_array_equal(robot.lower, lo)
+        np.testing.assert_array_equal(robot.upper, hi)
+        np.testing.assert_array_equal(robot.velocity_limits, vel)
+        np.testing.assert_array_equal(robot.effort_limits, eff)
+        assert robot.n_dofs == 7 and robot.ee_link == 'panda_hand'
+        np.testing.assert_allclose(robot.q, robot.spec.home, atol=1e-12)
+        held = world.add_robot(panda_spec(fingers='held'), name='held')
+        np.testing.assert_array_equal(held.lower, lo)
+        # both variants have the same arm kinematics
+        np.testing.assert_allclose(held.ee_position(), robot.ee_position(), atol=1e-9)
+
+
+def test_planar_arm_kinematics_and_limits(rng):
+    with World() as world:
+        arm = world.add_robot(planar_arm_spec(lower=[-1, -2, -2, -2], upper=[1, 2, 2, 2.5]))
+        np.testing.assert_array_equal(arm.lower, [-1, -2, -2, -2])
+        np.testing.assert_array_equal(arm.upper, [1, 2, 2, 2.5])
+        for _ in range(3):
+            q = rng.uniform(-1, 1, 4)
+            arm.reset(q)
+            a = np.cumsum(q)
+            np.testing.assert_allclose(arm.ee_position(),
+                                       [np.cos(a).sum(), np.sin(a).sum(), 0.0], atol=1e-9)
+        # planar: gravity along -z produces no joint torque
+        np.testing.assert_allclose(arm.gravity(q), 0.0, atol=1e-9)
+    text = planar_arm_urdf(link_lengths=(0.5, 0.7))
+    assert text.count('type="revolute"') == 2 and 'name="ee"' in text
+    with pytest.raises(ValidationError, match='link_lengths'):
+        planar_arm_urdf(link_lengths=(1.0, -1.0))
+
+
+def test_dual_panda_cell_bases_face_each_other():
+    with World() as world:
+        left, right = add_dual_panda(world)
+        np.testing.assert_allclose(right.link_pose('panda_link0')[0], [1.13, 0.0, 0.0])
+        # same joint angles: the right hand is the left one rotated by pi about the z axis
+        # through the midpoint of the bases
+        pl, pr = left.ee_position(), right.ee_position()
+        np.testing.assert_allclose(pr, [1.13 - pl[0], -pl[1], pl[2]], atol=1e-9)
+        assert set(world.robots) == {'left', 'right'}
+
+
+def test_robot_input_validation():
+    with World() as world:
+        robot = world.add_robot(panda_spec())
+        with pytest.raises(ValidationError, match='name'):
+            world.add_robot(panda_spec())
+        with pytest.raises(ValidationError, match=r'q: expected shape \(7\)'):
+            robot.set_reference(np.zeros(6))
+        bad = np.array(robot.spec.home)
+        bad[3] = 0.5
+        with pytest.raises(ValidationError, match=r'q\[3\] \(panda_joint4\)'):
+            robot.reset(bad)
+        with pytest.raises(ValidationError, match='link'):
+            robot.link_pose('nope')
+    with pytest.raises(ValidationError, match='time_step'):
+        WorldConfig(time_step=0.0)
+
+
+def test_fixed_step_mode_runs_faster_than_real_time():
+    """One simulated second of the Panda under computed torque at 1 kHz takes less than a
+    second of wall time (the benchmark measures the actual factor)."""
+    with World(WorldConfig(time_step=1e-3)) as world:
+        robot = world.add_robot(panda_spec())
+        robot.set_controller(ComputedTorqueController())
+        start = time.perf_counter()
+        world.run(1.0)
+        wall = time.perf_counter() - start
+    assert wall < 1.0, wall
+
+
+def test_real_time_pacing_follows_the_wall_clock():
+    with World(WorldConfig(time_step=1e-3, real_time=True)) as world:
+        world.add_robot(planar_arm_spec())
+        start = time.perf_counter()
+        world.run(0.3)
+        wall = time.perf_counter() - start
+    assert world.t == pytest.approx(0.3)
+    assert 0.3 - 2e-3 <= wall < 0.3 + 0.25, wall
+
+
+def test_home_is_validated():
+    with pytest.raises(ValidationError, match='home'):
+        panda_spec(home=(0.0,) * 6)
+    with pytest.raises(ValidationError, match='fingers'):
+        panda_spec(fingers='loose')
+    assert math.isclose(panda_spec().home[3], -3 * math.pi / 4)
