@@ -109,7 +109,8 @@ class Robot:
         self._full_q0 = np.zeros(len(movable))
         for j, v in held.items():
             self._full_q0[movable.index(j)] = v
-        self._zeros_full = [0.0] * len(movable)
+        # no held joints and the controlled joints in pybullet's order: skip the scatter
+        self._identity = bool(np.array_equal(self._arm_slots, np.arange(len(movable))))
 
         for link in range(-1, len(infos)):  # the dynamics model is exactly pybullet's
             pybullet.changeDynamics(self.body_id, link, linearDamping=0.0, angularDamping=0.0,
@@ -195,11 +196,15 @@ class Robot:
 
     # -- dynamics (Eq. 1, paper 000) -----------------------------------------------------
     def _full(self, q: NDArray) -> list:
+        if self._identity:
+            return q.tolist()
         full = self._full_q0.copy()
         full[self._arm_slots] = q
         return full.tolist()
 
     def _full_zero_held(self, v: NDArray) -> list:
+        if self._identity:
+            return v.tolist()
         full = np.zeros(len(self._movable))
         full[self._arm_slots] = v
         return full.tolist()
@@ -225,7 +230,7 @@ class Robot:
         tau = pybullet.calculateInverseDynamics(
             self.body_id, self._full(q), self._full_zero_held(qd), self._full_zero_held(qdd),
             physicsClientId=self._cid)
-        return np.asarray(tau)[self._arm_slots]
+        return np.array(tau) if self._identity else np.array(tau)[self._arm_slots]
 
     def bias_forces(self, q: ArrayLike, qd: ArrayLike) -> NDArray[np.float64]:
         """``C(q, qd) qd + G(q)`` ``(n_dofs,)``, the bias forces of Eq. 1."""
