@@ -15,8 +15,9 @@ Usage::
 import argparse
 import json
 import os
-import re
 import sys
+
+from cdmp_ros.bag.schemas import build_full_text, normalize_type
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -31,51 +32,14 @@ RECORDED_TYPES = (
     'rosgraph_msgs/msg/Clock',
 )
 
-# Same expression as rosbag2_cpp's MSG_FIELD_TYPE_REGEX.
-FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
-PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',
-              'uint16', 'int32', 'uint32', 'int64', 'uint64', 'string'}
-DELIMITER = '=' * 80 + '\n'
-
 
 def _split(type_name):
-    parts = type_name.split('/')
-    if len(parts) == 2:
-        return parts[0], 'msg', parts[1]
-    if len(parts) == 3:
-        return parts[0], parts[1], parts[2]
-    raise ValueError(f'type_name: expected pkg/Type or pkg/msg/Type, got {type_name!r}')
-
-
-def _load(share, type_name):
-    pkg, ns, name = _split(type_name)
-    with open(os.path.join(share, pkg, ns, name + '.msg'), encoding='utf-8') as f:
-        text = f.read()
-    deps = set()
-    for m in FIELD_TYPE.finditer(text):
-        t = m.group(1)
-        if t in PRIMITIVES:
-            continue
-        deps.add(t if '/' in t else f'{pkg}/{t}')
-    return text, sorted(deps)
+    return normalize_type(type_name).split('/')
 
 
 def full_text(share, root_type):
     """Complete ros2msg definition of ``root_type`` in the rosbag2 layout."""
-    seen = set()
-
-    def append(type_name, depth):
-        if depth <= 0:
-            raise RuntimeError(f'recursion too deep resolving {root_type}')
-        text, deps = _load(share, type_name)
-        out = text
-        for dep in deps:
-            if dep not in seen:
-                seen.add(dep)
-                out += '\n' + DELIMITER + 'MSG: ' + dep + '\n' + append(dep, depth - 1)
-        return out
-
-    return append(root_type, 50)
+    return build_full_text(root_type, [share])
 
 
 def type_hash(share, type_name):

@@ -50,7 +50,9 @@ def test_normalize_type_and_unknown_schema():
     with pytest.raises(BagError, match='type_name'):
         normalize_type('String')
     with pytest.raises(BagError, match='no ros2msg schema'):
-        schema_text('std_msgs/msg/Int8')
+        schema_text('nonexistent_msgs/msg/Foo')
+    # types outside msg_schemas/msg are built from the installed .msg files
+    assert schema_text('geometry_msgs/msg/Twist').count('MSG: geometry_msgs/Vector3') == 1
 
 
 @pytest.mark.parametrize('vel,eff', [([0.5, -1.0, 2.0], []), ([], []), ([], [1.0, 2.0, 3.0]),

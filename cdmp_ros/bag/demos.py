@@ -22,7 +22,7 @@ from cdmp_ros.core.errors import ValidationError
 
 Demonstration = Tuple[NDArray[np.float64], NDArray[np.float64], List[str]]
 
-DEMO_TOPIC = 'demonstration'
+DEMO_TOPIC = '/demonstration'
 PANDA_JOINTS = [f'panda_joint{i}' for i in range(1, 8)]
 #: Franka Panda joint limits (rad), from the Franka datasheet.
 PANDA_Y_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])

@@ -1,0 +1,91 @@
+"""The shared entry-point pattern of every cdmp_ros node (ROS 2 Jazzy).
+
+Two ways to run a node, both ending the same way (``close()`` hook, ``destroy_node``,
+``rclpy.try_shutdown``) and both exiting 0 on SIGINT / SIGTERM:
+
+- :func:`run_node` -- the standard Jazzy pattern: rclpy installs its signal handlers,
+  ``rclpy.spin`` returns through ``KeyboardInterrupt`` or ``ExternalShutdownException``.
+  The context is already shut down when ``close()`` runs, so it may only release
+  non-ROS resources (files, threads).
+- :func:`run_node` with ``graceful=True`` -- SIGINT and SIGTERM only set a flag; the node keeps
+  a valid context while its ``close()`` runs, so it can still take pending messages or publish
+  a last diagnostic (the recorder drains its subscriptions there).
+
+Usage in ``cdmp_ros/nodes/<name>.py``::
+
+    def main(args=None):
+        return run_node(MyNode, args)
+
+A node may define ``close(self)`` (called once at shutdown) and ``done(self) -> bool`` (the
+loop ends when it returns True, e.g. a player that finished its bag).  ``make_node`` errors
+that are :class:`~cdmp_ros.core.errors.CdmpError` are logged and give exit code 2.
+"""
+import signal
+import sys
+import threading
+from typing import Callable, List, Optional
+
+from cdmp_ros.core.errors import CdmpError
+
+#: How often the graceful loop checks the stop flag and ``done()`` (seconds).
+SPIN_PERIOD = 0.05
+
+
+def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
+             graceful: bool = False, executor=None) -> int:
+    """Initialise rclpy, build the node, spin until shutdown, clean up; return an exit code.
+
+    Parameters
+    ----------
+    make_node : callable
+        Builds the node after ``rclpy.init`` (typically the node class).
+    args : list of str, optional
+        Command-line arguments (``--ros-args ...``); default ``sys.argv``.
+    graceful : bool
+        Handle SIGINT/SIGTERM with a flag and call ``close()`` before the context goes down.
+    executor : rclpy executor, optional
+        Default: a ``SingleThreadedExecutor``.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    stop = threading.Event()
+    if graceful:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    else:
+        rclpy.init(args=args)
+    node = None
+    code = 0
+    executor = executor if executor is not None else SingleThreadedExecutor()
+    try:
+        node = make_node()
+        executor.add_node(node)
+        done = getattr(node, 'done', None)
+        if graceful or done is not None:
+            while not stop.is_set() and rclpy.ok() and not (done is not None and done()):
+                executor.spin_once(timeout_sec=SPIN_PERIOD)
+        else:
+            executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except CdmpError as exc:
+        print(f'[{getattr(node, "get_name", lambda: "node")()}] error: {exc}', file=sys.stderr)
+        code = 2
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if close is not None:
+                try:
+                    close()
+                except CdmpError as exc:
+                    print(f'error while closing: {exc}', file=sys.stderr)
+                    code = code or 2
+            code = code or int(getattr(node, 'exit_code', 0))
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+    return code

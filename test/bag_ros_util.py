@@ -1,0 +1,93 @@
+"""Helpers of the recorder/player tests: node processes and an in-process rclpy peer.
+
+Every process gets ``ros_env()`` (localhost discovery, the test's private domain id).
+"""
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+from conftest import ros_env
+
+
+def start_node(node, params, remaps=(), domain_id=None, log_path=None):
+    """Start ``cdmp_ros.nodes.<node>`` with ``-p k:=v`` parameters; returns the Popen."""
+    cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{node}', '--ros-args']
+    for k, v in params.items():
+        if isinstance(v, bool):
+            v = 'true' if v else 'false'
+        elif isinstance(v, (list, tuple)):
+            v = '[' + ', '.join(f"'{x}'" for x in v) + ']'
+        cmd += ['-p', f'{k}:={v}']
+    for r in remaps:
+        cmd += ['-r', r]
+    out = open(log_path, 'w') if log_path else subprocess.DEVNULL
+    return subprocess.Popen(cmd, env=ros_env(domain_id), stdout=out, stderr=subprocess.STDOUT)
+
+
+def stop(proc, sig=signal.SIGINT, timeout=10.0):
+    """Signal a process we started and wait for it; kill it if it hangs. Returns rc."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+class Peer:
+    """An rclpy context + node in this process, spun by a background thread."""
+
+    def __init__(self, name='test_peer'):
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        self.rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=int(os.environ['ROS_DOMAIN_ID']))
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stop = False
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while not self._stop and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def collect(self, msg_type, topic, qos=None, raw=True):
+        """Subscribe; returns a list that fills with (monotonic time, message)."""
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        got = []
+        qos = qos or QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(msg_type, topic,
+                                      lambda m: got.append((time.monotonic(), m)), qos,
+                                      raw=raw)
+        return got
+
+    def publisher(self, msg_type, topic, depth=1000):
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        return self.node.create_publisher(
+            msg_type, topic, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
+
+    def close(self):
+        self._stop = True
+        self._thread.join(timeout=2)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def wait_for(pred, timeout, period=0.01):
+    """Poll ``pred`` until true or ``timeout`` s; returns its last value."""
+    deadline = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v or time.monotonic() > deadline:
+            return v
+        time.sleep(period)
