@@ -52,6 +52,8 @@ class AdaptationConfig:
         Spread of the unscented transform's sigma points.
     lbfgs_ftol, lbfgs_gtol : float
         L-BFGS-B convergence tolerances of the inner loop.
+    lbfgs_maxcor : int
+        Number of L-BFGS correction pairs.
     relative_step : bool
         EMM step lambda <- lambda exp(eta C / (1 - alpha)) (clipped to +-max_log_step) instead
         of the paper's lambda exp(eta C), C = alpha - F. With alpha close to 1 the paper's step
@@ -73,6 +75,7 @@ class AdaptationConfig:
     ut_alpha: float = 1.0
     lbfgs_ftol: float = 1e-10
     lbfgs_gtol: float = 1e-6
+    lbfgs_maxcor: int = 20
     relative_step: bool = True
     max_log_step: float = 3.0
 
@@ -141,16 +144,17 @@ class _Group:
     def forward(self, mu, L):
         D, M = self.D, self.M
         self.m = self.phi @ mu.reshape(D, M).T          # (n, D)
-        self.B = np.einsum('ti,dij->tdj', self.phi, L.reshape(D, M, -1))  # (n, D, nw)
-        self.S = self.B @ np.swapaxes(self.B, 1, 2)     # (n, D, D)
+        Bd = np.matmul(self.phi, L.reshape(D, M, -1))  # (D, n, nw)
+        self.B = np.ascontiguousarray(Bd.transpose(1, 0, 2))   # (n, D, nw)
+        self.S = np.matmul(self.B, Bd.transpose(1, 2, 0))      # (n, D, D)
         self.g_m = np.zeros_like(self.m)
         self.g_S = np.zeros_like(self.S)
 
     def backward(self, g_mu, g_L):
         D, M = self.D, self.M
         g_mu += (self.phi.T @ self.g_m).T.ravel()
-        g_B = (self.g_S + np.swapaxes(self.g_S, 1, 2)) @ self.B
-        g_L += np.einsum('ti,tdj->dij', self.phi, g_B).reshape(D * M, -1)
+        g_B = np.matmul(self.g_S + np.swapaxes(self.g_S, 1, 2), self.B)   # (n, D, nw)
+        g_L += np.matmul(self.phi.T, g_B.transpose(1, 0, 2)).reshape(D * M, -1)
 
 
 class _Bound:
@@ -163,15 +167,20 @@ class _Bound:
         self.dofs = np.asarray(c.point.dofs)
         self.linear = c.point.linear
         k = len(self.dofs)
+        self.identity = False
         if self.linear:
             X0, J0 = c.point.forward_and_jacobian(np.zeros(k))
             self.A = np.asarray(J0, float)
             self.x0 = np.asarray(X0, float)
+            self.identity = (k == n_dims and np.array_equal(self.dofs, np.arange(n_dims))
+                             and np.array_equal(self.A, np.eye(k)) and not np.any(self.x0))
         else:
             self.ut = UnscentedTransform(k, ut_alpha)
 
     def moments(self):
         g = self.group
+        if self.identity:
+            return g.m, g.S
         m = g.m[:, self.dofs]
         S = g.S[:, self.dofs][:, :, self.dofs]
         if self.linear:
@@ -184,6 +193,10 @@ class _Bound:
 
     def backward(self, g_mx, g_Sx):
         g = self.group
+        if self.identity:
+            g.g_m += g_mx
+            g.g_S += g_Sx
+            return
         if self.linear:
             g_m = g_mx @ self.A
             g_S = self.A.T @ g_Sx @ self.A
@@ -392,7 +405,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     for n_outer in range(1, int(config.max_outer) + 1):
         res = minimize(prob.lagrangian, theta, args=(lam,), jac=True, method='L-BFGS-B',
                        options={'maxiter': int(config.max_inner), 'ftol': config.lbfgs_ftol,
-                                'gtol': config.lbfgs_gtol, 'maxcor': 20})
+                                'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
         if np.all(np.isfinite(res.x)):
             theta = res.x
         n_inner += int(res.nit)

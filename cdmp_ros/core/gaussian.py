@@ -52,9 +52,9 @@ def gamma_cdf(E: NDArray, V: NDArray, x: NDArray
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         log_dens = (k - 1.0) * np.log(np.maximum(u, 1e-300)) - u - special.gammaln(k)
         dP_du = np.where(u > 0, np.exp(log_dens), 0.0)
-    # dP/dk: the one scalar derivative without a closed form in scipy (central difference)
-    h = 1e-5 * (1.0 + k)
-    dP_dk = (special.gammainc(k + h, u) - special.gammainc(k - h, u)) / (2.0 * h)
+    # dP/dk: the one scalar derivative without a closed form in scipy (numerical, in k only)
+    h = 1e-7 * (1.0 + k)
+    dP_dk = (special.gammainc(k + h, u) - P) / h
     dk_dE = 2.0 * E / V
     dk_dV = -k / V
     du_dE = x / V
@@ -82,14 +82,14 @@ def quadratic_moments(m: NDArray, S: NDArray, center: NDArray
     dE_dm : (n, k); dE_dS : (n, k, k); dV_dm : (n, k); dV_dS : (n, k, k)
     """
     d = m - center
-    Sd = np.einsum('nij,nj->ni', S, d)
-    E = np.einsum('ni,ni->n', d, d) + np.trace(S, axis1=1, axis2=2)
-    V = 4.0 * np.einsum('ni,ni->n', d, Sd) + 2.0 * np.einsum('nij,nji->n', S, S)
-    eye = np.broadcast_to(np.eye(m.shape[1]), S.shape)
+    Sd = np.matmul(S, d[:, :, None])[:, :, 0]
+    E = np.sum(d * d, axis=1) + np.trace(S, axis1=1, axis2=2)
+    ST = np.swapaxes(S, 1, 2)
+    V = 4.0 * np.sum(d * Sd, axis=1) + 2.0 * np.sum(S * ST, axis=(1, 2))
     dE_dm = 2.0 * d
-    dE_dS = eye
+    dE_dS = np.broadcast_to(np.eye(m.shape[1]), S.shape)
     dV_dm = 8.0 * Sd
-    dV_dS = 4.0 * np.einsum('ni,nj->nij', d, d) + 4.0 * np.swapaxes(S, 1, 2)
+    dV_dS = 4.0 * (d[:, :, None] * d[:, None, :] + ST)
     return E, V, dE_dm, dE_dS, dV_dm, dV_dS
 
 

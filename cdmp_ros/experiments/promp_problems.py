@@ -1,0 +1,102 @@
+"""Random 2-D adaptation problems of paper 003, Section III-B (Tables II-IV), generated exactly
+as ../shared/promp_benchmark_protocol.md specifies, and their evaluation metrics."""
+from dataclasses import dataclass
+from typing import List
+
+import numpy as np
+
+from cdmp_ros.core.adaptation import AdaptationConfig, sample_points
+from cdmp_ros.core.constraints import DofPoint, Hyperplane, Repeller, UnboundWaypoint
+from cdmp_ros.core.promp import ProMP, RbfBasis
+
+ALPHA = 0.999
+XY = DofPoint([0, 1])
+
+# table -> (n_steps, n_basis, lambda0)
+SETTINGS = {'table2': (101, 10, 20.0), 'table3': (40, 20, 20.0), 'table4': (20, 10, 40.0)}
+
+
+@dataclass
+class TableProblem:
+    table: str
+    prior: ProMP              # the conditioned "original" primitive
+    constraints: list
+    config: AdaptationConfig
+    start: np.ndarray
+    end: np.ndarray
+
+
+def original_promp(n_basis: int, rng: np.random.Generator, prior: str = 'scripts'):
+    """The conditioned original ProMP and its start and end points (protocol, all tables)."""
+    basis = RbfBasis.uniform(n_basis, extension=0.1)
+    M = n_basis
+    if prior == 'scripts':
+        p = ProMP(2, basis, np.r_[np.linspace(-3.0, 3.0, M), np.zeros(M)],
+                  0.8 ** 2 * np.eye(2 * M))
+    elif prior == 'paper-text':
+        p = ProMP(2, basis, np.zeros(2 * M), np.eye(2 * M))
+    else:
+        raise ValueError(f'prior: expected "scripts" or "paper-text", got {prior!r}')
+    start = np.array([-3.0, rng.uniform(-3.0, 3.0)])
+    end = np.array([3.0, rng.uniform(-3.0, 3.0)])
+    return p.condition([0.0, 1.0], np.stack([start, end]), var=1e-3), start, end
+
+
+def make_problem(table: str, K: int, rng: np.random.Generator,
+                 prior: str = 'scripts', relative_step: bool = False) -> TableProblem:
+    """One random problem of ``table`` ('table2', 'table3', 'table4') with K constraints,
+    with the authors' optimiser settings (``relative_step=False``: the paper's EMM step)."""
+    n_steps, n_basis, lambda0 = SETTINGS[table]
+    p0, start, end = original_promp(n_basis, rng, prior)
+    cons: List = []
+    if table == 'table2':
+        for k in range(K):
+            t = rng.uniform(0.2, 0.8)
+            centre = p0.mean([t])[0] + np.array([0.0, rng.uniform(-1.5, 1.5)])
+            cons.append(Repeller(XY, centre, rng.uniform(0.3, 0.6), alpha=ALPHA,
+                                 name=f'obstacle_{k + 1}'))
+    elif table == 'table3':
+        grid = np.linspace(0.0, 1.0, n_steps)
+        mean = p0.mean(grid)
+        xs = np.linspace(-3.0, 3.0, K + 3)[1:K + 1]
+        for k, x in enumerate(xs):
+            x = x + rng.uniform(0.4, 0.6) * 6.0 / (K + 2)
+            i = int(np.argmin(np.abs(mean[:, 0] - x)))
+            y = mean[i, 1] + rng.uniform(-0.7, 0.7)
+            cons.append(UnboundWaypoint(XY, [x, y], rng.uniform(0.05, 0.2), alpha=ALPHA,
+                                        name=f'waypoint_{k + 1}'))
+    elif table == 'table4':
+        m = 0.5 * (start + end)
+        e = end - start
+        perp = np.array([-e[1], e[0]]) / np.linalg.norm(e)
+        k = 0
+        while k < K:
+            side = 1.0 if rng.uniform() < 0.5 else -1.0
+            d = side * perp * rng.uniform(0.2, 1.5)
+            b = m + d
+            a = rng.uniform(-3.0 * np.pi, np.pi)
+            n = np.array([np.cos(a) * d[0] - np.sin(a) * d[1],
+                          np.sin(a) * d[0] + np.cos(a) * d[1]])
+            if n @ (start - b) > 0 or n @ (end - b) > 0:
+                continue          # reject walls that forbid the start or the end
+            cons.append(Hyperplane(XY, n, b, alpha=ALPHA, name=f'wall_{k + 1}'))
+            k += 1
+    else:
+        raise ValueError(f'table: expected table2, table3 or table4, got {table!r}')
+    cfg = AdaptationConfig(n_steps=n_steps, lambda0=lambda0, eta=1.0, max_outer=10,
+                           max_inner=500, objective_tol=1e-2, relative_step=relative_step)
+    return TableProblem(table, p0, cons, cfg, start, end)
+
+
+def violation_rate(promp: ProMP, problem: TableProblem, rng: np.random.Generator,
+                   n_samples: int = 10000) -> float:
+    """Fraction of sampled trajectories violating at least one constraint (protocol metrics:
+    distance below the radius at any step / never within the radius / n.(x - b) > 0)."""
+    grid = np.linspace(0.0, 1.0, problem.config.n_steps)
+    W = promp.sample_weights(n_samples, rng)
+    ok = np.ones(n_samples, bool)
+    for c in problem.constraints:
+        X = sample_points(promp, c, n_samples, rng, grid, W)
+        sat = c.satisfied(X, c.times(grid))
+        ok &= sat.all(axis=1) if sat.ndim == 2 else sat
+    return float(1.0 - ok.mean())
