@@ -1,6 +1,7 @@
 """Headless camera snapshots of a world (pybullet's TinyRenderer, no GPU or display needed)."""
 from dataclasses import dataclass
 import os
+from typing import Optional
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +29,9 @@ class CameraConfig:
         Vertical field of view [deg].
     near, far : float
         Clipping planes [m].
+    eye : tuple of float or None
+        Camera position [m]; if given, it replaces ``distance``, ``yaw`` and ``pitch`` (the
+        camera looks from ``eye`` at ``target``, z up).
     """
 
     width: int = 640
@@ -39,6 +43,7 @@ class CameraConfig:
     fov: float = 60.0
     near: float = 0.01
     far: float = 20.0
+    eye: Optional[tuple] = None
 
     def __post_init__(self):
         for name in ('width', 'height'):
@@ -53,14 +58,23 @@ class CameraConfig:
         check_positive('near', self.near)
         if not self.far > self.near:
             raise ValidationError(f'far: expected > near ({self.near}), got {self.far!r}')
+        if self.eye is not None:
+            eye = as_array('eye', self.eye, (3,))
+            if np.linalg.norm(eye - self.target) < 1e-6:
+                raise ValidationError(f'eye: expected a point other than target, got {self.eye}')
+            object.__setattr__(self, 'eye', tuple(float(v) for v in eye))
 
 
 def render(world, config: CameraConfig = CameraConfig()) -> NDArray[np.uint8]:
     """Render the world; returns the RGB image ``(height, width, 3)`` uint8."""
     cid = world.client_id
-    view = pybullet.computeViewMatrixFromYawPitchRoll(
-        list(config.target), config.distance, config.yaw, config.pitch, 0.0, 2,
-        physicsClientId=cid)
+    if config.eye is not None:
+        view = pybullet.computeViewMatrix(list(config.eye), list(config.target), [0.0, 0.0, 1.0],
+                                          physicsClientId=cid)
+    else:
+        view = pybullet.computeViewMatrixFromYawPitchRoll(
+            list(config.target), config.distance, config.yaw, config.pitch, 0.0, 2,
+            physicsClientId=cid)
     proj = pybullet.computeProjectionMatrixFOV(config.fov, config.width / config.height,
                                                config.near, config.far, physicsClientId=cid)
     _, _, rgba, _, _ = pybullet.getCameraImage(
