@@ -146,3 +146,17 @@ def test_constraint_parameter_validation():
         Repeller(DofPoint([0, 1]), [0, 0, 0], 0.1)
     with pytest.raises(ValueError, match='support'):
         JointLimit(0, upper=1.0, support=(0.5, 0.2))
+
+
+def test_gradient_through_chain_kinematics_planar4(rng):
+    from cdmp_ros.core.adaptation import Problem
+    from cdmp_ros.core.constraints import ChainPoint, Hyperplane
+    from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
+    from test_core_adaptation import _check_gradient
+    chain = planar_chain([1.0, 1.0, 1.0, 1.0])
+    ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
+    elbow = ChainPoint(chain, PointOfInterest('link3'), axes=(0, 1))
+    prior = ProMP(4, RbfBasis.uniform(4), 0.3 * rng.standard_normal(16), 0.02 * np.eye(16))
+    cons = [Repeller(ee, [2.0, 1.0], 0.5), Hyperplane(elbow, [1.0, 1.0], [0.0, 2.0]),
+            Repeller(ee, [1.0, 2.0], 0.4, support=(0.2, 0.6))]
+    _check_gradient(Problem(prior, cons, AdaptationConfig(n_steps=9)), rng)

@@ -157,19 +157,20 @@ class _Group:
         g_L += np.matmul(self.phi.T, g_B.transpose(1, 0, 2)).reshape(D * M, -1)
 
 
-class _Bound:
-    """A constraint bound to a group, with its point-of-interest moments."""
+class _PointMoments:
+    """Gaussian moments of one point of interest at the times of one group (shared by every
+    constraint on that point), with the backward pass to the group's marginals."""
 
-    def __init__(self, c: Constraint, group: _Group, n_dims: int, ut_alpha: float):
-        self.c = c
+    def __init__(self, point, group: _Group, n_dims: int, ut_alpha: float):
+        self.point = point
         self.group = group
-        c.point.check(n_dims)
-        self.dofs = np.asarray(c.point.dofs)
-        self.linear = c.point.linear
+        point.check(n_dims)
+        self.dofs = np.asarray(point.dofs)
+        self.linear = point.linear
         k = len(self.dofs)
         self.identity = False
         if self.linear:
-            X0, J0 = c.point.forward_and_jacobian(np.zeros(k))
+            X0, J0 = point.forward_and_jacobian(np.zeros(k))
             self.A = np.asarray(J0, float)
             self.x0 = np.asarray(X0, float)
             self.identity = (k == n_dims and np.array_equal(self.dofs, np.arange(n_dims))
@@ -177,22 +178,26 @@ class _Bound:
         else:
             self.ut = UnscentedTransform(k, ut_alpha)
 
-    def moments(self):
+    def compute(self):
         g = self.group
         if self.identity:
-            return g.m, g.S
-        m = g.m[:, self.dofs]
-        S = g.S[:, self.dofs][:, :, self.dofs]
-        if self.linear:
-            return m @ self.A.T + self.x0, self.A @ S @ self.A.T
-        Z, Achol = self.ut.points(m, S)
-        X, J = self.c.point.forward_and_jacobian(Z)
-        mx, Sx = self.ut.moments(X)
-        self._cache = (X, mx, J, Achol)
-        return mx, Sx
+            self.mx, self.Sx = g.m, g.S
+        else:
+            m = g.m[:, self.dofs]
+            S = g.S[:, self.dofs][:, :, self.dofs]
+            if self.linear:
+                self.mx, self.Sx = m @ self.A.T + self.x0, self.A @ S @ self.A.T
+            else:
+                Z, Achol = self.ut.points(m, S)
+                X, J = self.point.forward_and_jacobian(Z)
+                self.mx, self.Sx = self.ut.moments(X)
+                self._cache = (X, J, Achol)
+        self.g_mx = np.zeros_like(self.mx)
+        self.g_Sx = np.zeros_like(self.Sx)
 
-    def backward(self, g_mx, g_Sx):
+    def backward(self):
         g = self.group
+        g_mx, g_Sx = self.g_mx, self.g_Sx
         if self.identity:
             g.g_m += g_mx
             g.g_S += g_Sx
@@ -201,8 +206,8 @@ class _Bound:
             g_m = g_mx @ self.A
             g_S = self.A.T @ g_Sx @ self.A
         else:
-            X, mx, J, Achol = self._cache
-            g_m, g_S = self.ut.backward(X, mx, J, Achol, g_mx, g_Sx)
+            X, J, Achol = self._cache
+            g_m, g_S = self.ut.backward(X, self.mx, J, Achol, g_mx, g_Sx)
         ix = np.ix_(np.arange(g.m.shape[0]), self.dofs)
         g.g_m[ix] += g_m
         g.g_S[:, self.dofs[:, None], self.dofs[None, :]] += g_S
@@ -236,7 +241,8 @@ class Problem:
         if config.kappa > 0:
             self.Phi_R = prior.smoothness_matrix(joint_weights=config.smoothness_weights)
         groups = {}
-        self.bound: List[_Bound] = []
+        points = {}
+        self.bound: List[Optional[_PointMoments]] = []
         self.weight_constraints: List[WeightConstraint] = []
         self.slices = []
         offset = 0
@@ -250,7 +256,11 @@ class Problem:
                 key = times.tobytes()
                 if key not in groups:
                     groups[key] = _Group(prior, times)
-                self.bound.append(_Bound(c, groups[key], prior.n_dims, config.ut_alpha))
+                pkey = (id(c.point), key)
+                if pkey not in points:
+                    points[pkey] = _PointMoments(c.point, groups[key], prior.n_dims,
+                                                 config.ut_alpha)
+                self.bound.append(points[pkey])
                 nv = times.size if c.reduce == 'each' else 1
             else:
                 raise ValidationError(f'constraints: expected Constraint objects, got '
@@ -259,6 +269,7 @@ class Problem:
             offset += nv
         self.constraints = list(constraints)
         self.groups = list(groups.values())
+        self.points = list(points.values())
         self.n_values = offset
         self.alpha = np.concatenate([np.full(s.stop - s.start, c.alpha)
                                      for c, s in zip(self.constraints, self.slices)]) \
@@ -312,6 +323,8 @@ class Problem:
         """F for every multiplier (n_values,), optionally with the backward closure."""
         for g in self.groups:
             g.forward(mu, L)
+        for pm in self.points:
+            pm.compute()
         F = np.empty(self.n_values)
         parts = []
         Sigma = None
@@ -323,8 +336,7 @@ class Problem:
                 F[sl] = Fw
                 parts.append((dmu, dS))
                 continue
-            mx, Sx = b.moments()
-            Ft, dm, dS = c.probability(mx, Sx, b.group.times)
+            Ft, dm, dS = c.probability(b.mx, b.Sx, b.group.times)
             if c.reduce == 'max':
                 i = int(np.argmax(Ft))
                 F[sl] = Ft[i]
@@ -366,7 +378,10 @@ class Problem:
                     continue
                 mask, dm, dS = part
                 wt = w[0] * mask if mask is not None else w
-                b.backward(wt[:, None] * dm, wt[:, None, None] * dS)
+                b.g_mx += wt[:, None] * dm
+                b.g_Sx += wt[:, None, None] * dS
+            for pm in self.points:
+                pm.backward()
             for g in self.groups:
                 g.backward(g_mu, g_L)
         if g_Sigma is not None:

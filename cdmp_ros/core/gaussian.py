@@ -52,9 +52,9 @@ def gamma_cdf(E: NDArray, V: NDArray, x: NDArray
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         log_dens = (k - 1.0) * np.log(np.maximum(u, 1e-300)) - u - special.gammaln(k)
         dP_du = np.where(u > 0, np.exp(log_dens), 0.0)
-    # dP/dk: the one scalar derivative without a closed form in scipy (numerical, in k only)
-    h = 1e-7 * (1.0 + k)
-    dP_dk = (special.gammainc(k + h, u) - P) / h
+    # dP/dk: the one scalar derivative without a closed form in scipy (central difference)
+    h = 1e-5 * (1.0 + k)
+    dP_dk = (special.gammainc(k + h, u) - special.gammainc(k - h, u)) / (2.0 * h)
     dk_dE = 2.0 * E / V
     dk_dV = -k / V
     du_dE = x / V

@@ -47,9 +47,20 @@ class DofPoint(Point):
 
 class ChainPoint(Point):
     """A Cartesian point rigidly attached to a link of a kinematic chain whose joints are the
-    ProMP dimensions ``dofs`` (cdmp_ros.core.kinematics.Chain, PointOfInterest)."""
+    ProMP dimensions ``dofs`` (cdmp_ros.core.kinematics.Chain, PointOfInterest).
 
-    def __init__(self, chain, point, dofs: Sequence[int] = None):
+    Parameters
+    ----------
+    chain : Chain
+    point : PointOfInterest
+    dofs : sequence of int, optional
+        ProMP dimensions of the chain's joints, in chain order (default 0..n_dofs-1).
+    axes : sequence of int, optional
+        World coordinates kept (default (0, 1, 2); (0, 1) for a planar arm).
+    """
+
+    def __init__(self, chain, point, dofs: Sequence[int] = None,
+                 axes: Sequence[int] = (0, 1, 2)):
         self.chain = chain
         self.point = point
         n = chain.n_dofs
@@ -57,11 +68,15 @@ class ChainPoint(Point):
         if len(self.dofs) != n:
             raise ValidationError(f'point.dofs: expected {n} indices for the chain, '
                                   f'got {len(self.dofs)}')
-        self.n_out = 3
+        self.axes = tuple(int(a) for a in axes)
+        if not self.axes or any(a not in (0, 1, 2) for a in self.axes):
+            raise ValidationError(f'point.axes: expected indices in 0..2, got {list(axes)}')
+        self.n_out = len(self.axes)
 
     def forward_and_jacobian(self, Z):
         X, J = self.chain.forward_and_jacobian(Z, [self.point])
-        return X[..., 0, :], J[..., 0, :, :]
+        ax = list(self.axes)
+        return X[..., 0, ax], J[..., 0, ax, :]
 
 
 class DifferencePoint(Point):
