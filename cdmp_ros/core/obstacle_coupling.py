@@ -1,0 +1,257 @@
+"""Joint-space obstacle coupling of a chain: kinematics + closest points + fields + Eq. 7/12.
+
+:class:`ObstacleCoupling` is built once per chain (it compiles the single-configuration
+kinematics kernel of the end effector and of the chosen link segments) and evaluated every
+tick on plain floats::
+
+    coupling = ObstacleCoupling(chain, links=['panda_link3', 'panda_link5'])
+    dq_dd = coupling.joint_acceleration(q, qd, [Sphere((0.4, 0.1, 0.5), 0.05)])
+    stepper.input.coupling[:] = coupling.to_internal(dq_dd, out.xi, tau, transform)
+
+End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
+Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
+over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field; its
+Jacobian is ``J_o = (1 - t) J_a + t J_b`` (exact: point Jacobians of one rigid link are affine
+in the point). Spheres use ``sphere_field``, boxes ``box_field``.
+"""
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence, Union
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdmp_ros.core.coupling import DampingConfig, coupling_3d, scalar_coupling
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.kinematics import Chain, PointOfInterest
+from cdmp_ros.core.kinematics.closest import Box, Sphere, segment_box
+from cdmp_ros.core.validation import check_positive
+
+Field = Union[RepellerField, ConstantField, BoardField]
+
+
+@dataclass(frozen=True)
+class CouplingConfig:
+    """Configuration of :class:`ObstacleCoupling`.
+
+    Attributes
+    ----------
+    damping : DampingConfig
+        Pseudo-inverse damping (:mod:`cdmp_ros.core.coupling`).
+    link_radius : float
+        Radius [m] of the capsules modelling the links (distances are to the capsule surface).
+    end_effector : bool
+        Apply the fields to the end-effector point (Eq. 7). The link terms always act in the
+        null space of the end-effector task.
+    """
+
+    damping: DampingConfig = field(default_factory=DampingConfig)
+    link_radius: float = 0.0
+    end_effector: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.damping, DampingConfig):
+            raise ValidationError(f'CouplingConfig.damping: expected DampingConfig, got '
+                                  f'{type(self.damping).__name__}')
+        check_positive('CouplingConfig.link_radius', self.link_radius, allow_zero=True)
+
+
+def _point_sphere(x, c, r):
+    dx, dy, dz = x[0] - c[0], x[1] - c[1], x[2] - c[2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if d > 1e-12:
+        return d - r, (dx / d, dy / d, dz / d)
+    return -r, (0.0, 0.0, 1.0)
+
+
+def _point_box(x, lo, hi):
+    """Signed distance and outward normal of a point to an axis-aligned box (floats)."""
+    g = [max(lo[i] - x[i], 0.0, x[i] - hi[i]) for i in range(3)]
+    out = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    if out > 0.0:
+        return out, tuple((x[i] - min(max(x[i], lo[i]), hi[i])) / out for i in range(3))
+    # inside: nearest face
+    best, axis, sign = -math.inf, 0, 1.0
+    for i in range(3):
+        for s, depth in ((1.0, x[i] - hi[i]), (-1.0, lo[i] - x[i])):
+            if depth > best:
+                best, axis, sign = depth, i, s
+    n = [0.0, 0.0, 0.0]
+    n[axis] = sign
+    return best, tuple(n)
+
+
+class ObstacleCoupling:
+    """Joint acceleration coupling of a chain for a set of obstacles (module docstring).
+
+    Parameters
+    ----------
+    chain : Chain
+    links : sequence of str or (link, start, end)
+        Link segments that get a null-space avoidance term: link names (looked up in
+        ``chain.link_segments()``) or explicit segments (points in the link frame).
+    sphere_field, box_field : field
+        Potential fields of spheres and of boxes.
+    config : CouplingConfig
+    """
+
+    def __init__(self, chain: Chain, links: Sequence = (),
+                 sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
+                 config: CouplingConfig = CouplingConfig()):
+        self.chain = chain
+        self.config = config
+        self.sphere_field = sphere_field
+        self.box_field = box_field
+        by_name = {seg[0]: seg for seg in chain.link_segments()}
+        self.segments = []
+        for i, link in enumerate(links):
+            if isinstance(link, str):
+                if link not in by_name:
+                    raise ValidationError(f'links[{i}]: expected one of {list(by_name)}, got '
+                                          f'{link!r}')
+                self.segments.append(by_name[link])
+            else:
+                name, start, end = link
+                self.segments.append((name, tuple(map(float, start)), tuple(map(float, end))))
+        points = [PointOfInterest('ee')]
+        for name, start, end in self.segments:
+            points += [PointOfInterest(name, start), PointOfInterest(name, end)]
+        self.points = tuple(points)
+        self._kernel = chain.fast_kernel(self.points)
+        frames, _ = chain.resolve(self.points)
+        # joints that move each segment: J_o columns beyond are zero and are cut off
+        self._n_moving = [int(frames[1 + 2 * i]) for i in range(len(self.segments))]
+        self._axes = chain.task_axes
+        fields = (sphere_field, box_field)
+        self._needs_velocity = any(getattr(f, 'damping', 0.0) for f in fields)
+        self.last_distances: List[float] = []
+
+    def _field(self, obstacle) -> Field:
+        if isinstance(obstacle, Sphere):
+            return self.sphere_field
+        if isinstance(obstacle, Box):
+            return self.box_field
+        raise ValidationError(f'obstacles: expected Sphere or Box, got '
+                              f'{type(obstacle).__name__}')
+
+    @staticmethod
+    def _velocity(rows, qd):
+        if qd is None:
+            return (0.0, 0.0, 0.0)
+        return tuple(sum(a * b for a, b in zip(row, qd)) for row in rows)
+
+    def joint_acceleration(self, q: Sequence[float], qd: Optional[Sequence[float]],
+                           obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
+        """Total joint acceleration coupling ``J^+ dx_e + sum_l (J_o,l N)^+ dx_l``.
+
+        Parameters
+        ----------
+        q, qd : sequence of float (n_dofs)
+            Joint positions and velocities (``qd`` feeds velocity-dependent fields; None
+            means at rest).
+        obstacles : sequence of Sphere or Box
+
+        Returns
+        -------
+        list of float (n_dofs)
+            Joint acceleration change [rad/s^2]. ``self.last_distances`` then holds the
+            signed distance of the end effector and of every chosen link to its nearest
+            obstacle.
+        """
+        n = self.chain.n_dofs
+        ql = q.tolist() if isinstance(q, np.ndarray) else list(q)
+        qdl = (qd.tolist() if isinstance(qd, np.ndarray) else list(qd)) if qd is not None \
+            else None
+        x, jac = self._kernel(ql)
+        radius = self.config.link_radius
+        rows_e = [jac[0:n], jac[n:2 * n], jac[2 * n:3 * n]]
+        ee = x[0:3]
+        dx_e = [0.0, 0.0, 0.0]
+        xd_e = self._velocity(rows_e, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
+        dists = [math.inf]
+        for obs in obstacles:
+            if isinstance(obs, Sphere):
+                d, normal = _point_sphere(ee, obs.center, obs.radius)
+            else:
+                d, normal = _point_box(ee, obs.lower, obs.upper)
+            dists[0] = min(dists[0], d)
+            if self.config.end_effector:
+                a = self._field(obs).acceleration(ee, xd_e, obs, d, normal)
+                dx_e[0] += a[0]
+                dx_e[1] += a[1]
+                dx_e[2] += a[2]
+        links = []
+        stride = 3 * n
+        for i, k in enumerate(self._n_moving):
+            pa, pb = x[3 + 6 * i:6 + 6 * i], x[6 + 6 * i:9 + 6 * i]
+            best = (math.inf, None, None, None)
+            for obs in obstacles:
+                if isinstance(obs, Sphere):
+                    c = obs.center
+                    u0, u1, u2 = pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]
+                    uu = u0 * u0 + u1 * u1 + u2 * u2
+                    t = ((c[0] - pa[0]) * u0 + (c[1] - pa[1]) * u1 + (c[2] - pa[2]) * u2) / uu \
+                        if uu > 0.0 else 0.0
+                    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                    p = (pa[0] + t * u0, pa[1] + t * u1, pa[2] + t * u2)
+                    d, normal = _point_sphere(p, c, obs.radius)
+                else:
+                    tt, dd, _, nn = segment_box(pa, pb, obs.lower, obs.upper)
+                    t, d, normal = float(tt), float(dd), tuple(nn.tolist())
+                    p = tuple(pa[j] + t * (pb[j] - pa[j]) for j in range(3))
+                d -= radius
+                if d < best[0]:
+                    best = (d, obs, t, (p, normal))
+            dists.append(best[0])
+            if best[1] is None:
+                continue
+            d, obs, t, (p, normal) = best
+            base_a = (1 + 2 * i) * stride
+            base_b = base_a + stride
+            s = 1.0 - t
+            J_o = [[s * jac[base_a + r * n + c] + t * jac[base_b + r * n + c] for c in range(k)]
+                   for r in range(3)]
+            xd = self._velocity(J_o, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
+            a = self._field(obs).acceleration(p, xd, obs, d, normal)
+            if a[0] or a[1] or a[2]:
+                links.append((J_o, a))
+        self.last_distances = dists
+        if not links and not any(dx_e):
+            return [0.0] * n
+        if self._axes == (0, 1, 2):
+            return coupling_3d(rows_e, dx_e, links, self.config.damping)
+        ax = self._axes
+        rows = [rows_e[a] for a in ax]
+        links = [([list(J_o[a]) + [0.0] * (n - len(J_o[a])) for a in ax], [dx[a] for a in ax])
+                 for J_o, dx in links]
+        return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping)
+
+    @staticmethod
+    def to_internal(dq_dd: Sequence[float], xi: Optional[Sequence[float]], tau: float,
+                    y_delta: Optional[Sequence[float]] = None) -> List[float]:
+        """The coupling term ``P`` of the stepper (``stepper.input.coupling``).
+
+        CDMP (``y_delta`` given): Eq. (29) at fixed ``(xi, xid)`` gives
+        ``dxi_dd = dq_dd / (y_delta (1 - tanh(xi)^2))`` and Eq. (21) takes
+        ``P = tau^2 dxi_dd``; DMP (``y_delta`` None): ``P = tau^2 dq_dd``. The same map as
+        ``TanhTransform.joint_accel_to_exogenous`` (floored at 1e-300), on plain floats.
+        """
+        tau2 = tau * tau
+        if y_delta is None:
+            return [tau2 * a for a in dq_dd]
+        out = []
+        for a, x, yd in zip(dq_dd, xi, y_delta):
+            t = math.tanh(x)
+            out.append(tau2 * a / max(yd * (1.0 - t * t), 1e-300))
+        return out
+
+
+def joint_coupling(chain: Chain, q: ArrayLike, qd: Optional[ArrayLike],
+                   obstacles: Sequence[Union[Sphere, Box]], links: Sequence = (),
+                   sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
+                   config: CouplingConfig = CouplingConfig()) -> NDArray[np.float64]:
+    """One-shot :meth:`ObstacleCoupling.joint_acceleration` (builds the coupling each call;
+    keep an :class:`ObstacleCoupling` for repeated use)."""
+    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config)
+    return np.array(coupling.joint_acceleration(q, qd, obstacles))
