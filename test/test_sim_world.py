@@ -140,3 +140,19 @@ def test_home_is_validated():
     with pytest.raises(ValidationError, match='fingers'):
         panda_spec(fingers='loose')
     assert math.isclose(panda_spec().home[3], -3 * math.pi / 4)
+
+
+def test_ee_point_is_the_tool_centre_point_of_core_kinematics(rng):
+    """Robot.ee_position() is the same point as core.kinematics' PointOfInterest('ee')
+    (panda_hand frame + PANDA_EE_OFFSET), and the chain's FK matches pybullet's links."""
+    from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
+    with World() as world:
+        robot = world.add_robot(panda_spec())
+        chain = panda_chain(robot.spec.urdf_path)
+        points = [PointOfInterest('ee'), PointOfInterest('panda_link4')]
+        for _ in range(3):
+            q = robot.lower + (robot.upper - robot.lower) * rng.uniform(0.1, 0.9, 7)
+            robot.reset(q)
+            X = chain.forward(q, points)
+            np.testing.assert_allclose(X[0], robot.ee_position(), atol=1e-6)
+            np.testing.assert_allclose(X[1], robot.link_pose('panda_link4')[0], atol=1e-6)

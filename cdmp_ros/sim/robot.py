@@ -191,8 +191,14 @@ class Robot:
         return np.array(pos), np.array(orn)
 
     def ee_position(self) -> NDArray[np.float64]:
-        """World position ``(3,)`` of the end-effector link frame."""
-        return self.link_pose(self.ee_link)[0]
+        """World position ``(3,)`` of the end-effector point: ``spec.ee_offset`` in the
+        ``ee_link`` frame (the Panda's tool centre point, as ``PointOfInterest('ee')``)."""
+        pos, orn = self.link_pose(self.ee_link)
+        offset = self.spec.ee_offset
+        if offset == (0.0, 0.0, 0.0):
+            return pos
+        R = np.array(pybullet.getMatrixFromQuaternion(orn.tolist())).reshape(3, 3)
+        return pos + R @ np.asarray(offset)
 
     # -- dynamics (Eq. 1, paper 000) -----------------------------------------------------
     def _full(self, q: NDArray) -> list:

@@ -4,7 +4,8 @@ A :class:`RobotSpec` says what to load and which joints are controlled; the limi
 (position, velocity, effort) are always read from the URDF by :class:`cdmp_ros.sim.robot.Robot`.
 
 - :func:`panda_spec`: Franka Emika Panda from ``pybullet_data/franka_panda/panda.urdf``; 7 arm
-  joints ``panda_joint1..7`` controlled; end effector ``panda_hand`` (the tip used by
+  joints ``panda_joint1..7`` controlled; end-effector link ``panda_hand`` and end-effector
+  point the tool centre point ``PANDA_EE_OFFSET`` in that frame (both as
   ``cdmp_ros.core.kinematics.panda_chain``). By default the two finger joints are made fixed
   (at ``finger_opening``) in a copy of the URDF (:func:`panda_urdf_path`), so that pybullet's
   inverse dynamics is the exact model of the simulated arm; ``fingers='held'`` loads the stock
@@ -27,6 +28,7 @@ import numpy as np
 import pybullet_data
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics import PANDA_EE_OFFSET
 from cdmp_ros.core.validation import as_array, check_limits, check_positive
 
 PANDA_URDF = os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
@@ -56,6 +58,9 @@ class RobotSpec:
     held_joints : tuple of (str, float)
         Other movable joints (e.g. the Panda fingers), held at a fixed position by pybullet's
         position motors and excluded from ``q``.
+    ee_offset : tuple of float
+        End-effector point (tool centre point) in the ``ee_link`` frame [m], as
+        ``cdmp_ros.core.kinematics`` (``PointOfInterest('ee')``).
     """
 
     name: str
@@ -64,6 +69,7 @@ class RobotSpec:
     ee_link: str
     home: Tuple[float, ...]
     held_joints: Tuple[Tuple[str, float], ...] = field(default=())
+    ee_offset: Tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         if not os.path.isfile(self.urdf_path):
@@ -80,6 +86,8 @@ class RobotSpec:
             raise ValidationError(f'held_joints: expected joints not in joint_names, got '
                                   f'{sorted(clash)}')
         object.__setattr__(self, 'held_joints', held)
+        object.__setattr__(self, 'ee_offset', tuple(
+            float(v) for v in as_array('ee_offset', self.ee_offset, (3,))))
 
     @property
     def n_dofs(self) -> int:
@@ -139,10 +147,11 @@ def panda_spec(home: Optional[Sequence[float]] = None, finger_opening: float = 0
     home = PANDA_HOME if home is None else tuple(home)
     if fingers == 'fixed':
         return RobotSpec(name=name, urdf_path=panda_urdf_path(o, cache_dir),
-                         joint_names=PANDA_JOINTS, ee_link='panda_hand', home=home)
+                         joint_names=PANDA_JOINTS, ee_link='panda_hand', home=home,
+                         ee_offset=PANDA_EE_OFFSET)
     if fingers == 'held':
         return RobotSpec(name=name, urdf_path=PANDA_URDF, joint_names=PANDA_JOINTS,
-                         ee_link='panda_hand', home=home,
+                         ee_link='panda_hand', home=home, ee_offset=PANDA_EE_OFFSET,
                          held_joints=(('panda_finger_joint1', o), ('panda_finger_joint2', o)))
     raise ValidationError(f"fingers: expected 'fixed' or 'held', got {fingers!r}")
 

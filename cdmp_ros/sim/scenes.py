@@ -35,10 +35,10 @@ HAND_DOWN = (1.0, 0.0, 0.0, 0.0)
 def _pose_error(robot, ee: int, target: NDArray, orn: Optional[NDArray]) -> NDArray:
     st = pybullet.getLinkState(robot.body_id, ee, computeForwardKinematics=True,
                                physicsClientId=robot.world.client_id)
-    err = target - np.array(st[4])
+    R = np.array(pybullet.getMatrixFromQuaternion(st[5])).reshape(3, 3)
+    err = target - (np.array(st[4]) + R @ np.asarray(robot.spec.ee_offset))
     if orn is None:
         return err
-    R = np.array(pybullet.getMatrixFromQuaternion(st[5])).reshape(3, 3)
     Rd = np.array(pybullet.getMatrixFromQuaternion(orn.tolist())).reshape(3, 3)
     return np.concatenate([err, 0.5 * np.cross(R, Rd, axis=0).sum(axis=1)])
 
@@ -48,8 +48,10 @@ def _refine_ik(robot, ee: int, q: NDArray, target: NDArray, orn: Optional[NDArra
     """Damped least-squares Newton steps on the pose error (pybullet Jacobians)."""
     cid = robot.world.client_id
     st = pybullet.getLinkState(robot.body_id, ee, physicsClientId=cid)
-    # calculateJacobian takes the point in the link's inertial frame: the URDF frame origin
-    local = pybullet.invertTransform(st[2], st[3])[0]
+    # calculateJacobian takes the point in the link's inertial frame: the end-effector point
+    inv_pos, inv_orn = pybullet.invertTransform(st[2], st[3])
+    local = pybullet.multiplyTransforms(inv_pos, inv_orn, list(robot.spec.ee_offset),
+                                        [0.0, 0.0, 0.0, 1.0])[0]
     zeros = [0.0] * robot.n_dofs
     for _ in range(n_iterations):
         robot.reset(q)
@@ -66,8 +68,9 @@ def _refine_ik(robot, ee: int, q: NDArray, target: NDArray, orn: Optional[NDArra
 
 def solve_ik(robot, position: ArrayLike, orientation: Optional[Sequence[float]] = None,
              q_rest: Optional[ArrayLike] = None, tol: float = 1e-4) -> NDArray[np.float64]:
-    """Joint configuration ``(n_dofs,)`` placing ``robot.ee_link`` at ``position`` (3,)
-    (and its frame at the quaternion ``orientation``, if given).
+    """Joint configuration ``(n_dofs,)`` placing the end-effector point
+    (:meth:`Robot.ee_position`) at ``position`` (3,) and, if given, the ``ee_link`` frame at
+    the quaternion ``orientation``.
 
     pybullet's null-space IK (joint limits, rest pose ``q_rest`` for the redundancy, default
     the robot's home) gives the branch; damped least-squares steps with pybullet's Jacobians
@@ -209,7 +212,8 @@ class ReachingSceneConfig:
     Attributes
     ----------
     ee_goal : tuple of float
-        End-effector (``panda_hand``) goal in the robot base frame [m]. The paper's iCub goal
+        Goal of the end-effector point (the tool centre point, :meth:`Robot.ee_position`) in
+        the robot base frame [m]. The paper's iCub goal
         (0.350, 0.091, 0.853) m is in the iCub's frame and not reachable by the Panda; this
         default is a comparable reach forward-left, well inside the workspace.
     ee_orientation : tuple of float or None
@@ -224,7 +228,7 @@ class ReachingSceneConfig:
         Half extents of the board: its local x (along the upper arm), y, and the thin z.
     """
 
-    ee_goal: Tuple[float, float, float] = (0.45, 0.25, 0.30)
+    ee_goal: Tuple[float, float, float] = (0.40, 0.30, 0.20)
     ee_orientation: Optional[Tuple[float, float, float, float]] = HAND_DOWN
     q_start: Tuple[float, ...] = PANDA_HOME
     link: str = 'panda_link3'
