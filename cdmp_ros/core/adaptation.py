@@ -468,8 +468,10 @@ def sample_points(promp: ProMP, c, n_samples: int, rng: np.random.Generator,
     if W is None:
         W = promp.sample_weights(n_samples, rng)
     phi = promp.basis.features(times)
-    Z = np.einsum('tm,kdm->ktd', phi, W.reshape(-1, promp.n_dims, promp.n_basis))
-    return c.point.forward(Z[..., list(c.point.dofs)])
+    dofs = list(c.point.dofs)
+    W3 = W.reshape(-1, promp.n_dims, promp.n_basis)[:, dofs, :]
+    Z = (W3.reshape(-1, promp.n_basis) @ phi.T).reshape(W.shape[0], len(dofs), -1)
+    return c.point.forward(np.ascontiguousarray(Z.transpose(0, 2, 1)))
 
 
 def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int,

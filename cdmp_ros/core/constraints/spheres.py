@@ -41,7 +41,8 @@ class _Sphere(Constraint):
         return F, dF_dm, dF_dS
 
     def _dist2(self, X, times):
-        return np.sum((X - self.centers(times)[None]) ** 2, axis=-1)
+        d = X - self.centers(times)[None]
+        return np.einsum('...i,...i->...', d, d)
 
     def describe(self):
         d = super().describe()
