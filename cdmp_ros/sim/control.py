@@ -243,8 +243,9 @@ class JointLimitAvoidingController(_TorqueController):
     potential does not (``int arctanh = ln 2`` at the limit), so the bound holds only when the
     damping dissipates the energy a set-point change injects. A reference that moves towards
     (or beyond) a limit at joint-velocity pace stays strictly inside; a large *step* of the set
-    point to within a few percent of a limit can overshoot it by a few mrad with moderate
-    damping. A larger ``margin`` or ``kd`` reduces this.
+    point to within a few percent of a limit can overshoot it by several mrad with moderate
+    damping (joint 2 of the Panda: about 9 mrad with ``margin`` 0.01; about 45 mrad with
+    0.001). Measured at 1 kHz; a larger ``margin`` reduced it in every case tried.
     """
 
     def __init__(self, gains: JointLimitAvoidingGains = JointLimitAvoidingGains()):
