@@ -131,14 +131,18 @@ def _sym_eigenvalues(A: Matrix) -> List[float]:
         h = 0.5 * (a + d)
         r = math.hypot(0.5 * (a - d), b)
         return [h - r, h + r]
-    a00, a01, a02 = A[0]
-    a11, a12, a22 = A[1][1], A[1][2], A[2][2]
+    return list(_eigenvalues3(A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]))
+
+
+def _eigenvalues3(a00: float, a01: float, a02: float, a11: float, a12: float,
+                  a22: float) -> tuple:
+    """Ascending eigenvalues of a symmetric 3x3 matrix (trigonometric formula)."""
     q = (a00 + a11 + a22) / 3.0
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
     p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
     if p2 <= 1e-300:
-        return [q, q, q]
+        return q, q, q
     p = math.sqrt(p2 / 6.0)
     det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
            + a02 * (a01 * a12 - b11 * a02))
@@ -146,7 +150,7 @@ def _sym_eigenvalues(A: Matrix) -> List[float]:
     phi = math.acos(r) / 3.0
     hi = q + 2.0 * p * math.cos(phi)
     lo = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    return [lo, 3.0 * q - lo - hi, hi]
+    return lo, 3.0 * q - lo - hi, hi
 
 
 def _matmul(A: Matrix, B: Matrix) -> Matrix:
@@ -227,7 +231,7 @@ def _inverse_h3(a00: float, a01: float, a02: float, a11: float, a12: float, a22:
     semi-definite 3x3 ``A``, and whether any eigenvalue was damped.
 
     Undamped (plain inverse) when the cheap bound ``mu_min >= 4 det(A) / tr(A)^2`` already
-    clears ``eps2``; otherwise through :func:`_damped_gram`'s closed form."""
+    clears ``eps2``; otherwise ``h(A)`` in closed form (as :func:`_h_of`, unrolled)."""
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -235,12 +239,34 @@ def _inverse_h3(a00: float, a01: float, a02: float, a11: float, a12: float, a22:
     tr = a00 + a11 + a22
     damped = False
     if not (det > 0.0 and 4.0 * det >= eps2 * tr * tr):
-        A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
-        mu = _sym_eigenvalues(A)
-        if mu[0] < eps2:
+        mu0, mu1, mu2 = _eigenvalues3(a00, a01, a02, a11, a12, a22)
+        if mu0 < eps2:
             damped = True
-            H = _h_of(A, mu, eps2, lam2)
-            (a00, a01, a02), (_, a11, a12), (_, _, a22) = H
+            # h(A) = x A + y I + z P with P the projector of the isolated eigenvalue
+            # (Sylvester: P = (A - a I)(A - b I) / ((mu_g - a)(mu_g - b)) = (A^2 - (a + b) A
+            # + a b I) / den), see _h_of
+            if mu2 < eps2:                                   # all damped
+                x, y, z = 1.0 - lam2 / eps2, lam2, 0.0
+                ea = eb = den = 1.0
+            elif mu1 < eps2:                                 # mu0, mu1 damped; P of mu2
+                x, y, z = 1.0 - lam2 / eps2, lam2, lam2 * (mu2 / eps2 - 1.0)
+                ea, eb, den = mu0, mu1, (mu2 - mu0) * (mu2 - mu1)
+            else:                                            # mu0 damped; P of mu0
+                x, y, z = 1.0, 0.0, lam2 * (1.0 - mu0 / eps2)
+                ea, eb, den = mu1, mu2, (mu0 - mu1) * (mu0 - mu2)
+            if z:
+                z /= den
+                ab, sab = ea * eb, ea + eb
+                p00 = a00 * a00 + a01 * a01 + a02 * a02 - sab * a00 + ab
+                p11 = a01 * a01 + a11 * a11 + a12 * a12 - sab * a11 + ab
+                p22 = a02 * a02 + a12 * a12 + a22 * a22 - sab * a22 + ab
+                p01 = a00 * a01 + a01 * a11 + a02 * a12 - sab * a01
+                p02 = a00 * a02 + a01 * a12 + a02 * a22 - sab * a02
+                p12 = a01 * a02 + a11 * a12 + a12 * a22 - sab * a12
+            else:
+                p00 = p11 = p22 = p01 = p02 = p12 = 0.0
+            a00, a11, a22 = x * a00 + y + z * p00, x * a11 + y + z * p11, x * a22 + y + z * p22
+            a01, a02, a12 = x * a01 + z * p01, x * a02 + z * p02, x * a12 + z * p12
             c00 = a11 * a22 - a12 * a12
             c01 = a02 * a12 - a01 * a22
             c02 = a01 * a12 - a02 * a11

@@ -210,7 +210,8 @@ class ObstacleCoupling:
             base_a = (1 + 2 * i) * stride
             base_b = base_a + stride
             s = 1.0 - t
-            J_o = [[s * jac[base_a + r * n + c] + t * jac[base_b + r * n + c] for c in range(k)]
+            J_o = [[s * u + t * v for u, v in zip(jac[base_a + r * n:base_a + r * n + k],
+                                                  jac[base_b + r * n:base_b + r * n + k])]
                    for r in range(3)]
             xd = self._velocity(J_o, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
             a = self._field(obs).acceleration(p, xd, obs, d, normal)

@@ -123,6 +123,10 @@ class Chain:
                                   f'got {ee_link!r}')
         self._resolved: Dict[tuple, Tuple[NDArray, NDArray]] = {}
         self._kernels: Dict[tuple, object] = {}
+        self._Rb4 = np.zeros((self.n_dofs, 4, 4))
+        self._Rb4[:, :3, :3] = self.B[:, :3, :3]
+        self._tb4 = np.zeros((self.n_dofs, 4))
+        self._tb4[:, :3] = self.B[:, :3, 3]
 
     def __repr__(self) -> str:
         return (f'Chain(n_dofs={self.n_dofs}, joints={self.joint_names}, '
@@ -175,45 +179,45 @@ class Chain:
         return Q
 
     def _frames(self, Q: NDArray) -> Tuple[NDArray, NDArray]:
-        """Internal frames of flat ``Q`` (B, n): ``R`` (n+1, B, 3, 3) and ``p`` (n+1, B, 3).
+        """Internal frames of flat ``Q`` (B, n) as 3x4 homogeneous matrices ``[R | p]``.
 
-        Frame-major so that each step of the recursion works on contiguous (B*3, 3) blocks
-        (one BLAS product with the constant rotation per joint).
+        Returns ``F`` (n+1, 3, B, 4) with ``F[k, i, b, :3]`` row i of frame k's rotation
+        for configuration b and ``F[k, i, b, 3]`` its position, and the view ``p = F[..., 3]``
+        (n+1, 3, B).
+
+        Each step is one BLAS product ``(3B, 4) @ B_k`` (rotation and translation at once),
+        and the joint rotation ``Rz(q)`` mixes columns 0 and 1: with a row's entries 0 and 1
+        viewed as the complex number ``m0 + i m1`` it is a multiplication by ``exp(-i q)``,
+        computed from ``t = tan(q / 2)`` as ``(1 - t^2 - 2 i t) / (1 + t^2)`` (one
+        transcendental function instead of two).
         """
         nb, n = Q.shape
-        R = np.empty((n + 1, nb, 3, 3))
-        p = np.empty((n + 1, nb, 3))
-        R[0] = self.base_transform[:3, :3]
-        p[0] = self.base_transform[:3, 3]
-        QT = Q.T
-        C, S = np.cos(QT)[:, :, None], np.sin(QT)[:, :, None]   # (n, B, 1)
-        tmp = np.empty((nb, 3))
+        F = np.empty((n + 1, 3, nb, 4))
+        F[0] = self.base_transform[:3, None, :]
+        T = np.tan(0.5 * Q.T)
+        T2 = T * T
+        D = 1.0 / (1.0 + T2)
+        E = np.empty((n, nb), dtype=np.complex128)
+        np.multiply(1.0 - T2, D, out=E.real)
+        np.multiply(-2.0 * T, D, out=E.imag)
         for k in range(n):
-            Rk = R[k].reshape(nb * 3, 3)
-            np.dot(Rk, self.B[k, :3, 3], out=p[k + 1].reshape(nb * 3))
-            p[k + 1] += p[k]
-            M = R[k + 1]
-            np.dot(Rk, self.B[k, :3, :3], out=M.reshape(nb * 3, 3))  # R_k @ Rb
+            M = F[k + 1]
+            np.dot(F[k].reshape(3 * nb, 4), self.B[k], out=M.reshape(3 * nb, 4))
             if self.prismatic[k]:
-                p[k + 1] += M[:, :, 2] * QT[k, :, None]
+                M[:, :, 3] += M[:, :, 2] * Q[:, k]
             else:
-                c, s = C[k], S[k]
-                m0, m1 = M[:, :, 0].copy(), M[:, :, 1].copy()
-                np.multiply(m0, c, out=M[:, :, 0])
-                np.multiply(m1, s, out=tmp)
-                M[:, :, 0] += tmp
-                np.multiply(m1, c, out=M[:, :, 1])
-                np.multiply(m0, s, out=tmp)
-                M[:, :, 1] -= tmp
-        return R, p
+                M.view(np.complex128)[:, :, 0] *= E[k]                # Rz(q_k)
+        return F, F[..., 3]
 
-    def _points(self, R, p, points):
-        """World points (B, P, 3) of resolved points from frames of :meth:`_frames`."""
+    def _points(self, F, p, points):
+        """World points (P, 3, B) of resolved points from frames of :meth:`_frames`."""
         frames, coords = self.resolve(points)
-        nb = R.shape[1]
-        X = np.empty((nb, len(frames), 3))
+        nb = F.shape[2]
+        X = np.empty((len(frames), 3, nb))
+        c4 = np.ones(4)
         for i, (k, c) in enumerate(zip(frames.tolist(), coords)):
-            np.add((R[k].reshape(nb * 3, 3) @ c).reshape(nb, 3), p[k], out=X[:, i])
+            c4[:3] = c
+            np.dot(F[k].reshape(3 * nb, 4), c4, out=X[i].reshape(3 * nb))
         return X, frames
 
     def forward(self, Q: ArrayLike, points: Sequence[PointOfInterest]) -> NDArray[np.float64]:
@@ -235,7 +239,7 @@ class Chain:
         lead = Q.shape[:-1]
         R, p = self._frames(Q.reshape(-1, self.n_dofs))
         X, _ = self._points(R, p, points)
-        return X.reshape(lead + X.shape[1:])
+        return X.transpose(2, 0, 1).reshape(lead + X.shape[:2])
 
     def forward_and_jacobian(self, Q: ArrayLike, points: Sequence[PointOfInterest]
                              ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -253,6 +257,10 @@ class Chain:
         X : ndarray (..., n_points, 3)
         J : ndarray (..., n_points, 3, n_dofs)
             ``J[..., i, :, j] = d X[..., i, :] / d Q[..., j]``.
+
+        Batched results are views whose batch axis is innermost in memory (the layout the
+        vectorised recursion produces); use ``np.ascontiguousarray`` if a consumer needs
+        C order.
         """
         n = self.n_dofs
         if type(Q) is np.ndarray and Q.shape == (n,) and Q.dtype == np.float64:
@@ -269,26 +277,26 @@ class Chain:
             raise ValidationError('Q: expected finite values')
         lead = Q.shape[:-1]
         R, p = self._frames(Q.reshape(-1, n))
-        X, frames = self._points(R, p, points)               # (B, P, 3)
-        nb = X.shape[0]
-        kmax = int(frames.max())
-        Z = R[1:kmax + 1, :, :, 2].transpose(1, 0, 2).copy()  # (B, kmax, 3) joint axes
-        origins = p[1:kmax + 1].transpose(1, 0, 2).copy()          # (B, kmax, 3) joint origins
-        J = np.zeros((nb, len(frames), 3, n))
-        tmp = np.empty((nb, kmax))
+        X, frames = self._points(R, p, points)               # (P, 3, B)
+        nb = X.shape[-1]
+        Jt = np.zeros((len(frames), 3, n, nb))               # batch last: contiguous rows
+        tmp = np.empty((n, nb))
         for i, k in enumerate(frames.tolist()):
             if k == 0:
                 continue
-            D = X[:, i, None, :] - origins[:, :k]                  # (B, k, 3) lever arms
-            t = tmp[:, :k]
+            Z = R[1:k + 1, :, :, 2]                          # (k, 3, B) joint axes
+            D = X[i] - p[1:k + 1]                            # (k, 3, B) lever arms
+            t = tmp[:k]
             for c, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
-                out = J[:, i, c, :k]
-                np.multiply(Z[:, :k, a], D[:, :, b], out=out)
-                np.multiply(Z[:, :k, b], D[:, :, a], out=t)
+                out = Jt[i, c, :k]
+                np.multiply(Z[:, a], D[:, b], out=out)
+                np.multiply(Z[:, b], D[:, a], out=t)
                 out -= t
             for j in np.flatnonzero(self.prismatic[:k]).tolist():
-                J[:, i, :, j] = Z[:, j, :]
-        Xo = X
+                Jt[i, :, j] = Z[j]
+        # views with the batch axis first (no copy; the batch axis stays innermost in memory)
+        Xo = X.transpose(2, 0, 1)
+        J = Jt.transpose(3, 0, 1, 2)
         return Xo.reshape(lead + Xo.shape[1:]), J.reshape(lead + J.shape[1:])
 
     def link_frames(self, Q: ArrayLike) -> NDArray[np.float64]:
@@ -296,7 +304,8 @@ class Chain:
         Q = self._check_q(Q)
         lead = Q.shape[:-1]
         R, p = self._frames(Q.reshape(-1, self.n_dofs))
-        Rb, pb = R, p                                       # (n+1, B, 3, 3), (n+1, B, 3)
+        Rb = R[..., :3].transpose(0, 2, 1, 3)               # (n+1, B, 3, 3)
+        pb = p.transpose(0, 2, 1)                           # (n+1, B, 3)
         out = np.zeros((Q.reshape(-1, self.n_dofs).shape[0], len(self.link_names), 4, 4))
         out[..., 3, 3] = 1.0
         for i, link in enumerate(self.link_names):
@@ -310,7 +319,7 @@ class Chain:
         Q = self._check_q(Q)
         lead = Q.shape[:-1]
         _, p = self._frames(Q.reshape(-1, self.n_dofs))
-        p = p.transpose(1, 0, 2)
+        p = p.transpose(2, 0, 1)
         return p.reshape(lead + p.shape[1:])
 
     def link_segments(self) -> List[Tuple[str, Tuple[float, ...], Tuple[float, ...]]]:

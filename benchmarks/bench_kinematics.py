@@ -1,0 +1,121 @@
+"""Benchmark of the batched kinematics and the obstacle coupling (issue 4, core half).
+
+Targets: forward kinematics + Jacobians of 3 points of the Panda for 1,500 configurations
+<= 2 ms and for one configuration <= 30 us; one coupled CDMP step of the Panda with 3 sphere
+obstacles (end effector + 2 link points: kinematics, closest points, fields, Eq. 7 + Eq. 12,
+map to the exogenous space, stepper.update) median <= 60 us.
+
+Run: .venv/bin/python benchmarks/bench_kinematics.py
+"""
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+import pybullet_data
+
+from cdmp_ros.core.fields import RepellerField
+from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+from cdmp_ros.core.kinematics.closest import Sphere
+from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+
+POINTS = (PointOfInterest('ee'), PointOfInterest('panda_link3', (0.0, 0.0, -0.1)),
+          PointOfInterest('panda_link5', (0.0, 0.1, -0.1)))
+
+
+def timed(fn, reps, number=1):
+    """Per-call latency samples [us] of ``fn()``."""
+    pc = time.perf_counter_ns
+    samples = np.empty(reps)
+    for i in range(reps):
+        t0 = pc()
+        for _ in range(number):
+            fn()
+        samples[i] = (pc() - t0) / number
+    return samples / 1e3
+
+
+def coupling_setup(chain, rng):
+    """Panda, 3 spheres placed so that the end-effector and both link terms are active."""
+    coupling = ObstacleCoupling(chain, ['panda_link3', 'panda_link5'],
+                                RepellerField(gain=0.02, influence_distance=0.3,
+                                              min_distance=0.01))
+    q = np.array([0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7])
+    ends = [PointOfInterest(s[0], s[2]) for s in coupling.segments]
+    X = chain.forward(q, [PointOfInterest('ee')] + ends)
+    obstacles = [Sphere(tuple(x + [0.08, 0.05, 0.0]), 0.05) for x in X]
+    return coupling, q, obstacles
+
+
+def bench_coupled_step(chain, coupling, obstacles, reps):
+    from cdmp_ros.core.dmp import CDMP
+    T = np.linspace(0.0, 1.0, 501)
+    s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
+    start = np.array([0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7])
+    goal = start + np.array([0.4, 0.3, -0.2, 0.4, 0.2, -0.3, 0.1])
+    prim = CDMP(chain.lower, chain.upper).fit(T, start + np.outer(s, goal - start))
+    stepper = prim.stepper(0.001)
+    inp, update, out = stepper.input, stepper.update, stepper.output
+    y_delta = prim.transform.y_delta.tolist()
+    tau = stepper.tau
+    to_internal = coupling.to_internal
+    joint_acceleration = coupling.joint_acceleration
+    update(inp)
+
+    def step():
+        dq = joint_acceleration(out.y, out.yd, obstacles)
+        inp.coupling[:] = to_internal(dq, out.xi, tau, y_delta)
+        update(inp)
+
+    samples = []
+    for _ in range(max(1, reps // 1000)):
+        stepper.reset()
+        update(inp)
+        samples.append(timed(step, 1000))
+    return np.concatenate(samples)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--reps', type=int, default=5000, help='repetitions of single calls')
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    chain = panda_chain(pybullet_data.getDataPath() + '/franka_panda/panda.urdf')
+    Q = rng.uniform(chain.lower, chain.upper, (1500, 7))
+    q = Q[0].copy()
+    kernel = chain.fast_kernel(POINTS)
+    ql = q.tolist()
+    coupling, qc, obstacles = coupling_setup(chain, rng)
+    qcl = qc.tolist()
+    qd = [0.1] * 7
+    dq = coupling.joint_acceleration(qcl, qd, obstacles)
+    assert any(dq) and len(coupling.last_distances) == 3
+    for fn in (lambda: chain.forward_and_jacobian(Q, POINTS),
+               lambda: chain.forward_and_jacobian(q, POINTS)):
+        timed(fn, 20)   # warm-up
+    rows = [
+        ('FK + Jacobians, 3 points, batch of 1,500 (ms)',
+         timed(lambda: chain.forward_and_jacobian(Q, POINTS), max(50, args.reps // 25)) / 1e3,
+         '<= 2'),
+        ('FK + Jacobians, 3 points, 1 configuration, numpy arrays out (us)',
+         timed(lambda: chain.forward_and_jacobian(q, POINTS), args.reps), '<= 30'),
+        ('FK + Jacobians, 3 points, 1 configuration, kernel on lists (us)',
+         timed(lambda: kernel(ql), args.reps), ''),
+        ('joint coupling, 3 spheres, EE + 2 links, all active (us)',
+         timed(lambda: coupling.joint_acceleration(qcl, qd, obstacles), args.reps), ''),
+    ]
+    rows.append(('coupled CDMP step: coupling + exogenous map + stepper.update (us)',
+                 bench_coupled_step(chain, coupling, obstacles, args.reps), 'median <= 60'))
+    load = os.getloadavg()[0]
+    print(f'Python {platform.python_version()}, numpy {np.__version__}, '
+          f'load average {load:.2f}\n')
+    print('| measurement | median | p99 | target |')
+    print('|---|---|---|---|')
+    for name, samples, target in rows:
+        print(f'| {name} | {np.median(samples):.3g} | {np.percentile(samples, 99):.3g} '
+              f'| {target} |')
+
+
+if __name__ == '__main__':
+    main()
