@@ -8,7 +8,8 @@ import pytest
 
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.promp import ProMP, RbfBasis
-from cdmp_ros.core.promp_io import promp_from_dict, promp_to_dict
+from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
+from cdmp_ros.core.promp_io import promp_body, promp_from_dict
 
 
 def _random_promp(rng, D=2, M=6):
@@ -95,7 +96,7 @@ def test_em_with_fewer_demos_than_weights_is_positive_definite(rng):
 
 def test_promp_dict_round_trip_and_schema(rng, repo_root):
     p = _random_promp(rng)
-    d = promp_to_dict(p)
+    d = promp_body(p)
     schema = json.load(open(os.path.join(repo_root, 'msg_schemas', 'primitive.schema.json')))
     doc = {'format_version': 1, 'kind': 'promp', 'joint_names': ['x', 'y'], 'n_dims': 2,
            'duration': 1.0, 'promp': json.loads(json.dumps(d))}
@@ -109,6 +110,20 @@ def test_promp_dict_round_trip_and_schema(rng, repo_root):
         promp_from_dict(bad)
     with pytest.raises(PrimitiveFileError, match='cov_w'):
         promp_from_dict({k: v for k, v in d.items() if k != 'cov_w'})
+
+
+def test_primitive_file_round_trip_through_primitive_io(rng):
+    p = _random_promp(rng)
+    p.joint_names = ['a', 'b']
+    p.duration = 2.5
+    doc = json.loads(json.dumps(primitive_to_dict(p)))
+    assert doc['kind'] == 'promp' and doc['n_dims'] == 2 and doc['duration'] == 2.5
+    q = primitive_from_dict(doc)
+    assert isinstance(q, ProMP) and q.joint_names == ['a', 'b'] and q.duration == 2.5
+    assert np.array_equal(q.cov_w, p.cov_w) and np.array_equal(q.mean_w, p.mean_w)
+    doc['promp']['cov_w'] = doc['promp']['cov_w'][:-1]
+    with pytest.raises(PrimitiveFileError, match='cov_w'):
+        primitive_from_dict(doc)
 
 
 def test_validation_errors_name_the_variable():

@@ -109,11 +109,14 @@ class ProMP:
         Observation noise variance per dimension (Sigma_y = diag(sigma_y), default 1e-6).
     duration : float
         Nominal duration [s] (phase s = t / duration).
+    joint_names : sequence of str, optional
+        One name per dimension (default ``dim0``, ``dim1``, ...).
     """
+    kind = 'promp'
 
     def __init__(self, n_dims: int, basis: RbfBasis, mean_w: Optional[ArrayLike] = None,
                  cov_w: Optional[ArrayLike] = None, sigma_y: Optional[ArrayLike] = None,
-                 duration: float = 1.0):
+                 duration: float = 1.0, joint_names: Optional[Sequence[str]] = None):
         if int(n_dims) < 1:
             raise ValidationError(f'n_dims: expected an integer >= 1, got {n_dims!r}')
         self.n_dims = int(n_dims)
@@ -131,6 +134,13 @@ class ProMP:
         if np.any(self.sigma_y < 0):
             raise ValidationError(f'sigma_y: expected non-negative variances, got {self.sigma_y}')
         self.duration = check_positive('duration', duration)
+        names = ([f'dim{i}' for i in range(self.n_dims)] if joint_names is None
+                 else [str(n) for n in joint_names])
+        if len(names) != self.n_dims or len(set(names)) != self.n_dims:
+            raise ValidationError(f'joint_names: expected {self.n_dims} unique names, '
+                                  f'got {names}')
+        self.joint_names = names
+        self.metadata = {}
 
     # ------------------------------------------------------------------ structure
     @property
@@ -146,7 +156,8 @@ class ProMP:
         """A ProMP with the same basis and the given (or the same) weight distribution."""
         return ProMP(self.n_dims, self.basis,
                      self.mean_w if mean_w is None else mean_w,
-                     self.cov_w if cov_w is None else cov_w, self.sigma_y, self.duration)
+                     self.cov_w if cov_w is None else cov_w, self.sigma_y, self.duration,
+                     self.joint_names)
 
     def design(self, s: ArrayLike, derivative: int = 0) -> NDArray[np.float64]:
         """Block design matrices Psi_t with z_t = Psi_t w.
@@ -264,7 +275,8 @@ class ProMP:
     def fit(cls, demonstrations: Sequence[Tuple[ArrayLike, ArrayLike]], basis: RbfBasis,
             duration: Optional[float] = None, prior_cov: Optional[ArrayLike] = None,
             prior_strength: float = 1.0, noise_prior: Tuple[float, float] = (1.0, 1e-6),
-            n_iter: int = 100, tol: float = 1e-6) -> 'ProMP':
+            n_iter: int = 100, tol: float = 1e-6,
+            joint_names: Optional[Sequence[str]] = None) -> 'ProMP':
         """Learn a ProMP from demonstrations by EM with MAP priors (Eq. 4 and its text).
 
         Each demonstration (T_i, Y_i) is phase-normalised, s = (T - T[0]) / (T[-1] - T[0]),
@@ -353,7 +365,7 @@ class ProMP:
             if prev is not None and np.max(np.abs(cur - prev)) < tol * (1 + np.max(np.abs(cur))):
                 break
             prev = cur
-        return cls(D, basis, mu, Sigma, sig, duration)
+        return cls(D, basis, mu, Sigma, sig, duration, joint_names)
 
 
 def _psd_sqrt(C: NDArray[np.float64]) -> NDArray[np.float64]:

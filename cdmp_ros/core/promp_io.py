@@ -1,7 +1,9 @@
-"""ProMP <-> the "promp" property of a primitive file (msg_schemas/primitive.schema.json).
+"""ProMP <-> primitive file (msg_schemas/primitive.schema.json, kind "promp").
 
-The common fields (kind, joint_names, n_dims, duration, format_version) are written and read
-by cdmp_ros.core.primitive_io; these functions handle only the ProMP parameters.
+:func:`cdmp_ros.core.primitive_io.primitive_to_dict` writes the common fields (format_version,
+kind, joint_names, n_dims) and merges in what :func:`promp_to_dict` returns (``duration`` and
+the ``promp`` sub-object); :func:`promp_from_dict` accepts the whole validated file dict (or
+just its ``promp`` sub-object).
 """
 from typing import Any, Dict
 
@@ -11,7 +13,7 @@ from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.promp import ProMP, RbfBasis
 
 
-def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
+def promp_body(promp: ProMP) -> Dict[str, Any]:
     """The "promp" sub-object: basis definition, weight mean, full weight covariance."""
     return {
         'basis': {'type': 'normalized_rbf_phase',
@@ -24,29 +26,52 @@ def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
     }
 
 
-def promp_from_dict(d: Dict[str, Any], n_dims: int = None, duration: float = 1.0) -> ProMP:
-    """Rebuild a ProMP from its "promp" sub-object (and, if given, the file's n_dims and
-    duration). Raises PrimitiveFileError naming the bad field."""
+def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
+    """File fields owned by the ProMP: ``duration``, ``promp`` and (if any) ``metadata``."""
+    d = {'duration': float(promp.duration), 'promp': promp_body(promp)}
+    if getattr(promp, 'metadata', None):
+        d['metadata'] = dict(promp.metadata)
+    return d
+
+
+def promp_from_dict(d: Dict[str, Any], n_dims: int = None, duration: float = None) -> ProMP:
+    """Rebuild a ProMP from a primitive file dict (kind "promp") or its "promp" sub-object.
+    Raises PrimitiveFileError naming the bad field."""
+    if not isinstance(d, dict):
+        raise PrimitiveFileError(f'promp: expected a JSON object, got {type(d).__name__}')
+    joint_names = None
+    if 'promp' in d:
+        n_dims = d.get('n_dims', n_dims)
+        duration = d.get('duration', duration)
+        joint_names = d.get('joint_names')
+        body = d['promp']
+        prefix = 'primitive.promp'
+    else:
+        body = d
+        prefix = 'promp'
     try:
-        b = d['basis']
+        b = body['basis']
         basis = RbfBasis(tuple(b['centers']), float(b['width']))
-        mean_w = np.asarray(d['mean_w'], dtype=float)
+        mean_w = np.asarray(body['mean_w'], dtype=float)
         M = basis.n_basis
         if mean_w.ndim != 1 or mean_w.size % M:
-            raise PrimitiveFileError(f'promp.mean_w: expected a multiple of n_basis={M} '
+            raise PrimitiveFileError(f'{prefix}.mean_w: expected a multiple of n_basis={M} '
                                      f'values, got shape {mean_w.shape}')
         D = mean_w.size // M
         if n_dims is not None and int(n_dims) != D:
-            raise PrimitiveFileError(f'promp.mean_w: expected n_dims * n_basis = '
+            raise PrimitiveFileError(f'{prefix}.mean_w: expected n_dims * n_basis = '
                                      f'{int(n_dims) * M} values, got {mean_w.size}')
-        if 'n_basis' in d and int(d['n_basis']) != M:
-            raise PrimitiveFileError(f'promp.n_basis: expected len(basis.centers) = {M}, '
-                                     f'got {d["n_basis"]}')
-        return ProMP(D, basis, mean_w, np.asarray(d['cov_w'], dtype=float),
-                     d.get('sigma_y'), duration)
+        if 'n_basis' in body and int(body['n_basis']) != M:
+            raise PrimitiveFileError(f'{prefix}.n_basis: expected len(basis.centers) = {M}, '
+                                     f'got {body["n_basis"]}')
+        p = ProMP(D, basis, mean_w, np.asarray(body['cov_w'], dtype=float),
+                  body.get('sigma_y'), 1.0 if duration is None else duration, joint_names)
+        if isinstance(d.get('metadata'), dict):
+            p.metadata = dict(d['metadata'])
+        return p
     except KeyError as exc:
-        raise PrimitiveFileError(f'promp: missing field {exc.args[0]!r}') from None
+        raise PrimitiveFileError(f'{prefix}: missing field {exc.args[0]!r}') from None
     except PrimitiveFileError:
         raise
     except (ValidationError, TypeError, ValueError) as exc:
-        raise PrimitiveFileError(f'promp: {exc}') from None
+        raise PrimitiveFileError(f'{prefix}: {exc}') from None

@@ -100,3 +100,47 @@ def violation_rate(promp: ProMP, problem: TableProblem, rng: np.random.Generator
         sat = c.satisfied(X, c.times(grid))
         ok &= sat.all(axis=1) if sat.ndim == 2 else sat
     return float(1.0 - ok.mean())
+
+
+def panda_problem(chain, rng: np.random.Generator, n_basis: int = 10, n_steps: int = 100,
+                  n_spheres: int = 3, n_demos: int = 8):
+    """The 7-DoF benchmark of issue 3: a joint-space Panda ProMP (``n_basis`` per joint) learned
+    by EM from noisy minimum-jerk demonstrations, adapted to two-sided joint limits (the URDF's)
+    and ``n_spheres`` sphere repellers on the end effector and the elbow (panda_link4 origin),
+    placed near the original mean path.
+
+    Returns
+    -------
+    prior : ProMP; constraints : list; config : AdaptationConfig
+    """
+    from cdmp_ros.core.constraints import ChainPoint, JointLimit
+    from cdmp_ros.core.kinematics import PointOfInterest
+    lo, hi = np.asarray(chain.lower), np.asarray(chain.upper)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    q0 = mid + rng.uniform(-0.4, 0.4, 7) * half
+    q1 = mid + rng.uniform(-0.4, 0.4, 7) * half
+    T = np.linspace(0.0, 1.0, 60)
+    s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
+    demos = []
+    for _ in range(n_demos):
+        a = q0 + 0.03 * rng.standard_normal(7)
+        b = q1 + 0.03 * rng.standard_normal(7)
+        bump = 0.1 * rng.standard_normal(7)
+        demos.append((T, a + np.outer(s, b - a) + np.outer(np.sin(np.pi * T), bump)))
+    prior = ProMP.fit(demos, RbfBasis.uniform(n_basis), prior_strength=2.0)
+    ee = ChainPoint(chain, PointOfInterest('ee'))
+    elbow = ChainPoint(chain, PointOfInterest('panda_link4'))
+    cons: List = [JointLimit(j, lo[j], hi[j], alpha=ALPHA, name=f'limit_{j + 1}')
+                  for j in range(7)]
+    grid = np.linspace(0.0, 1.0, n_steps)
+    for k in range(n_spheres):
+        t = rng.uniform(0.3, 0.7)
+        target = ee if k < n_spheres - 1 else elbow
+        x = target.forward(prior.mean([t]))[0]
+        centre = x + rng.normal(0.0, 0.04, 3)
+        radius = rng.uniform(0.05, 0.1)
+        for name, pt in (('ee', ee), ('elbow', elbow)):
+            cons.append(Repeller(pt, centre, radius, alpha=ALPHA, name=f'sphere_{k + 1}_{name}'))
+    cfg = AdaptationConfig(n_steps=n_steps, lambda0=20.0)
+    del grid
+    return prior, cons, cfg
