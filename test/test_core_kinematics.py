@@ -454,3 +454,17 @@ def test_obstacle_validation():
         Sphere((0, 0, 0), -1.0)
     with pytest.raises(ValidationError, match='Sphere.center'):
         Sphere((0, 0), 1.0)
+
+
+def test_batched_results_survive_later_calls(panda, rng):
+    """The batched path reuses scratch arrays: returned arrays must not alias them."""
+    Q1, Q2 = rng.uniform(panda.lower, panda.upper, (2, 50, 7))
+    points = [PointOfInterest('ee'), PointOfInterest('panda_link4')]
+    X1, J1 = panda.forward_and_jacobian(Q1, points)
+    O1, F1 = panda.joint_origins(Q1), panda.link_frames(Q1)
+    keep = [a.copy() for a in (X1, J1, O1, F1)]
+    panda.forward_and_jacobian(Q2, points)
+    panda.joint_origins(Q2)
+    panda.link_frames(Q2)
+    for a, b in zip((X1, J1, O1, F1), keep):
+        np.testing.assert_array_equal(a, b)

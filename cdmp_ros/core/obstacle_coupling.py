@@ -57,14 +57,6 @@ class CouplingConfig:
         check_positive('CouplingConfig.link_radius', self.link_radius, allow_zero=True)
 
 
-def _point_sphere(x, c, r):
-    dx, dy, dz = x[0] - c[0], x[1] - c[1], x[2] - c[2]
-    d = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if d > 1e-12:
-        return d - r, (dx / d, dy / d, dz / d)
-    return -r, (0.0, 0.0, 1.0)
-
-
 def _point_box(x, lo, hi):
     """Signed distance and outward normal of a point to an axis-aligned box (floats)."""
     g = [max(lo[i] - x[i], 0.0, x[i] - hi[i]) for i in range(3)]
@@ -170,43 +162,61 @@ class ObstacleCoupling:
         dx_e = [0.0, 0.0, 0.0]
         xd_e = self._velocity(rows_e, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
         dists = [math.inf]
+        sphere_field, box_field = self.sphere_field, self.box_field
+        use_ee = self.config.end_effector
+        e0, e1, e2 = ee
         for obs in obstacles:
-            if isinstance(obs, Sphere):
-                d, normal = _point_sphere(ee, obs.center, obs.radius)
-            else:
+            if type(obs) is Sphere:
+                c = obs.center
+                v0, v1, v2 = e0 - c[0], e1 - c[1], e2 - c[2]
+                r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                if r > 1e-12:
+                    d, normal = r - obs.radius, (v0 / r, v1 / r, v2 / r)
+                else:
+                    d, normal = -obs.radius, (0.0, 0.0, 1.0)
+                f = sphere_field
+            elif type(obs) is Box:
                 d, normal = _point_box(ee, obs.lower, obs.upper)
-            dists[0] = min(dists[0], d)
-            if self.config.end_effector:
-                a = self._field(obs).acceleration(ee, xd_e, obs, d, normal)
+                f = box_field
+            else:
+                self._field(obs)                                # raises ValidationError
+            if d < dists[0]:
+                dists[0] = d
+            if use_ee:
+                a = f.acceleration(ee, xd_e, obs, d, normal)
                 dx_e[0] += a[0]
                 dx_e[1] += a[1]
                 dx_e[2] += a[2]
         links = []
         stride = 3 * n
         for i, k in enumerate(self._n_moving):
-            pa, pb = x[3 + 6 * i:6 + 6 * i], x[6 + 6 * i:9 + 6 * i]
-            best = (math.inf, None, None, None)
+            a0, a1, a2 = x[3 + 6 * i:6 + 6 * i]
+            u0, u1, u2 = x[6 + 6 * i] - a0, x[7 + 6 * i] - a1, x[8 + 6 * i] - a2
+            uu = u0 * u0 + u1 * u1 + u2 * u2
+            best_d, best = math.inf, None
             for obs in obstacles:
-                if isinstance(obs, Sphere):
-                    c = obs.center
-                    u0, u1, u2 = pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]
-                    uu = u0 * u0 + u1 * u1 + u2 * u2
-                    t = ((c[0] - pa[0]) * u0 + (c[1] - pa[1]) * u1 + (c[2] - pa[2]) * u2) / uu \
+                if type(obs) is Sphere:
+                    c0, c1, c2 = obs.center
+                    t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu \
                         if uu > 0.0 else 0.0
                     t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-                    p = (pa[0] + t * u0, pa[1] + t * u1, pa[2] + t * u2)
-                    d, normal = _point_sphere(p, c, obs.radius)
+                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
+                    r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    d = r - obs.radius - radius
+                    if d < best_d:
+                        normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
+                        best_d, best = d, (obs, t, normal, sphere_field)
                 else:
-                    tt, dd, _, nn = segment_box(pa, pb, obs.lower, obs.upper)
-                    t, d, normal = float(tt), float(dd), tuple(nn.tolist())
-                    p = tuple(pa[j] + t * (pb[j] - pa[j]) for j in range(3))
-                d -= radius
-                if d < best[0]:
-                    best = (d, obs, t, (p, normal))
-            dists.append(best[0])
-            if best[1] is None:
+                    tt, dd, _, nn = segment_box((a0, a1, a2), (a0 + u0, a1 + u1, a2 + u2),
+                                                obs.lower, obs.upper)
+                    d = float(dd) - radius
+                    if d < best_d:
+                        best_d, best = d, (obs, float(tt), tuple(nn.tolist()), box_field)
+            dists.append(best_d)
+            if best is None:
                 continue
-            d, obs, t, (p, normal) = best
+            obs, t, normal, f = best
+            p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
             base_a = (1 + 2 * i) * stride
             base_b = base_a + stride
             s = 1.0 - t
@@ -214,7 +224,7 @@ class ObstacleCoupling:
                                                   jac[base_b + r * n:base_b + r * n + k])]
                    for r in range(3)]
             xd = self._velocity(J_o, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
-            a = self._field(obs).acceleration(p, xd, obs, d, normal)
+            a = f.acceleration(p, xd, obs, best_d, normal)
             if a[0] or a[1] or a[2]:
                 links.append((J_o, a))
         self.last_distances = dists

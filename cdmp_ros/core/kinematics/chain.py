@@ -15,6 +15,7 @@ frame ``k`` by a constant transform ``C``; a :class:`PointOfInterest` therefore 
 ``(k, c)`` with ``c`` its coordinates in ``G_k``. The Jacobian column of joint ``j`` at a point
 ``x`` attached to frame ``k >= j`` is ``z_j x (x - o_j)`` (revolute) or ``z_j`` (prismatic).
 """
+import threading
 from dataclasses import dataclass
 from typing import Dict, List, Sequence, Tuple
 
@@ -123,6 +124,7 @@ class Chain:
                                   f'got {ee_link!r}')
         self._resolved: Dict[tuple, Tuple[NDArray, NDArray]] = {}
         self._kernels: Dict[tuple, object] = {}
+        self._work: Dict[tuple, tuple] = {}
         self._Rb4 = np.zeros((self.n_dofs, 4, 4))
         self._Rb4[:, :3, :3] = self.B[:, :3, :3]
         self._tb4 = np.zeros((self.n_dofs, 4))
@@ -192,14 +194,18 @@ class Chain:
         transcendental function instead of two).
         """
         nb, n = Q.shape
-        F = np.empty((n + 1, 3, nb, 4))
+        F, E, T, T2 = self._workspace(nb, 'frames', lambda: (
+            np.empty((n + 1, 3, nb, 4)), np.empty((n, nb), dtype=np.complex128),
+            np.empty((n, nb)), np.empty((n, nb))))
         F[0] = self.base_transform[:3, None, :]
-        T = np.tan(0.5 * Q.T)
-        T2 = T * T
-        D = 1.0 / (1.0 + T2)
-        E = np.empty((n, nb), dtype=np.complex128)
-        np.multiply(1.0 - T2, D, out=E.real)
-        np.multiply(-2.0 * T, D, out=E.imag)
+        np.multiply(Q.T, 0.5, out=T)
+        np.tan(T, out=T)
+        np.multiply(T, T, out=T2)
+        np.multiply(T, -2.0, out=E.imag)
+        np.subtract(1.0, T2, out=E.real)
+        T2 += 1.0
+        E.real /= T2
+        E.imag /= T2
         for k in range(n):
             M = F[k + 1]
             np.dot(F[k].reshape(3 * nb, 4), self.B[k], out=M.reshape(3 * nb, 4))
@@ -279,25 +285,42 @@ class Chain:
         R, p = self._frames(Q.reshape(-1, n))
         X, frames = self._points(R, p, points)               # (P, 3, B)
         nb = X.shape[-1]
-        Jt = np.zeros((len(frames), 3, n, nb))               # batch last: contiguous rows
-        tmp = np.empty((n, nb))
+        Jt = np.empty((len(frames), 3, n, nb))               # batch last: contiguous rows
+        kmax = int(frames.max())
+        Z, org, D, tmp = self._workspace(nb, 'jacobian', lambda: (
+            np.empty((3, n, nb)), np.empty((3, n, nb)), np.empty((3, n, nb)),
+            np.empty((n, nb))))
+        Z[:, :kmax] = R[1:kmax + 1, :, :, 2].transpose(1, 0, 2)       # (3, k, B) axes
+        org[:, :kmax] = p[1:kmax + 1].transpose(1, 0, 2)               # (3, k, B) origins
         for i, k in enumerate(frames.tolist()):
+            Jt[i, :, k:] = 0.0
             if k == 0:
                 continue
-            Z = R[1:k + 1, :, :, 2]                          # (k, 3, B) joint axes
-            D = X[i] - p[1:k + 1]                            # (k, 3, B) lever arms
+            d = D[:, :k]
+            np.subtract(X[i][:, None, :], org[:, :k], out=d)  # lever arms x - o_j
             t = tmp[:k]
             for c, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
                 out = Jt[i, c, :k]
-                np.multiply(Z[:, a], D[:, b], out=out)
-                np.multiply(Z[:, b], D[:, a], out=t)
+                np.multiply(Z[a, :k], d[b], out=out)
+                np.multiply(Z[b, :k], d[a], out=t)
                 out -= t
             for j in np.flatnonzero(self.prismatic[:k]).tolist():
-                Jt[i, :, j] = Z[j]
+                Jt[i, :, j] = Z[:, j]
         # views with the batch axis first (no copy; the batch axis stays innermost in memory)
         Xo = X.transpose(2, 0, 1)
         J = Jt.transpose(3, 0, 1, 2)
         return Xo.reshape(lead + Xo.shape[1:]), J.reshape(lead + J.shape[1:])
+
+    def _workspace(self, nb: int, name: str, make):
+        """Scratch arrays of the batched path, reused between calls of the same batch size
+        (fresh large arrays cost page faults every call). Not shared between threads."""
+        key = (threading.get_ident(), nb, name)
+        work = self._work.get(key)
+        if work is None:
+            if len(self._work) > 8:
+                self._work.clear()
+            work = self._work[key] = make()
+        return work
 
     def link_frames(self, Q: ArrayLike) -> NDArray[np.float64]:
         """World poses (..., n_links, 4, 4) of the URDF frames of ``link_names``."""
@@ -319,7 +342,7 @@ class Chain:
         Q = self._check_q(Q)
         lead = Q.shape[:-1]
         _, p = self._frames(Q.reshape(-1, self.n_dofs))
-        p = p.transpose(2, 0, 1)
+        p = p.transpose(2, 0, 1).copy()                     # F is a reused workspace
         return p.reshape(lead + p.shape[1:])
 
     def link_segments(self) -> List[Tuple[str, Tuple[float, ...], Tuple[float, ...]]]:
