@@ -305,3 +305,46 @@ def test_to_internal_matches_tanh_transform(panda, rng):
         transform.acceleration(xi, xid, xidd + np.array(P) / tau ** 2)
         - transform.acceleration(xi, xid, xidd), dq, atol=1e-9)
     assert ObstacleCoupling.to_internal([1.0, 2.0], None, 2.0) == [4.0, 8.0]
+
+
+def _run_coupled(prim, coupling, obstacles, y_delta, steps=600, dt=0.002):
+    stepper = prim.stepper(dt)
+    inp, out = stepper.input, stepper.output
+    Y, dists = [], []
+    for _ in range(steps):
+        if coupling is not None:
+            dq = coupling.joint_acceleration(out.y, out.yd, obstacles)
+            inp.coupling[:] = coupling.to_internal(dq, out.xi, stepper.tau, y_delta)
+            dists.append(coupling.last_distances[0])
+        stepper.update(inp)
+        Y.append(list(out.y))
+    return np.array(Y), dists
+
+
+def test_coupled_cdmp_avoids_obstacle_and_holds_limits_under_any_field(panda):
+    """Paper 000, III-B/IV-B at core level: the end-effector repeller pushes the end
+    effector away from a sphere on its path; with a far stronger field the CDMP still
+    stays strictly inside the joint limits while a plain DMP with the same coupling does not."""
+    from cdmp_ros.core.dmp import CDMP, DMP, limit_usage
+    T = np.linspace(0.0, 1.0, 201)
+    s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    goal = np.array([0.8, 0.3, 0.0, -1.6, 0.0, 2.0, 0.8])
+    Y = start + np.outer(s, goal - start)
+    cdmp = CDMP(panda.lower, panda.upper).fit(T, Y)
+    dmp = DMP(7).fit(T, Y)
+    mid = panda.forward(Y[100], [PointOfInterest('ee')])[0]
+    sphere = Sphere(tuple(mid + [0.0, 0.0, -0.12]), 0.05)      # just below the path
+    y_delta = cdmp.transform.y_delta.tolist()
+    free = ObstacleCoupling(panda, (), RepellerField(gain=0.0))
+    _, d_free = _run_coupled(cdmp, free, [sphere], y_delta)
+    field = RepellerField(gain=0.01, influence_distance=0.25, min_distance=0.01)
+    _, d_coupled = _run_coupled(cdmp, ObstacleCoupling(panda, (), field), [sphere], y_delta)
+    assert min(d_coupled) > min(d_free) + 0.01
+    # "very high strength": a constant 2000 m/s^2 push wherever the sphere is within 2 m
+    strong = ObstacleCoupling(panda, (), ConstantField(magnitude=2000.0, influence_distance=2.0))
+    Y_cdmp, _ = _run_coupled(cdmp, strong, [sphere], y_delta)
+    Y_dmp, _ = _run_coupled(dmp, strong, [sphere], None)
+    assert np.all(np.isfinite(Y_cdmp))
+    assert limit_usage(Y_cdmp, panda.lower, panda.upper) < 1.0
+    assert limit_usage(Y_dmp, panda.lower, panda.upper) > 1.0
