@@ -1,0 +1,77 @@
+"""``cdmp adapt``: adapt a ProMP primitive file to a constraint set (paper 003) and print the
+optimiser's report.
+
+    cdmp adapt --primitive p.json --constraints c.json --robot planar4|panda|dual_panda|none \
+        --out adapted.json
+
+Exit status: 0 when every constraint holds at its confidence (converged), 2 when the problem is
+infeasible or unconverged (the adapted primitive is still written, with the report in its
+metadata), 1 on malformed input.
+"""
+import json
+import sys
+
+NAME = 'adapt'
+HELP = 'adapt a ProMP primitive file to a constraint set and print the report'
+ROBOTS = ('none', 'planar4', 'panda', 'dual_panda')
+
+
+def add_arguments(parser):
+    parser.add_argument('--primitive', required=True, help='ProMP primitive file (*.json)')
+    parser.add_argument('--constraints', required=True, help='constraint set file (*.json)')
+    parser.add_argument('--robot', choices=ROBOTS, default='none',
+                        help='kinematics of link points of interest (none: the ProMP '
+                             'dimensions are the coordinates)')
+    parser.add_argument('--out', required=True, help='adapted primitive file to write')
+    parser.add_argument('--json', action='store_true', help='print the report as JSON')
+
+
+def robot_context(robot: str, n_dims: int):
+    """RobotContext for a named robot (planar4: 4 links of 1 m in the xy plane)."""
+    from cdmp_ros.core.constraints.parse import RobotContext
+    from cdmp_ros.core.errors import ValidationError
+    from cdmp_ros.core.kinematics import dual_panda_chains, panda_chain, planar_chain
+    need = {'planar4': 4, 'panda': 7, 'dual_panda': 14}.get(robot)
+    if need is not None and n_dims != need:
+        raise ValidationError(f'--robot {robot}: expected a primitive with {need} dimensions, '
+                              f'got {n_dims}')
+    if robot == 'none':
+        return RobotContext(n_dims)
+    if robot == 'planar4':
+        return RobotContext(n_dims, [(planar_chain([1.0] * 4), range(4))], axes=(0, 1))
+    from cdmp_ros.sim.robots import panda_urdf_path
+    if robot == 'panda':
+        return RobotContext(n_dims, [(panda_chain(panda_urdf_path()), range(7))])
+    left, right = dual_panda_chains(panda_urdf_path())
+    return RobotContext(n_dims, [(left, range(7)), (right, range(7, 14))])
+
+
+def run(args):
+    from cdmp_ros.core.adaptation import AdaptationConfig, adapt
+    from cdmp_ros.core.constraints.parse import parse_constraint_set
+    from cdmp_ros.core.errors import CdmpError
+    from cdmp_ros.core.primitive_io import load_primitive, save_primitive
+    try:
+        prim = load_primitive(args.primitive)
+        if getattr(prim, 'kind', None) != 'promp':
+            print(f'cdmp adapt: --primitive: expected kind "promp", got '
+                  f'{getattr(prim, "kind", "?")!r}', file=sys.stderr)
+            return 1
+        try:
+            with open(args.constraints) as f:
+                doc = json.load(f)
+        except (OSError, json.JSONDecodeError) as exc:
+            print(f'cdmp adapt: --constraints: {exc}', file=sys.stderr)
+            return 1
+        ctx = robot_context(args.robot, prim.n_dims)
+        constraints, overrides = parse_constraint_set(doc, prim, ctx)
+        config = AdaptationConfig(**overrides)
+    except CdmpError as exc:
+        print(f'cdmp adapt: {exc}', file=sys.stderr)
+        return 1
+    adapted, report = adapt(prim, constraints, config)
+    adapted.metadata = dict(getattr(prim, 'metadata', {}) or {})
+    adapted.metadata['adaptation'] = report.as_dict()
+    save_primitive(adapted, args.out)
+    print(json.dumps(report.as_dict(), indent=2) if args.json else report.to_text())
+    return 0 if report.converged else 2
