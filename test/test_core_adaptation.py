@@ -77,13 +77,14 @@ def _constraint_sets():
     }
 
 
+@pytest.mark.parametrize('whiten', [True, False])
 @pytest.mark.parametrize('name', sorted(_constraint_sets()))
-def test_lagrangian_gradient_matches_finite_differences(name, rng):
+def test_lagrangian_gradient_matches_finite_differences(name, whiten, rng):
     cons = _constraint_sets()[name]
     D = 4 if name == 'mutual' else 2
     prior = _prior(rng, D=D)
-    cfg = AdaptationConfig(n_steps=15, kl_blocks=((0, 10), (10, 20)) if name == 'mutual'
-                           else None)
+    cfg = AdaptationConfig(n_steps=15, whiten=whiten,
+                           kl_blocks=((0, 10), (10, 20)) if name == 'mutual' else None)
     _check_gradient(Problem(prior, cons, cfg), rng)
 
 
@@ -96,18 +97,22 @@ def test_gradient_with_smoothness_regulariser_and_constraint(rng):
     _check_gradient(Problem(prior, cons, cfg), rng)
 
 
-def test_kl_is_zero_at_the_prior_and_closed_form(rng):
+@pytest.mark.parametrize('whiten', [True, False])
+def test_kl_is_zero_at_the_prior_and_closed_form(whiten, rng):
     prior = _prior(rng)
-    prob = Problem(prior, [], AdaptationConfig())
+    prob = Problem(prior, [], AdaptationConfig(whiten=whiten))
     mu, L, gamma = prob.unpack(prob.initial_theta())
-    assert abs(prob.kl(mu, L, gamma)) < 1e-9
+    assert abs(prob.kl(mu, L)) < 1e-9
+    assert abs(prob.lagrangian(prob.initial_theta(), np.zeros(0))[0]) < 1e-9
     theta = prob.initial_theta() + 0.1 * rng.standard_normal(prob.initial_theta().size)
     mu, L, gamma = prob.unpack(theta)
+    assert np.allclose(L, np.tril(L))          # L stays lower triangular
     S, S0 = L @ L.T, prior.cov_w
     d = mu - prior.mean_w
     ref = 0.5 * (np.trace(np.linalg.solve(S0, S)) + d @ np.linalg.solve(S0, d) - S.shape[0]
                  + np.linalg.slogdet(S0)[1] - np.linalg.slogdet(S)[1])
-    assert np.isclose(prob.kl(mu, L, gamma), ref, rtol=1e-9)
+    assert np.isclose(prob.kl(mu, L), ref, rtol=1e-9)
+    assert np.isclose(prob.lagrangian(theta, np.zeros(0))[0], ref, rtol=1e-9)
 
 
 def _table_prior(rng, M=10):

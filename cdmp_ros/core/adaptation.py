@@ -61,6 +61,12 @@ class AdaptationConfig:
         that is almost satisfied stays slightly violated; the relative step is scale free.
     max_log_step : float
         Clip of the relative step's exponent.
+    whiten : bool
+        Precondition the parameters with the prior's Cholesky factor L0: mu = mu0 + L0 nu,
+        L = L0 L~, L~ = L~_tril + diag(exp(gamma~)). L stays lower triangular with
+        diag(L) = diag(L0) exp(gamma~), so this is the paper's parameterisation up to a fixed
+        linear map; the KL becomes 0.5 (|L~|_F^2 + |nu|^2 - n) - 1^T gamma~, perfectly
+        conditioned, which cuts the L-BFGS iterations.
     """
     n_steps: int = 101
     lambda0: float = 20.0
@@ -78,6 +84,7 @@ class AdaptationConfig:
     lbfgs_maxcor: int = 20
     relative_step: bool = True
     max_log_step: float = 3.0
+    whiten: bool = True
 
     def __post_init__(self):
         if int(self.n_steps) < 2:
@@ -278,30 +285,40 @@ class Problem:
 
     # --------------------------------------------------------------- parameters
     def initial_theta(self) -> NDArray:
+        if self.config.whiten:
+            return np.zeros(2 * self.n + self.tril[0].size)
         L0 = self.L0
         return np.concatenate([self.mu0, L0[self.tril], np.log(np.diag(L0))])
 
-    def unpack(self, theta):
+    def _factors(self, theta):
+        """First block, lower-triangular matrix and gamma of theta (raw or whitened)."""
         n = self.n
-        mu = theta[:n]
-        L = np.zeros((n, n))
-        L[self.tril] = theta[n:n + self.tril[0].size]
+        first = theta[:n]
+        T = np.zeros((n, n))
+        T[self.tril] = theta[n:n + self.tril[0].size]
         gamma = theta[n + self.tril[0].size:]
-        L[np.diag_indices(n)] = np.exp(gamma)
-        return mu, L, gamma
+        T[np.diag_indices(n)] = np.exp(gamma)
+        return first, T, gamma
+
+    def unpack(self, theta):
+        """(mu, L, gamma) with Sigma = L L^T in the original coordinates."""
+        first, T, gamma = self._factors(theta)
+        if self.config.whiten:
+            return self.mu0 + self.L0 @ first, self.L0 @ T, gamma
+        return first, T, gamma
 
     # --------------------------------------------------------------- objective
-    def kl(self, mu, L, gamma, grads=False):
-        """KL(N(mu, L L^T) || p0) (or the sum of block marginals), with dKL/dmu, dKL/dL and the
-        explicit d/dgamma of -1^T gamma."""
+    def kl(self, mu, L, grads=False):
+        """KL(N(mu, L L^T) || p0) (or the sum of block marginals), with dKL/dmu and dKL/dL."""
         dmu = mu - self.mu0
         if self.blocks is None:
             SL = self.S0inv @ L
+            d = np.diag(L)
             kl = 0.5 * (np.sum(L * SL) + dmu @ self.S0inv @ dmu - self.n + self.logdet0) \
-                - np.sum(gamma)
+                - np.sum(np.log(d))
             if not grads:
                 return kl
-            return kl, self.S0inv @ dmu, SL, -np.ones(self.n)
+            return kl, self.S0inv @ dmu, SL - np.diag(1.0 / d)
         kl = 0.0
         g_mu = np.zeros(self.n)
         g_L = np.zeros((self.n, self.n))
@@ -317,7 +334,7 @@ class Problem:
             g_L[a:b] += (Sinv - Sb_inv) @ Lb
         if not grads:
             return kl
-        return kl, g_mu, g_L, np.zeros(self.n)
+        return kl, g_mu, g_L
 
     def constraint_values(self, mu, L, grads=False):
         """F for every multiplier (n_values,), optionally with the backward closure."""
@@ -353,11 +370,19 @@ class Problem:
     def lagrangian(self, theta, lam):
         """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta."""
         self.n_evaluations += 1
-        mu, L, gamma = self.unpack(theta)
-        kl, g_mu, g_L, g_gamma_extra = self.kl(mu, L, gamma, grads=True)
-        g_mu = g_mu.copy()
-        g_L = g_L.copy()
-        value = kl
+        first, T, gamma = self._factors(theta)
+        whiten = self.config.whiten
+        if whiten:
+            mu, L = self.mu0 + self.L0 @ first, self.L0 @ T
+        else:
+            mu, L = first, T
+        value = 0.0
+        g_mu = np.zeros(self.n)
+        g_L = np.zeros((self.n, self.n))
+        if not (whiten and self.blocks is None):
+            value, g_mu_kl, g_L_kl = self.kl(mu, L, grads=True)
+            g_mu += g_mu_kl
+            g_L += g_L_kl
         g_Sigma = None
         if self.Phi_R is not None:
             kappa = self.config.kappa
@@ -386,8 +411,17 @@ class Problem:
                 g.backward(g_mu, g_L)
         if g_Sigma is not None:
             g_L += (g_Sigma + g_Sigma.T) @ L
-        g_theta = np.concatenate([g_mu, g_L[self.tril],
-                                  np.diag(g_L) * np.exp(gamma) + g_gamma_extra])
+        if whiten:
+            g_first = self.L0.T @ g_mu
+            g_T = self.L0.T @ g_L
+            if self.blocks is None:
+                # KL in whitened coordinates: 0.5 (|L~|^2 + |nu|^2 - n) - 1^T gamma~
+                value += 0.5 * (np.sum(T * T) + first @ first - self.n) - np.sum(gamma)
+                g_first += first
+                g_T += T - np.diag(1.0 / np.diag(T))
+        else:
+            g_first, g_T = g_mu, g_L
+        g_theta = np.concatenate([g_first, g_T[self.tril], np.diag(g_T) * np.exp(gamma)])
         return value, g_theta
 
 
@@ -446,7 +480,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T
     adapted = prior.copy(mu, 0.5 * (Sigma + Sigma.T))
-    kl = float(prob.kl(mu, L, gamma))
+    kl = float(prob.kl(mu, L))
     F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
     reports = []
     for c, sl in zip(prob.constraints, prob.slices):
