@@ -218,11 +218,10 @@ class ObstacleCoupling:
             obs, t, normal, f = best
             p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
             base_a = (1 + 2 * i) * stride
-            base_b = base_a + stride
             s = 1.0 - t
-            J_o = [[s * u + t * v for u, v in zip(jac[base_a + r * n:base_a + r * n + k],
-                                                  jac[base_b + r * n:base_b + r * n + k])]
-                   for r in range(3)]
+            lerp = [s * u + t * v for u, v in zip(jac[base_a:base_a + stride],
+                                                  jac[base_a + stride:base_a + 2 * stride])]
+            J_o = [lerp[0:k], lerp[n:n + k], lerp[2 * n:2 * n + k]]
             xd = self._velocity(J_o, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
             a = f.acceleration(p, xd, obs, best_d, normal)
             if a[0] or a[1] or a[2]:
