@@ -1,0 +1,162 @@
+"""Primitives prepared for streaming: parsing, joint-order mapping, stepper construction.
+
+Everything here runs outside the streaming tick (in a worker thread of the streamer node), so
+it may allocate and take milliseconds: JSON parsing and schema validation, reordering the
+primitive's joints into the streamer's order, building the :class:`DmpStepper` (which
+precomputes the forcing profile). A ProMP (paper 003) is streamed through a CDMP fitted to
+its mean trajectory (paper 000), so that the same integrator gives the limit guarantee, the
+obstacle coupling and the jump-free switching for every kind of primitive.
+"""
+import json
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional, Sequence, Union
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdmp_ros.core.dmp import CDMP, DmpConfig
+from cdmp_ros.core.errors import PrimitiveFileError
+from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
+from cdmp_ros.core.stepper import DmpStepper
+from cdmp_ros.core.validation import check_limits
+
+#: Samples per second of the ProMP mean used to fit the streaming CDMP (at least 100).
+PROMP_FIT_RATE = 200.0
+
+
+@dataclass
+class PreparedPrimitive:
+    """A primitive ready to be switched in by :class:`~cdmp_ros.core.streaming.ReferenceStreamer`.
+
+    Attributes
+    ----------
+    prim : DMP or CDMP
+        The primitive in the streamer's joint order.
+    stepper : DmpStepper
+        Built with the streamer's ``dt``; ``reset`` is called at activation.
+    kind : str
+        Kind of the received primitive (``dmp``, ``cdmp``, ``promp``).
+    source : str
+        Topic (or file) it came from.
+    notes : list of str
+        Non-fatal remarks (reordered joints, ProMP converted, ...).
+    """
+
+    prim: Any
+    stepper: DmpStepper
+    kind: str
+    source: str
+    notes: List[str]
+
+    @property
+    def goal_y(self) -> NDArray[np.float64]:
+        return self.prim.goal_y_
+
+
+def _permutation(received: Sequence[str], joint_names: Sequence[str]) -> List[int]:
+    """Index into ``received`` of each of ``joint_names``; raises naming the differences."""
+    missing = [n for n in joint_names if n not in received]
+    unknown = [n for n in received if n not in joint_names]
+    if missing or unknown:
+        raise PrimitiveFileError(
+            f'primitive.joint_names: expected the streamer joints {list(joint_names)}, got '
+            f'{list(received)} (missing {missing}, unknown {unknown})')
+    return [list(received).index(n) for n in joint_names]
+
+
+def _reorder_dmp_dict(d: Dict[str, Any], perm: List[int]) -> Dict[str, Any]:
+    """A copy of a dmp/cdmp dict with every per-joint array in the order ``perm``."""
+    d = dict(d)
+    d['joint_names'] = [d['joint_names'][i] for i in perm]
+    if 'limits' in d:
+        d['limits'] = {k: [d['limits'][k][i] for i in perm] for k in ('lower', 'upper')}
+    if 'velocity_limits' in d:
+        d['velocity_limits'] = [d['velocity_limits'][i] for i in perm]
+    dm = dict(d['dmp'])
+    for key in ('weights', 'start', 'goal'):
+        dm[key] = [dm[key][i] for i in perm]
+    d['dmp'] = dm
+    return d
+
+
+def _promp_to_cdmp(d: Dict[str, Any], perm: List[int], lower: NDArray, upper: NDArray,
+                   config: DmpConfig, joint_names: Sequence[str]) -> CDMP:
+    """A CDMP fitted to the mean trajectory of the ProMP in ``d`` (paper 003 Eq. 1-2)."""
+    from cdmp_ros.core.promp_io import promp_from_dict  # PROMP engineer's module
+    duration = float(d['duration'])
+    promp = promp_from_dict(d['promp'], d['n_dims'], duration)
+    n = max(100, int(PROMP_FIT_RATE * duration) + 1)
+    s = np.linspace(0.0, 1.0, n)
+    Y = promp.mean(s)[:, perm]  # E[y_t] = Phi_t mu_w, Eq. (2), paper 003
+    if not np.all(np.isfinite(Y)):
+        raise PrimitiveFileError('primitive.promp.mean_w: the mean trajectory is not finite')
+    lo, hi = lower.copy(), upper.copy()
+    if 'limits' in d:  # the tighter of the primitive's and the robot's limits
+        lo = np.maximum(lo, np.asarray(d['limits']['lower'], dtype=float)[perm])
+        hi = np.minimum(hi, np.asarray(d['limits']['upper'], dtype=float)[perm])
+        check_limits(lo, hi)
+    cdmp = CDMP(lo, hi, config, joint_names)
+    return cdmp.fit(s * duration, Y)
+
+
+def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: Sequence[str],
+                      dt: float, lower: ArrayLike, upper: ArrayLike,
+                      velocity_limits: Optional[ArrayLike] = None, source: str = 'primitive',
+                      promp_config: Optional[DmpConfig] = None) -> PreparedPrimitive:
+    """Parse, validate and prepare a primitive message for streaming.
+
+    Parameters
+    ----------
+    payload : str, bytes or dict
+        JSON text (``std_msgs/String.data``) or the decoded dict.
+    joint_names : sequence of str
+        The streamer's joints; the primitive must name exactly these (any order).
+    dt : float
+        Streaming period [s].
+    lower, upper : array-like, shape (n_dims,)
+        Robot position limits (streamer order); used for ProMP conversion.
+    velocity_limits : array-like, shape (n_dims,), optional
+        Robot velocity limits; the stepper uses the smaller of these and the primitive's.
+    source : str
+        Name of the topic, for messages.
+    promp_config : DmpConfig, optional
+        Constants of the CDMP fitted to a ProMP's mean.
+
+    Raises
+    ------
+    PrimitiveFileError
+        Malformed JSON, schema violation, different joints, or a primitive that cannot be
+        integrated at this ``dt``; the message names the field.
+    """
+    if isinstance(payload, dict):
+        d = payload
+    else:
+        try:
+            d = json.loads(payload)
+        except (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError) as exc:
+            raise PrimitiveFileError(f'{source}: not valid JSON ({exc})') from None
+    validate_primitive_dict(d)
+    perm = _permutation(d['joint_names'], joint_names)
+    notes = []
+    if perm != list(range(len(perm))):
+        notes.append(f'joints reordered from {d["joint_names"]}')
+    lower = np.asarray(lower, dtype=float)
+    upper = np.asarray(upper, dtype=float)
+    try:
+        if d['kind'] == 'promp':
+            prim = _promp_to_cdmp(d, perm, lower, upper, promp_config or DmpConfig(),
+                                  joint_names)
+            notes.append(f'ProMP streamed through a CDMP fitted to its mean (rms '
+                         f'{prim.fit_rms_error_:.2e})')
+        else:
+            prim = primitive_from_dict(_reorder_dmp_dict(d, perm))
+        vmax = None if velocity_limits is None else np.asarray(velocity_limits, dtype=float)
+        pvl = getattr(prim, 'velocity_limits', None)
+        if pvl is not None:
+            vmax = pvl if vmax is None else np.minimum(vmax, pvl)
+        stepper = prim.stepper(dt, velocity_limits=vmax)
+    except PrimitiveFileError:
+        raise
+    except (ValueError, TypeError, KeyError, np.linalg.LinAlgError) as exc:
+        raise PrimitiveFileError(f'{source}: cannot be streamed: {exc}') from None
+    return PreparedPrimitive(prim, stepper, d['kind'], source, notes)

@@ -1,0 +1,444 @@
+"""Online streaming of the active primitive: the logic of the streamer node, without ROS.
+
+:class:`ReferenceStreamer` owns the joint reference ``(y, yd)`` that the streamer publishes.
+Every tick it advances the active primitive's :class:`~cdmp_ros.core.stepper.DmpStepper` with
+the obstacle coupling term of the current reference (paper 000, Eq. 7/12 mapped into the
+exogenous space, Eq. 21), and guarantees what the node promises:
+
+- *No jump on a switch*: a new primitive, and a resumption after a stop, restart the stepper
+  from the current reference position **and velocity**; a new goal only moves the goal target
+  ``g_0``, which the goal state follows smoothly (Eq. 14/22).
+- *Smooth stop on stale inputs*: without fresh ``joint_states`` (``joint_states_timeout``)
+  or without a primitive, the reference decelerates to rest along the closed-form profile of
+  :class:`SmoothStop` (velocity continuous, zero acceleration at both ends), in the exogenous
+  space of the limits, so the stop itself cannot leave them; then it holds.
+- *Never outside the limits, never NaN, never the wrong size*: the output lists have a fixed
+  length and every published position is checked against ``[lower, upper]`` (a last guard for
+  plain DMPs, whose integration has no limits; flagged ``CLAMPED``).
+
+Times (``now``) are seconds of a steady clock supplied by the caller, so the class is
+deterministic and testable without ROS.
+"""
+import enum
+import math
+from dataclasses import dataclass, field, fields
+from typing import Callable, List, Optional, Sequence, Tuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
+from cdmp_ros.core.stream_primitives import PreparedPrimitive
+from cdmp_ros.core.transform import SAT_MARGIN, XI_SAT, TanhTransform
+from cdmp_ros.core.validation import as_array, check_limits
+
+#: ``coupling(y, yd) -> joint accelerations (n_dims,)`` or None (no obstacle): the coupling
+#: term of the current obstacles at the reference state, in joint space [rad/s^2].
+JointCoupling = Callable[[List[float], List[float]], Optional[Sequence[float]]]
+
+
+def _param(default, description, lo=None, hi=None, read_only=False, step=None):
+    """A dataclass field carrying what the ROS parameter descriptor needs."""
+    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
+    if step is not None:
+        meta['step'] = step
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda: tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class StreamerConfig:
+    """Parameters of the streamer; mirrored 1:1 by the ROS parameters of the streamer node.
+
+    Ranges and descriptions live in the field metadata (used for the parameter descriptors).
+    """
+
+    rate: float = _param(500.0, 'Publishing rate of joint_reference [Hz] (1 kHz supported).',
+                         1.0, 2000.0)
+    joint_states_timeout: float = _param(
+        0.5, 'joint_states older than this [s] are stale: the reference stops smoothly and '
+        'holds. 0 disables the check (open loop: the reference starts at the primitive start).',
+        0.0, 60.0)
+    stop_time: float = _param(0.5, 'Duration of the smooth stop [s].', 0.01, 10.0)
+    max_catch_up: int = _param(
+        10, 'Integration steps made at most in one tick after a late timer callback.', 1, 1000)
+    limit_margin: float = _param(
+        1e-3, 'Goals outside the limits are clipped to centre +- (1 - limit_margin) * half '
+        'range (the CDMP margin).', 1e-9, 0.5)
+    joint_names: Tuple[str, ...] = _param(
+        PANDA_JOINTS, 'Joints of the reference, in the published order.', read_only=True)
+    urdf_path: str = _param(
+        '', 'Robot URDF (limits, kinematics for the coupling). Empty: the Panda of '
+        'pybullet_data.', read_only=True)
+    base_frame: str = _param(
+        'panda_link0', 'Robot base frame: obstacles must be given in it (or with an empty '
+        'frame_id).', read_only=True)
+    max_stamp_age: float = _param(
+        5.0, 'Input messages stamped more than this [s] in the past are rejected.', 0.001, 3600.0)
+    max_stamp_lead: float = _param(
+        1.0, 'Input messages stamped more than this [s] in the future are rejected.',
+        0.001, 3600.0)
+    accept_unstamped: bool = _param(
+        True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+    max_input_rate: float = _param(
+        100.0, 'Messages per second accepted on goal, obstacles, primitive and '
+        'adapted_primitive; the excess is dropped and reported (flooding).', 1.0, 100000.0)
+    max_joint_states_rate: float = _param(
+        2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
+        1.0, 100000.0)
+    max_obstacles: int = _param(64, 'Largest number of obstacles kept.', 0, 10000)
+    max_obstacle_size: float = _param(
+        10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].', 1e-6, 1000.0)
+    max_obstacle_distance: float = _param(
+        100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+    diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
+                                       0.01, 60.0)
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            lo, hi = f.metadata['range']
+            if isinstance(f.default, bool):
+                if not isinstance(v, bool):
+                    raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
+                continue
+            if lo is None:
+                continue
+            kind = int if isinstance(f.default, int) else float
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                    kind is int and not float(v).is_integer()):
+                raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+        names = self.joint_names
+        if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
+                or not all(isinstance(n, str) and n for n in names)):
+            raise ValidationError(f'joint_names: expected unique non-empty names, got {names!r}')
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate
+
+
+class CouplingSource:
+    """A :data:`JointCoupling` for the current obstacles: ``ObstacleCoupling`` (paper 000,
+    Eq. 7/12) evaluated at the reference; None (no call) while there is no obstacle.
+
+    Parameters
+    ----------
+    coupling : ObstacleCoupling
+    """
+
+    def __init__(self, coupling):
+        self.coupling = coupling
+        self.obstacles: Sequence = ()
+        self.min_distance = math.inf
+
+    def __call__(self, y: List[float], yd: List[float]) -> Optional[List[float]]:
+        obstacles = self.obstacles
+        if not obstacles:
+            self.min_distance = math.inf
+            return None
+        a = self.coupling.joint_acceleration(y, yd, obstacles)
+        self.min_distance = min(self.coupling.last_distances)
+        return a
+
+
+class StreamState(enum.Enum):
+    WAITING = 'waiting'    #: no reference yet (no joint_states, or no primitive in open loop)
+    RUNNING = 'running'    #: integrating the active primitive
+    STOPPING = 'stopping'  #: smooth stop in progress
+    HOLDING = 'holding'    #: at rest, waiting for fresh inputs or a primitive
+
+
+class StreamFlags(enum.IntFlag):
+    NONE = 0
+    CLAMPED = 1           #: a position was outside [lower, upper] and was clamped (plain DMP)
+    COUPLED = 2           #: a non-zero obstacle coupling term was applied
+    SATURATED = 4         #: the exogenous state saturated (stepper)
+    VELOCITY_LIMITED = 8  #: the phase was slowed to respect velocity limits (stepper)
+    COUPLING_REJECTED = 16  #: the coupling term was non-finite or failed and was dropped
+
+
+def _h(s: float) -> float:
+    """Velocity profile of the stop: 1 - 3 s^2 + 2 s^3 (1 at s=0, 0 at s=1, flat ends)."""
+    return 1.0 - s * s * (3.0 - 2.0 * s)
+
+
+def _H(s: float) -> float:
+    """Integral of :func:`_h` from 0 to s (H(1) = 1/2)."""
+    s2 = s * s
+    return s - s2 * s + 0.5 * s2 * s2
+
+
+class SmoothStop:
+    """Closed-form stop from ``(y0, yd0)`` within ``duration`` [s], in the exogenous space.
+
+    ``xi(t) = xi0 + xid0 * T * H(t / T)``, ``xid(t) = xid0 * h(t / T)`` with
+    ``h(s) = 1 - 3 s^2 + 2 s^3``: velocity continuous at the start, zero at the end, zero
+    acceleration at both ends, peak deceleration ``1.5 |xid0| / T``. Positions follow from
+    ``y = y_delta tanh(xi) + y_o`` (Eq. 19), so they stay inside the limits of ``transform``.
+    """
+
+    def __init__(self, transform: TanhTransform, y0: ArrayLike, yd0: ArrayLike,
+                 duration: float):
+        xi0 = transform.to_exogenous(y0)
+        self.xi0 = xi0.tolist()
+        self.xid0 = (np.asarray(yd0, dtype=float) / np.maximum(transform.jacobian(xi0),
+                                                               1e-300)).tolist()
+        self.yo = transform.y_o.tolist()
+        self.ydel = transform.y_delta.tolist()
+        self.duration = float(duration)
+        self.t = 0.0
+
+    def advance(self, dt: float, y: List[float], yd: List[float], ydd: List[float]) -> bool:
+        """Advance by dt and write the state into y, yd, ydd; True once at rest."""
+        self.t += dt
+        T = self.duration
+        s = min(self.t / T, 1.0)
+        H, h, hp = _H(s), _h(s), 6.0 * s * (s - 1.0)
+        for d, (xi0, v0) in enumerate(zip(self.xi0, self.xid0)):
+            xi = xi0 + v0 * T * H
+            xi = XI_SAT if xi > XI_SAT else (-XI_SAT if xi < -XI_SAT else xi)
+            xid = v0 * h
+            xidd = v0 * hp / T
+            t = math.tanh(xi)
+            de = self.ydel[d]
+            sech2 = 1.0 - t * t
+            y[d] = de * t + self.yo[d]  # Eq. (27)
+            yd[d] = de * sech2 * xid  # Eq. (28)
+            ydd[d] = de * sech2 * (xidd - 2.0 * t * xid * xid)  # Eq. (29)
+        return s >= 1.0
+
+
+class ReferenceStreamer:
+    """The streamer's reference generator (see the module docstring).
+
+    Parameters
+    ----------
+    lower, upper : array-like, shape (n_dims,)
+        Robot position limits, in the order of ``config.joint_names``.
+    config : StreamerConfig
+    coupling : JointCoupling, optional
+        Obstacle coupling at the reference state (joint accelerations), called every step.
+    """
+
+    def __init__(self, lower: ArrayLike, upper: ArrayLike, config: StreamerConfig,
+                 coupling: Optional[JointCoupling] = None):
+        self.config = config
+        self.joint_names = list(config.joint_names)
+        n = self.n_dims = len(self.joint_names)
+        lo, hi = check_limits(lower, upper, n)
+        self.lower, self.upper = lo, hi
+        self._lo, self._hi = lo.tolist(), hi.tolist()
+        self.transform = TanhTransform(lo, hi, margin=SAT_MARGIN)
+        self._goal_transform = TanhTransform(lo, hi, margin=config.limit_margin)
+        self.coupling = coupling
+        self.y = [0.0] * n
+        self.yd = [0.0] * n
+        self.ydd = [0.0] * n
+        self.state = StreamState.WAITING
+        self.reason = ('waiting for joint_states' if config.joint_states_timeout > 0
+                       else 'waiting for a primitive')
+        self.active: Optional[PreparedPrimitive] = None
+        self.goal_override: Optional[NDArray[np.float64]] = None
+        self.last_measure: Optional[float] = None
+        self.steps = 0
+        self._stop: Optional[SmoothStop] = None
+        self._jac_scale: Optional[List[float]] = None
+
+    # -- configuration ------------------------------------------------------------------------
+    def set_config(self, config: StreamerConfig) -> None:
+        """Apply a new configuration (joint names and limits unchanged); the active stepper
+        is rebuilt by the caller when ``rate`` changes."""
+        if tuple(config.joint_names) != tuple(self.joint_names):
+            raise ValidationError('joint_names: cannot change while streaming')
+        self.config = config
+        self._goal_transform = TanhTransform(self.lower, self.upper,
+                                             margin=config.limit_margin)
+
+    @property
+    def dt(self) -> float:
+        return self.config.dt
+
+    @property
+    def has_reference(self) -> bool:
+        return self.state is not StreamState.WAITING
+
+    # -- inputs (outside the tick) ------------------------------------------------------------
+    def note_joint_states(self, q: ArrayLike, now: float) -> None:
+        """A valid measurement arrived (streamer order); the first one sets the reference."""
+        self.last_measure = now
+        if self.state is StreamState.WAITING:
+            self._set_reference(np.asarray(q, dtype=float), np.zeros(self.n_dims))
+            self.state = StreamState.HOLDING
+            self.reason = 'holding the measured position: no primitive yet'
+
+    def clip_goal(self, goal_y: ArrayLike) -> Tuple[NDArray[np.float64], List[int]]:
+        """Clip a goal into the limits with the margin; returns it and the clipped joints."""
+        g = as_array('goal.position', goal_y, (self.n_dims,))
+        gc = self._goal_transform.clip_position(g)
+        return gc, [int(i) for i in np.flatnonzero(gc != g)]
+
+    def set_goal(self, goal_y: ArrayLike) -> List[int]:
+        """New joint-space goal (kept for later primitives too); returns the clipped joints.
+
+        The active stepper's goal target changes; the goal state follows through Eq. 14/22,
+        so position and velocity stay continuous.
+        """
+        g, clipped = self.clip_goal(goal_y)
+        self.goal_override = g
+        if self.active is not None and self.state is StreamState.RUNNING:
+            self.active.stepper.set_goal(g)
+        return clipped
+
+    def activate(self, prepared: PreparedPrimitive, now: float) -> str:
+        """Switch to a prepared primitive without a jump; returns a description."""
+        self.active = prepared
+        if self.state is StreamState.WAITING and self.config.joint_states_timeout == 0:
+            self._set_reference(prepared.prim.start_y_, np.zeros(self.n_dims))
+            self.state = StreamState.HOLDING
+        if self.state is StreamState.WAITING:
+            return f'{prepared.source}: stored; waiting for joint_states to start'
+        if self._fresh(now):
+            jump = self._start_stepper()
+            return (f'{prepared.source}: switched in at the current reference'
+                    + (f' (start clipped by {jump:.3g} rad to the primitive limits)'
+                       if jump > 0 else ''))
+        return f'{prepared.source}: stored; inputs stale ({self.reason})'
+
+    # -- the tick -----------------------------------------------------------------------------
+    def advance(self, n_steps: int, now: float) -> int:
+        """Advance the reference by ``n_steps`` periods; returns :class:`StreamFlags` bits.
+
+        Never raises on account of inputs: the stepper does not raise, the coupling callable is
+        guarded, and the guard keeps every position finite and inside the limits.
+        """
+        state = self.state
+        if state is StreamState.WAITING:
+            return 0
+        fresh = self._fresh(now)
+        if state is StreamState.RUNNING and not fresh:
+            self._begin_stop(now)
+        elif state is not StreamState.RUNNING and fresh and self.active is not None:
+            self._start_stepper()
+        elif state is StreamState.HOLDING and not fresh:
+            self.reason = self._stale_reason(now)
+        flags = 0
+        dt = self.config.dt
+        if self.state is StreamState.RUNNING and self.coupling is not None:
+            # evaluated once per call (zero-order hold over catch-up steps)
+            flags = self._coupling_into(self.active.stepper)
+        for _ in range(max(1, int(n_steps))):
+            if self.state is StreamState.RUNNING:
+                flags |= self._step_primitive()
+            elif self.state is StreamState.STOPPING:
+                if self._stop.advance(dt, self.y, self.yd, self.ydd):
+                    self._hold()
+            self.steps += 1
+        return flags | self._guard()
+
+    # -- internals ----------------------------------------------------------------------------
+    def _fresh(self, now: float) -> bool:
+        if self.active is None:
+            return False
+        timeout = self.config.joint_states_timeout
+        return timeout == 0 or (self.last_measure is not None
+                                and now - self.last_measure <= timeout)
+
+    def _stale_reason(self, now: float) -> str:
+        if self.active is None:
+            return 'no primitive'
+        if self.last_measure is None:
+            return 'no joint_states received'
+        return f'joint_states stale ({now - self.last_measure:.2f} s old)'
+
+    def _set_reference(self, y: ArrayLike, yd: ArrayLike) -> None:
+        y = np.clip(np.asarray(y, dtype=float), self.lower, self.upper)
+        self.y[:] = y.tolist()
+        self.yd[:] = np.asarray(yd, dtype=float).tolist()
+        self.ydd[:] = [0.0] * self.n_dims
+
+    def _start_stepper(self) -> float:
+        """Restart the active stepper at the current reference; returns the start clip [rad]."""
+        prep = self.active
+        prim = prep.prim
+        goal = self.goal_override if self.goal_override is not None else prim.goal_y_
+        y = np.asarray(self.y)
+        prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
+        self._jac_scale = (prim.transform.y_delta.tolist() if prim.kind == 'cdmp' else None)
+        self.state = StreamState.RUNNING
+        self.reason = f'streaming the {prep.kind} from {prep.source}'
+        return float(np.max(np.abs(np.asarray(prep.stepper.output.y) - y)))
+
+    def _begin_stop(self, now: float) -> None:
+        self.reason = 'stopping: ' + self._stale_reason(now)
+        self._stop = SmoothStop(self.transform, self.y, self.yd, self.config.stop_time)
+        self.state = StreamState.STOPPING
+
+    def _hold(self) -> None:
+        self.reason = self.reason.replace('stopping: ', 'stopped: ')
+        self.yd[:] = [0.0] * self.n_dims
+        self.ydd[:] = [0.0] * self.n_dims
+        self.state = StreamState.HOLDING
+        self._stop = None
+
+    def _step_primitive(self) -> int:
+        stepper = self.active.stepper
+        out, status = stepper.update(stepper.input)
+        self.y[:] = out.y
+        self.yd[:] = out.yd
+        self.ydd[:] = out.ydd
+        return (4 if status & 4 else 0) | (8 if status & 16 else 0)
+
+    def _coupling_into(self, stepper) -> int:
+        """Joint-space coupling accelerations -> the stepper's internal units (tau^2 xidd).
+
+        The same map as ``ObstacleCoupling.to_internal`` (Eq. 21/29), written in place.
+        """
+        P = stepper.input.coupling
+        try:
+            a = self.coupling(self.y, self.yd)
+        except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
+            a = False
+        n = self.n_dims
+        if a is None:
+            for d in range(n):
+                P[d] = 0.0
+            return 0
+        try:
+            vals = [float(v) for v in a] if a is not False else []
+        except (TypeError, ValueError):
+            vals = []
+        if len(vals) != n or not all(-1e12 < v < 1e12 for v in vals):
+            for d in range(n):
+                P[d] = 0.0
+            return int(StreamFlags.COUPLING_REJECTED)
+        tau2 = stepper.tau * stepper.tau
+        scale = self._jac_scale
+        xi = stepper.output.xi
+        any_nonzero = False
+        for d in range(n):
+            v = vals[d]
+            if v != 0.0:
+                any_nonzero = True
+            if scale is not None:  # xidd = ydd / J(xi), J = y_delta (1 - tanh^2), Eq. (28)
+                t = math.tanh(xi[d])
+                v = v / max(scale[d] * (1.0 - t * t), 1e-300)
+            P[d] = tau2 * v
+        return int(StreamFlags.COUPLED) if any_nonzero else 0
+
+    def _guard(self) -> int:
+        flags = 0
+        y, yd, lo, hi = self.y, self.yd, self._lo, self._hi
+        for d in range(self.n_dims):
+            v = y[d]
+            if not lo[d] <= v <= hi[d]:
+                flags = int(StreamFlags.CLAMPED)
+                y[d] = hi[d] if v > hi[d] else lo[d]  # NaN -> lower (never produced)
+                yd[d] = 0.0
+            if not -1e12 < yd[d] < 1e12:
+                yd[d] = 0.0
+        return flags

@@ -1,0 +1,374 @@
+"""ReferenceStreamer / SmoothStop / prepare_primitive: the streamer's logic without ROS."""
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
+from cdmp_ros.core.primitive_io import dumps_primitive, primitive_to_dict
+from cdmp_ros.core.stream_primitives import prepare_primitive
+from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer, SmoothStop,
+                                     StreamerConfig, StreamFlags, StreamState, _H, _h)
+from cdmp_ros.core.transform import SAT_MARGIN, TanhTransform
+from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, VMAX, reach_cdmp,
+                           reach_dmp)
+
+DT = 0.002
+
+
+@pytest.fixture(scope='module')
+def cdmp_text():
+    return dumps_primitive(reach_cdmp())
+
+
+def make_streamer(text, timeout=0.5, coupling=None, **kw):
+    cfg = StreamerConfig(joint_states_timeout=timeout, **kw)
+    rs = ReferenceStreamer(LOWER, UPPER, cfg, coupling=coupling)
+    prep = prepare_primitive(text, PANDA_JOINTS, cfg.dt, LOWER, UPPER, VMAX)
+    return rs, prep
+
+
+def run(rs, n, t0, measure=True, record=None):
+    """Advance n ticks from time t0 with fresh joint_states (if measure); returns the time."""
+    t = t0
+    for _ in range(n):
+        t += rs.dt
+        if measure:
+            rs.note_joint_states(rs.y, t)
+        rs.advance(1, t)
+        if record is not None:
+            record.append((list(rs.y), list(rs.yd), rs.state))
+    return t
+
+
+def max_step_changes(rec):
+    Y = np.array([r[0] for r in rec])
+    Yd = np.array([r[1] for r in rec])
+    return np.abs(np.diff(Y, axis=0)).max(axis=1), np.abs(np.diff(Yd, axis=0)).max(axis=1)
+
+
+# -- configuration -----------------------------------------------------------------------------
+@pytest.mark.parametrize('field,value', [('rate', 0.0), ('rate', float('nan')), ('rate', 5000.0),
+                                         ('max_catch_up', 1.5), ('stop_time', -1.0),
+                                         ('accept_unstamped', 1), ('rate', 'fast'),
+                                         ('joint_names', ('a', 'a')), ('joint_names', ())])
+def test_config_rejects_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValidationError, match=field):
+        StreamerConfig(**{field: value})
+
+
+def test_config_limits_match_the_urdf():
+    import pybullet_data
+    from cdmp_ros.core.kinematics import panda_chain
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    assert tuple(chain.joint_names) == StreamerConfig().joint_names == PANDA_JOINTS
+    np.testing.assert_allclose(chain.lower, LOWER)
+    np.testing.assert_allclose(chain.upper, UPPER)
+    np.testing.assert_allclose(chain.velocity_limits, VMAX)
+
+
+# -- smooth stop -------------------------------------------------------------------------------
+def test_stop_profile_integral_is_exact():
+    s = np.linspace(0.0, 1.0, 20001)
+    h = np.array([_h(v) for v in s])
+    num = np.concatenate([[0.0], np.cumsum(0.5 * (h[1:] + h[:-1]) * np.diff(s))])
+    np.testing.assert_allclose(num, [_H(v) for v in s], atol=1e-9)
+    assert _h(0.0) == 1.0 and _h(1.0) == 0.0 and _H(1.0) == 0.5
+
+
+def test_smooth_stop_is_continuous_and_ends_at_rest():
+    tr = TanhTransform(LOWER, UPPER, margin=SAT_MARGIN)
+    y0 = Q_START.copy()
+    yd0 = np.array([1.0, -0.5, 0.3, 0.8, -1.2, 0.4, 2.0])
+    stop = SmoothStop(tr, y0, yd0, 0.5)
+    y, yd, ydd = [0.0] * 7, [0.0] * 7, [0.0] * 7
+    Y, Yd = [y0], [yd0]
+    done = False
+    for k in range(260):
+        done = stop.advance(DT, y, yd, ydd)
+        Y.append(list(y))
+        Yd.append(list(yd))
+        if done:
+            break
+    assert done and k == 249  # 0.5 s at 2 ms
+    Y, Yd = np.array(Y), np.array(Yd)
+    np.testing.assert_allclose(Yd[-1], 0.0, atol=1e-12)
+    # velocity continuous at the start: the first step changes it by at most a_max * dt
+    a_max = np.abs(np.diff(Yd, axis=0)).max() / DT
+    assert np.abs(Yd[1] - yd0).max() <= 0.01 and a_max < 3.0 * 2.0 / 0.5 * 1.5
+    # positions are consistent with the velocities (trapezoidal integral)
+    np.testing.assert_allclose(Y[-1] - Y[0], np.trapezoid(Yd, dx=DT, axis=0), atol=2e-4)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-0.999, 0.999), min_size=7, max_size=7),
+       st.lists(st.floats(-50.0, 50.0), min_size=7, max_size=7),
+       st.floats(0.01, 2.0))
+def test_smooth_stop_never_leaves_the_limits(frac, vel, T):
+    tr = TanhTransform(LOWER, UPPER, margin=SAT_MARGIN)
+    y0 = tr.y_o + np.array(frac) * tr.y_delta
+    stop = SmoothStop(tr, y0, vel, T)
+    y, yd, ydd = [0.0] * 7, [0.0] * 7, [0.0] * 7
+    for _ in range(int(T / 0.01) + 2):
+        stop.advance(0.01, y, yd, ydd)
+        assert np.all(np.isfinite(y)) and np.all(np.isfinite(yd))
+        assert np.all(np.array(y) >= LOWER) and np.all(np.array(y) <= UPPER)
+    np.testing.assert_allclose(yd, 0.0, atol=1e-12)
+
+
+# -- streaming ---------------------------------------------------------------------------------
+def test_follows_the_primitive_from_the_measured_start(cdmp_text):
+    rs, prep = make_streamer(cdmp_text)
+    assert rs.state is StreamState.WAITING and rs.advance(1, 0.0) == 0
+    rs.note_joint_states(Q_START, 0.0)
+    assert rs.state is StreamState.HOLDING and 'no primitive' in rs.reason
+    assert 'switched in' in rs.activate(prep, 0.0)
+    rec = []
+    run(rs, 1500, 0.0, record=rec)
+    ref = prep.prim.rollout(DT, duration=3.0, start_y=Q_START, velocity_limits=VMAX)
+    np.testing.assert_allclose(rec[-1][0], ref.Y[1500], atol=1e-9)
+    assert rs.state is StreamState.RUNNING
+
+
+def test_open_loop_starts_at_the_primitive_start(cdmp_text):
+    rs, prep = make_streamer(cdmp_text, timeout=0.0)
+    rs.activate(prep, 0.0)
+    rs.advance(1, 100.0)  # no joint_states ever: fine in open loop
+    assert rs.state is StreamState.RUNNING
+    np.testing.assert_allclose(rs.y, Q_START, atol=1e-3)
+
+
+def test_new_primitive_switches_without_a_jump(cdmp_text):
+    rs, prep = make_streamer(cdmp_text)
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    rec = []
+    t = run(rs, 400, 0.0, record=rec)  # mid-motion, fast
+    speed = np.abs(rec[-1][1]).max()
+    assert speed > 0.3
+    q_other = np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15])
+    other = prepare_primitive(dumps_primitive(reach_cdmp(Q_START, q_other, 1.5)),
+                              PANDA_JOINTS, DT, LOWER, UPPER, VMAX)
+    rs.activate(other, t)
+    run(rs, 300, t, record=rec)
+    dy, dyd = max_step_changes(rec)
+    k = 399  # the step across the switch
+    assert dy[k] <= 1.5 * speed * DT
+    assert dyd[k] <= 0.1 * speed, (dyd[k], speed)  # a restart at rest would change by speed
+    # and the new goal is reached
+    run(rs, 2000, t + 0.6)
+    np.testing.assert_allclose(rs.y, q_other, atol=2e-2)
+
+
+def test_goal_change_is_smooth_and_clipped_into_the_limits(cdmp_text):
+    rs, prep = make_streamer(cdmp_text)
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    rec = []
+    t = run(rs, 300, 0.0, record=rec)
+    goal = Q_GOAL.copy()
+    goal[1] = 5.0  # beyond the upper limit 1.8326
+    goal[3] = -4.0
+    clipped = rs.set_goal(goal)
+    assert clipped == [1, 3]
+    half = 0.5 * (UPPER - LOWER)
+    assert math.isclose(rs.goal_override[1], 0.5 * (UPPER[1] + LOWER[1]) + (1 - 1e-3) * half[1])
+    run(rs, 3000, t, record=rec)
+    dy, dyd = max_step_changes(rec)
+    assert dyd[299] < 0.01 and dyd.max() < 0.1  # no velocity step (accel < 50 rad/s^2)
+    np.testing.assert_allclose(rs.y, rs.goal_override, atol=5e-3)
+    Y = np.array([r[0] for r in rec])
+    assert np.all(Y >= LOWER) and np.all(Y <= UPPER)
+
+
+def test_stale_joint_states_stop_smoothly_hold_and_resume(cdmp_text):
+    rs, prep = make_streamer(cdmp_text, stop_time=0.4)
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    rec = []
+    t = run(rs, 400, 0.0, record=rec)
+    speed = np.abs(rec[-1][1]).max()
+    t = run(rs, 250 + 200 + 20, t, measure=False, record=rec)  # 0.5 s timeout + 0.4 s stop
+    states = [r[2] for r in rec]
+    first_stop = states.index(StreamState.STOPPING)
+    assert 400 + 248 <= first_stop <= 400 + 252
+    assert rs.state is StreamState.HOLDING and 'joint_states stale' in rs.reason
+    assert np.abs(rec[-1][1]).max() == 0.0
+    dy, dyd = max_step_changes(rec)
+    assert dyd[first_stop - 1] < 0.05 * speed + 0.02
+    held = list(rs.y)
+    run(rs, 10, t, measure=False, record=rec)
+    assert rs.y == held
+    # fresh input: resumes from the held position, at rest, without a jump
+    run(rs, 500, t + 0.02, record=rec)
+    assert rs.state is StreamState.RUNNING
+    dy, dyd = max_step_changes(rec)
+    assert dyd.max() < 0.1 and dy.max() < 2.0 * np.abs([r[1] for r in rec]).max() * DT + 1e-12
+
+
+def test_catch_up_equals_single_steps(cdmp_text):
+    a, prep_a = make_streamer(cdmp_text, timeout=0.0)
+    b, prep_b = make_streamer(cdmp_text, timeout=0.0)
+    a.activate(prep_a, 0.0)
+    b.activate(prep_b, 0.0)
+    for k in range(50):
+        a.advance(3, 0.0)
+        for _ in range(3):
+            b.advance(1, 0.0)
+    assert a.y == b.y and a.yd == b.yd and a.steps == b.steps == 150
+
+
+def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):
+    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+    acc = [0.0, 3.0, 0.0, -2.0, 0.0, 0.0, 1.0]
+    rs, prep = make_streamer(cdmp_text, timeout=0.0, coupling=lambda y, yd: acc)
+    rs.activate(prep, 0.0)
+    run(rs, 100, 0.0, measure=False)
+    st_ = prep.stepper
+    xi_before = list(st_.output.xi)
+    assert rs.advance(1, 0.0) & StreamFlags.COUPLED
+    expected = ObstacleCoupling.to_internal(acc, xi_before, st_.tau,
+                                            prep.prim.transform.y_delta.tolist())
+    np.testing.assert_allclose(st_.input.coupling, expected, rtol=1e-12)
+
+
+def test_coupling_changes_the_motion_in_its_direction(cdmp_text):
+    push = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -4.0]
+    free, prep_f = make_streamer(cdmp_text, timeout=0.0)
+    pushed, prep_p = make_streamer(cdmp_text, timeout=0.0, coupling=lambda y, yd: push)
+    free.activate(prep_f, 0.0)
+    pushed.activate(prep_p, 0.0)
+    run(free, 200, 0.0, measure=False)
+    run(pushed, 200, 0.0, measure=False)
+    d = np.array(pushed.y) - np.array(free.y)
+    assert d[6] < -0.05 and np.abs(d[:6]).max() < 1e-9
+
+
+@pytest.mark.parametrize('bad', [[float('nan')] * 7, [1.0] * 3, 'x', [float('inf')] + [0.0] * 6,
+                                 RuntimeError])
+def test_bad_coupling_is_dropped_not_raised(cdmp_text, bad):
+    def coupling(y, yd):
+        if bad is RuntimeError:
+            raise RuntimeError('kinematics failed')
+        return bad
+    rs, prep = make_streamer(cdmp_text, timeout=0.0, coupling=coupling)
+    ref, prep_r = make_streamer(cdmp_text, timeout=0.0)
+    rs.activate(prep, 0.0)
+    ref.activate(prep_r, 0.0)
+    for _ in range(50):
+        assert rs.advance(1, 0.0) & StreamFlags.COUPLING_REJECTED
+        ref.advance(1, 0.0)
+    assert rs.y == ref.y
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.lists(st.floats(-1e9, 1e9), min_size=7, max_size=7))
+def test_any_strong_coupling_keeps_a_cdmp_inside_the_limits(acc):
+    rs, prep = make_streamer(TEXT_CACHE['cdmp'], timeout=0.0, coupling=lambda y, yd: acc)
+    rs.activate(prep, 0.0)
+    for _ in range(100):
+        rs.advance(1, 0.0)
+        y = np.array(rs.y)
+        assert np.all(y >= LOWER) and np.all(y <= UPPER) and np.all(np.isfinite(rs.yd))
+
+
+TEXT_CACHE = {'cdmp': dumps_primitive(reach_cdmp())}
+
+
+def test_plain_dmp_is_clamped_to_the_limits():
+    rs, prep = make_streamer(dumps_primitive(reach_dmp()), timeout=0.0,
+                             coupling=lambda y, yd: [0.0, 0.0, 0.0, 200.0, 0.0, 0.0, 0.0])
+    rs.activate(prep, 0.0)
+    flags = 0
+    for _ in range(500):
+        flags |= rs.advance(1, 0.0)
+        y = np.array(rs.y)
+        assert np.all(y >= LOWER) and np.all(y <= UPPER)
+    assert flags & StreamFlags.CLAMPED and rs.y[3] == UPPER[3]
+
+
+def test_coupling_source_with_a_sphere_keeps_the_hand_away():
+    import pybullet_data
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    from cdmp_ros.core.kinematics.closest import Sphere
+    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+    from cdmp_ros.core.fields import RepellerField
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    text = TEXT_CACHE['cdmp']
+    free, prep_f = make_streamer(text, timeout=0.0)
+    free.activate(prep_f, 0.0)
+    path = []
+    for _ in range(1000):
+        free.advance(1, 0.0)
+        path.append(chain.forward(np.array(free.y), [PointOfInterest('ee')])[0])
+    mid = path[450]
+    sphere = Sphere(tuple(mid), 0.04)
+    source = CouplingSource(ObstacleCoupling(chain, sphere_field=RepellerField(gain=0.05)))
+    source.obstacles = (sphere,)
+    rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+    rs.activate(prep, 0.0)
+    d_free = min(np.linalg.norm(p - mid) for p in path) - 0.04
+    d_coupled = math.inf
+    for _ in range(1000):
+        rs.advance(1, 0.0)
+        x = chain.forward(np.array(rs.y), [PointOfInterest('ee')])[0]
+        d_coupled = min(d_coupled, np.linalg.norm(x - mid) - 0.04)
+    assert d_free < 0.0 < d_coupled
+    assert math.isfinite(source.min_distance)
+
+
+# -- prepare_primitive -------------------------------------------------------------------------
+def test_prepare_rejects_malformed_json(cdmp_text):
+    with pytest.raises(PrimitiveFileError, match='primitive: not valid JSON'):
+        prepare_primitive(cdmp_text[:-3], PANDA_JOINTS, DT, LOWER, UPPER)
+    with pytest.raises(PrimitiveFileError, match='JSON object'):
+        prepare_primitive('[1, 2]', PANDA_JOINTS, DT, LOWER, UPPER)
+
+
+def test_prepare_rejects_schema_violations_naming_the_field(cdmp_text):
+    d = json.loads(cdmp_text)
+    d['dmp']['alpha_y'] = 'stiff'
+    with pytest.raises(PrimitiveFileError, match=r'primitive\.dmp\.alpha_y'):
+        prepare_primitive(json.dumps(d), PANDA_JOINTS, DT, LOWER, UPPER)
+    d = json.loads(cdmp_text)
+    d['duration'] = 1e-4  # cannot be integrated at 2 ms
+    with pytest.raises(PrimitiveFileError, match='dt'):
+        prepare_primitive(json.dumps(d), PANDA_JOINTS, DT, LOWER, UPPER)
+
+
+def test_prepare_rejects_other_joints(cdmp_text):
+    d = json.loads(cdmp_text)
+    d['joint_names'][2] = 'elbow'
+    with pytest.raises(PrimitiveFileError, match=r"missing \['panda_joint3'\].*unknown \['elbow"):
+        prepare_primitive(json.dumps(d), PANDA_JOINTS, DT, LOWER, UPPER)
+
+
+def test_prepare_reorders_shuffled_joints():
+    perm = [3, 0, 6, 1, 5, 2, 4]
+    names = [PANDA_JOINTS[i] for i in perm]
+    from cdmp_ros.core.dmp import CDMP
+    from streamer_util import reach_demo
+    T, Y = reach_demo()
+    shuffled = CDMP(LOWER[perm], UPPER[perm], joint_names=names).fit(T, Y[:, perm])
+    prep = prepare_primitive(dumps_primitive(shuffled), PANDA_JOINTS, DT, LOWER, UPPER)
+    assert prep.prim.joint_names == list(PANDA_JOINTS) and 'reordered' in prep.notes[0]
+    a = prep.prim.rollout(DT)
+    b = shuffled.rollout(DT)
+    np.testing.assert_allclose(a.Y[:, perm], b.Y, atol=1e-12)
+
+
+def test_prepare_streams_a_promp_through_its_mean():
+    from cdmp_ros.core.promp import ProMP, RbfBasis
+    from streamer_util import reach_demo
+    T, Y = reach_demo(duration=2.0, n=201)
+    basis = RbfBasis.uniform(15)
+    promp = ProMP.fit([(T, Y)], basis, duration=2.0, joint_names=PANDA_JOINTS)
+    prep = prepare_primitive(dumps_primitive(promp), PANDA_JOINTS, DT, LOWER, UPPER, VMAX)
+    assert prep.kind == 'promp' and prep.prim.kind == 'cdmp'
+    tr = prep.prim.rollout(DT, velocity_limits=VMAX)
+    mean = promp.mean(tr.T / 2.0)
+    assert np.abs(tr.Y - mean).max() < 0.02
+    assert primitive_to_dict(prep.prim)['kind'] == 'cdmp'
