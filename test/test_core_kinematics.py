@@ -468,3 +468,16 @@ def test_batched_results_survive_later_calls(panda, rng):
     panda.link_frames(Q2)
     for a, b in zip((X1, J1, O1, F1), keep):
         np.testing.assert_array_equal(a, b)
+
+
+def test_sub_chain_starting_with_a_fixed_joint(custom_path, rng):
+    """base_link below the root, first joint fixed: poses relative to base_link."""
+    sub = chain_from_urdf(custom_path, 'tool', base_link='l2')
+    assert sub.joint_names == ['j3', 'j4'] and sub.link_names == ['l2', 'l3', 'l4', 'tool']
+    for _ in range(5):
+        q = rng.uniform(-1.0, 1.0, 4)
+        ref = reference_frames(custom_path, 'tool', q)
+        expected = np.linalg.inv(ref['l2']) @ ref['tool']
+        np.testing.assert_allclose(sub.link_frames(q[2:])[-1], expected, atol=DOUBLE_TOL)
+        np.testing.assert_allclose(sub.link_frames(q[2:][None])[0, -1], expected,
+                                   atol=DOUBLE_TOL)
