@@ -316,6 +316,8 @@ def test_input_validation(panda):
         PointOfInterest('ee', (1.0, 2.0))
     with pytest.raises(ValidationError, match='Q: expected finite'):
         panda.forward_and_jacobian(np.full((2, 7), np.nan), [PointOfInterest('ee')])
+    with pytest.raises(ValidationError, match='Q: expected finite'):
+        panda.forward(np.full(7, np.inf), [PointOfInterest('ee')])
     with pytest.raises(ValidationError, match='tip_link'):
         chain_from_urdf(PANDA_URDF, 'no_such_link')
     with pytest.raises(ValidationError, match='base_transform'):

@@ -275,6 +275,8 @@ class Chain:
             Q = self._check_q(Q)
             q = Q.tolist() if Q.ndim == 1 else None
         if q is not None:
+            if not -1e300 < sum(q) < 1e300:
+                raise ValidationError(f'Q: expected finite values, got {q}')
             kernel = self.fast_kernel(points)
             x, jac = kernel(q)
             n_points = len(x) // 3
