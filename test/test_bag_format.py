@@ -230,3 +230,45 @@ def test_metadata_count_mismatch_is_reported(tmp_path):
     open(path, 'w').write(text)
     with pytest.raises(BagFormatError, match='declares 51'):
         BagReader(bag).verify()
+
+
+def test_mcap_library_reads_our_files_with_indexes_and_crcs(tmp_path):
+    """The reference `mcap` reader: summary statistics, chunk/message indexes, CRCs."""
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader
+    bag = str(tmp_path / 'm')
+    sent = _write_sample(bag)
+    path = os.path.join(bag, 'm_0.mcap')
+    with open(path, 'rb') as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        stats = summary.statistics
+        assert stats.message_count == 55 and stats.chunk_count == len(summary.chunk_indexes)
+        assert stats.message_start_time == 1000 and stats.message_end_time == 1490
+        assert sorted(stats.channel_message_counts.values()) == [5, 50]
+        assert {c.topic for c in summary.channels.values()} == {'/joint_states', 'chatter'}
+        got = [(c.topic, m.log_time, m.data) for _, c, m in reader.iter_messages(
+            log_time_order=False)]
+        assert sorted(got) == sorted(sent)
+        only = [m.data for _, _, m in reader.iter_messages(topics=['chatter'])]
+        assert only == [d for t, _, d in sent if t == 'chatter']
+        assert reader.get_header().profile == 'ros2'
+        assert 'rosbag2' in [m.name for m in reader.iter_metadata()]
+    with open(path, 'rb') as f:  # streaming with data-section and chunk CRC validation
+        n = sum(1 for r in StreamReader(f, validate_crcs=True).records
+                if type(r).__name__ == 'Message')
+    assert n == 55
+
+
+def test_writer_is_fast_enough_for_20k_messages_per_second(tmp_path):
+    """Cost of one write (JointState, 7 joints); the recorder budget is 50 us/message."""
+    import time
+    data = encode_joint_state(1, [f'panda_joint{i}' for i in range(1, 8)], [0.1] * 7,
+                              [0.2] * 7, [0.3] * 7)
+    with BagWriter(str(tmp_path / 'fast')) as w:
+        w.add_topic('/js', 'sensor_msgs/JointState')
+        t = time.perf_counter()
+        for i in range(20000):
+            w.write('/js', data, i)
+        per_msg = (time.perf_counter() - t) / 20000
+    assert per_msg < 25e-6, f'{per_msg * 1e6:.1f} us per message'

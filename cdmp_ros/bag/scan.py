@@ -250,7 +250,8 @@ def _scan(path, buf, size, state, require_footer, max_chunk_bytes):
         off = exc.offset if exc.offset is not None else size
         if off + 25 <= size and buf[off] == OP_CHUNK:  # a cut chunk: tell what it held
             state.bad_chunk_range = struct.unpack_from('<QQ', buf, off + 9)
-        raise
+        raise BagTruncatedError(f'{exc}: the file is truncated (crashed or interrupted '
+                                'recording?); run "cdmp bag recover" on it', off) from None
     except _NoDataEnd:
         pass
     if not data_end_seen and require_footer:

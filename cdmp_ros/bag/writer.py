@@ -7,6 +7,11 @@ Storage choices
   ``offered_qos_profiles`` as YAML and ``topic_type_hash`` like rosbag2 Jazzy), one Message per
   serialized message with ``log_time`` = receive time, ``publish_time`` = source time when known,
   and ``sequence`` = the per-topic message number starting at 1, which makes gaps detectable.
+  Schema and Channel records are written in the data section outside chunks, before the
+  first chunk that uses them, so every complete chunk of a crashed file can be decoded.
+- **Writer**: :class:`cdmp_ros.bag.mcap_writer.McapStreamWriter`, a lean writer of standard
+  MCAP (~2 us per message instead of ~9 us for the ``mcap`` library's writer), checked
+  against the ``mcap`` library's reader, rosbags and mcap-ros2-support in the tests.
 - **Chunking**: messages go into chunks of at most ``chunk_size`` bytes (default 1 MiB,
   uncompressed) *and* at most ``flush_period`` seconds (default 0.1 s): :meth:`BagWriter.write`
   closes the open chunk when it is older than ``flush_period``, and the recorder node calls
@@ -28,14 +33,13 @@ import os
 import time
 from typing import Any, Dict, List, Optional
 
-from mcap.writer import CompressionType, IndexType, Writer
-
 import cdmp_ros
 from cdmp_ros.bag.errors import BagError
+from cdmp_ros.bag.mcap_writer import McapStreamWriter
 from cdmp_ros.bag.metadata import BagMetadata, TopicInfo, dump_qos, qos_dict
 from cdmp_ros.bag.schemas import normalize_type, schema_text, type_hash
 
-LIBRARY = f'cdmp_ros {getattr(cdmp_ros, "__version__", "0.1.0")} (mcap python writer)'
+LIBRARY = f'cdmp_ros {getattr(cdmp_ros, "__version__", "0.1.0")}'
 DEFAULT_CHUNK_SIZE = 1024 * 1024
 DEFAULT_FLUSH_PERIOD = 0.1
 #: Declared bound of the data (in seconds of recording) a SIGKILL may lose.
@@ -73,8 +77,7 @@ class BagWriter:
                  chunk_size: int = DEFAULT_CHUNK_SIZE,
                  flush_period: float = DEFAULT_FLUSH_PERIOD, overwrite: bool = False,
                  custom_data: Optional[Dict[str, str]] = None):
-        comp = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
-                'none': CompressionType.NONE}
+        comp = {'zstd': 'zstd', 'lz4': 'lz4', 'none': ''}
         if compression not in comp:
             raise BagError(f'compression: expected one of {sorted(comp)}, got {compression!r}')
         if chunk_size <= 0:
@@ -93,9 +96,8 @@ class BagWriter:
         self.flush_period = float(flush_period)
         self.custom_data = custom_data
         self._file = open(self.path, 'wb')
-        self._mcap = Writer(self._file, chunk_size=chunk_size, compression=comp[compression],
-                            index_types=IndexType.ALL, enable_crcs=True, enable_data_crcs=True)
-        self._mcap.start(profile='ros2', library=LIBRARY)
+        self._mcap = McapStreamWriter(self._file, compression=comp[compression],
+                                      chunk_size=chunk_size, profile='ros2', library=LIBRARY)
         self._file.flush()
         self._schemas: Dict[str, int] = {}
         self._topics: Dict[str, TopicInfo] = {}
@@ -127,15 +129,16 @@ class BagWriter:
         type_name = normalize_type(type_name)
         if type_name not in self._schemas:
             text = schema_text(type_name) if schema is None else schema
-            self._schemas[type_name] = self._mcap.register_schema(
-                name=type_name, encoding='ros2msg', data=text.encode('utf-8'))
+            sid = len(self._schemas) + 1
+            self._mcap.add_schema(sid, type_name, 'ros2msg', text.encode('utf-8'))
+            self._schemas[type_name] = sid
         qos = list(qos_profiles) if qos_profiles is not None else [qos_dict()]
         thash = type_description_hash or type_hash(type_name) or ''
         meta = {'offered_qos_profiles': dump_qos(qos)}
         if thash:
             meta['topic_type_hash'] = thash
-        cid = self._mcap.register_channel(topic=topic, message_encoding='cdr',
-                                          schema_id=self._schemas[type_name], metadata=meta)
+        cid = len(self._channel) + 1
+        self._mcap.add_channel(cid, self._schemas[type_name], topic, 'cdr', meta)
         self._channel[topic] = cid
         self._seq[cid] = 0
         self._topics[topic] = TopicInfo(name=topic, type=type_name, offered_qos_profiles=qos,
@@ -157,9 +160,8 @@ class BagWriter:
             raise BagError(f'topic: {topic!r} is not registered (call add_topic first)')
         seq = self._seq[cid] + 1
         self._seq[cid] = seq
-        self._mcap.add_message(channel_id=cid, log_time=log_time_ns, data=data,
-                               publish_time=log_time_ns if publish_time_ns is None
-                               else publish_time_ns, sequence=seq)
+        self._mcap.add_message(cid, seq, log_time_ns,
+                               log_time_ns if publish_time_ns is None else publish_time_ns, data)
         self._topics[topic].message_count += 1
         self._count += 1
         if self._t_min is None or log_time_ns < self._t_min:

@@ -28,7 +28,8 @@ def add_arguments(parser):
     p.add_argument('--flush-period', type=float, default=0.1,
                    help='max age of an open chunk in s (bounds the loss on a crash)')
     p.add_argument('--compression', choices=['zstd', 'lz4', 'none'], default='zstd')
-    p.add_argument('--queue-depth', type=int, default=1000)
+    p.add_argument('--queue-depth', type=int, default=10000,
+                   help='subscription queue depth per topic (absorbs scheduling stalls)')
     p.set_defaults(_bag=_record)
 
     p = sub.add_parser('play', help='replay a bag with the player node')

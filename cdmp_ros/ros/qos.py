@@ -13,7 +13,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSPro
 from cdmp_ros.bag.metadata import INFINITE
 
 #: Default depth of the recorder's subscription queues (messages per topic).
-RECORDER_DEPTH = 1000
+RECORDER_DEPTH = 10000
 
 _NAMES = {
     'history': {HistoryPolicy.KEEP_LAST: 'keep_last', HistoryPolicy.KEEP_ALL: 'keep_all',
