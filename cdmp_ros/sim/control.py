@@ -24,9 +24,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.transform import TanhTransform
 from cdmp_ros.core.validation import as_array, check_positive
 
 Gain = Union[float, Sequence[float]]
+#: Margin of :func:`joint_to_exogenous` with ``margin = 0`` (fraction of the half-range).
+_MIN_MARGIN = 1e-12
 
 
 def _check_gain(name: str, value: Gain, allow_zero: bool = False):
@@ -48,10 +51,16 @@ def gain_vector(name: str, value: Gain, n_dofs: int) -> NDArray[np.float64]:
     return arr.copy()
 
 
+def _transform(lower: ArrayLike, upper: ArrayLike, margin: float = 0.0) -> TanhTransform:
+    """The :class:`TanhTransform` of the limits; ``margin = 0`` leaves 1e-12 of the range."""
+    return TanhTransform(lower, upper, margin=max(float(margin), _MIN_MARGIN))
+
+
 def joint_to_exogenous(q: ArrayLike, lower: ArrayLike, upper: ArrayLike,
                        margin: float = 0.0) -> NDArray[np.float64]:
     """Exogenous coordinates ``xi = arctanh(delta^-1 (q - q_o))``, Eq. (5), paper 000.
 
+    A thin wrapper over :meth:`cdmp_ros.core.transform.TanhTransform.to_exogenous`:
     ``q_o = (q_min + q_max) / 2`` and ``delta = (q_max - q_min) / 2`` (Eq. 3). Positions are
     first clipped to ``q_o +- (1 - margin) delta`` so that a reference at or beyond a limit
     maps to a finite ``xi``; ``margin = 0`` leaves 1e-12 of the half-range.
@@ -67,18 +76,15 @@ def joint_to_exogenous(q: ArrayLike, lower: ArrayLike, upper: ArrayLike,
     -------
     (..., n_dofs) ndarray
     """
-    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
-    q_o, delta = 0.5 * (upper + lower), 0.5 * (upper - lower)
-    bound = 1.0 - max(float(margin), 1e-12)
-    return np.arctanh(np.clip((np.asarray(q, dtype=np.float64) - q_o) / delta, -bound, bound))
+    return _transform(lower, upper, margin).to_exogenous(q)
 
 
 def exogenous_to_joint(xi: ArrayLike, lower: ArrayLike, upper: ArrayLike
                        ) -> NDArray[np.float64]:
-    """``q = delta tanh(xi) + q_o``, Eq. (3), paper 000."""
-    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
-    return 0.5 * (upper - lower) * np.tanh(np.asarray(xi, dtype=np.float64)) \
-        + 0.5 * (upper + lower)
+    """``q = delta tanh(xi) + q_o``, Eq. (3), paper 000 (wraps
+    :meth:`~cdmp_ros.core.transform.TanhTransform.to_joint`, which saturates ``xi`` so that
+    ``q`` stays at least 1e-9 of the half-range inside the limits)."""
+    return _transform(lower, upper).to_joint(xi)
 
 
 def inertia_scaled_gains(robot, kp: float, kd: float, q: Optional[ArrayLike] = None
@@ -251,10 +257,20 @@ class JointLimitAvoidingController(_TorqueController):
     def __init__(self, gains: JointLimitAvoidingGains = JointLimitAvoidingGains()):
         self.gains = gains
 
+    def _transforms(self, robot) -> Tuple[TanhTransform, TanhTransform]:
+        """(state map, set-point map with ``gains.margin``), cached per robot."""
+        cache = getattr(self, '_tr_cache', None)
+        if cache is None or cache[0] is not robot:
+            cache = (robot, _transform(robot.lower, robot.upper),
+                     _transform(robot.lower, robot.upper, self.gains.margin))
+            self._tr_cache = cache
+        return cache[1], cache[2]
+
     def torque(self, robot, q, qd, reference):
         kp, kd = self._k(robot)
-        xi = joint_to_exogenous(q, robot.lower, robot.upper)                  # Eq. (5), 000
-        xi_d = joint_to_exogenous(reference.q, robot.lower, robot.upper, self.gains.margin)
+        state, setpoint = self._transforms(robot)
+        xi = state.to_exogenous(q)                                              # Eq. (5), 000
+        xi_d = setpoint.to_exogenous(reference.q)
         bias = robot._inverse_dynamics(q, qd, np.zeros(robot.n_dofs))        # C qd + G
         return -kp * (xi - xi_d) - kd * qd + bias                              # Eq. (4), 000
 
