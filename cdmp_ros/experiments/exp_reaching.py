@@ -252,6 +252,7 @@ def plot_joints(setup, runs, path):
     axes[7].legend(handles, labels, loc='center')
     for ax in axes[5:7]:
         ax.set_xlabel('t [s]')
+        ax.tick_params(labelbottom=True)
     fig.suptitle('Panda joints (limits dashed)')
     fig.tight_layout()
     fig.savefig(path, dpi=100)
