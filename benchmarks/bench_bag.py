@@ -114,12 +114,20 @@ def run_one(rate, count, domain_id, timeout, pub_depth, queue_depth):
         times.append(m.log_time)
     received = len(stamps)
     lost = published - len(set(stamps))
+    missing = sorted(set(range(published)) - set(stamps))
+    runs = []  # contiguous blocks of missing messages (a burst = a transport overflow)
+    for k in missing:
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    longest = max((b - a + 1 for a, b in runs), default=0)
     in_order = stamps == sorted(stamps)
     span = (times[-1] - times[0]) / 1e9 if received > 1 else float('nan')
     size = os.path.getsize(os.path.join(bag, 'bench_0.mcap'))
     cpu_us = (cpu1 - cpu0) / max(received, 1) * 1e6 if cpu0 is not None else float('nan')
     return {'target': rate, 'published': published, 'pub_rate': published / pub_s,
-            'cpu_us': cpu_us, 'rss': rss,
+            'cpu_us': cpu_us, 'rss': rss, 'bursts': f'{len(runs)} / {longest}',
             'recorded': received, 'lost': lost, 'in_order': in_order,
             'rec_rate': received / span if span else float('nan'), 'mb': size / 2 ** 20}
 
@@ -140,15 +148,16 @@ def main(argv=None):
     parser.add_argument('--timeout', type=float, default=60.0,
                         help='longest publishing time per rate (s)')
     args = parser.parse_args(argv)
-    print('| target msg/s | published | publish rate msg/s | recorded | lost | in order '
+    print('| target msg/s | published | publish rate msg/s | recorded | lost '
+          '| loss bursts / longest | in order '
           '| sustained recording msg/s | recorder CPU us/msg | recorder RSS MiB | bag MiB |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for rate in args.rates:
         r = run_one(rate, args.count, args.domain_id, args.timeout, args.pub_depth,
                     args.queue_depth)
         print(f"| {r['target']} | {r['published']} | {r['pub_rate']:.0f} | {r['recorded']} "
-              f"| {r['lost']} | {r['in_order']} | {r['rec_rate']:.0f} | {r['cpu_us']:.1f} "
-              f"| {r['rss']:.0f} | {r['mb']:.1f} |",
+              f"| {r['lost']} | {r['bursts']} | {r['in_order']} | {r['rec_rate']:.0f} "
+              f"| {r['cpu_us']:.1f} | {r['rss']:.0f} | {r['mb']:.1f} |",
               flush=True)
     return 0
 
