@@ -1,0 +1,62 @@
+"""cdmp_ros.ros.node_main, the shared Jazzy entry-point pattern: both modes exit 0 on SIGINT
+and SIGTERM, call close() once, and a CdmpError while building the node gives exit code 2."""
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import ros_env
+
+pytestmark = pytest.mark.ros
+
+NODE = '''
+import sys
+from rclpy.node import Node
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.ros.node_main import run_node
+
+class Tiny(Node):
+    def __init__(self):
+        super().__init__('tiny')
+        if sys.argv[2] == 'fail':
+            raise ValidationError('parameter x: expected > 0, got -1')
+        self.create_timer(0.05, self.tick)
+        self.closed = 0
+
+    def tick(self):
+        print('tick', flush=True)
+
+    def close(self):
+        self.closed += 1
+        print(f'closed {self.closed}', flush=True)
+
+sys.exit(run_node(Tiny, [], graceful=sys.argv[1] == 'graceful'))
+'''
+
+
+@pytest.mark.parametrize('mode', ['graceful', 'standard'])
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_signals_end_the_node_cleanly(mode, sig):
+    proc = subprocess.Popen([sys.executable, '-c', NODE, mode, 'ok'], env=ros_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout.readline().strip() == 'tick'  # spinning
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, out
+    assert out.count('closed 1') == 1 and 'Traceback' not in out
+
+
+def test_error_while_building_the_node_exits_2():
+    t = time.monotonic()
+    proc = subprocess.run([sys.executable, '-c', NODE, 'graceful', 'fail'], env=ros_env(),
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert 'parameter x: expected > 0, got -1' in proc.stderr
+    assert time.monotonic() - t < 30
