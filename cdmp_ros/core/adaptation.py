@@ -83,7 +83,7 @@ class AdaptationConfig:
     lbfgs_gtol: float = 1e-6
     lbfgs_maxcor: int = 20
     relative_step: bool = True
-    max_log_step: float = 3.0
+    max_log_step: float = 1.0
     whiten: bool = True
 
     def __post_init__(self):
@@ -290,6 +290,17 @@ class Problem:
         L0 = self.L0
         return np.concatenate([self.mu0, L0[self.tril], np.log(np.diag(L0))])
 
+    def bounds(self):
+        """L-BFGS-B box on gamma only: the diagonal of L stays within [e^-25, e^5] times the
+        prior's, which keeps exp(gamma) finite during line searches."""
+        n, nt = self.n, self.tril[0].size
+        lo = np.full(2 * n + nt, -np.inf)
+        hi = np.full(2 * n + nt, np.inf)
+        base = 0.0 if self.config.whiten else np.log(np.diag(self.L0))
+        lo[n + nt:] = base - 25.0
+        hi[n + nt:] = base + 5.0
+        return list(zip(lo, hi))
+
     def _factors(self, theta):
         """First block, lower-triangular matrix and gamma of theta (raw or whitened)."""
         n = self.n
@@ -446,6 +457,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
+    bounds = prob.bounds()
     n_inner = 0
     n_outer = 0
     prev = None
@@ -453,6 +465,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     feasible = False
     for n_outer in range(1, int(config.max_outer) + 1):
         res = minimize(prob.lagrangian, theta, args=(lam,), jac=True, method='L-BFGS-B',
+                       bounds=bounds,
                        options={'maxiter': int(config.max_inner), 'ftol': config.lbfgs_ftol,
                                 'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
         if np.all(np.isfinite(res.x)):
