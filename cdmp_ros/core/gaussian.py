@@ -149,14 +149,16 @@ class UnscentedTransform:
     def points(self, m: NDArray, S: NDArray) -> Tuple[NDArray, NDArray]:
         """Sigma points Z (n, 2k+1, k) of N(m, S), and the Cholesky factors A (n, k, k)."""
         A = batched_cholesky(S)
-        Z = m[:, None, :] + self.scale * np.einsum('nij,pj->npi', A, self.offsets)
+        sAT = self.scale * np.swapaxes(A, 1, 2)          # row j = scale * A e_j
+        mm = m[:, None, :]
+        Z = np.concatenate([mm, mm + sAT, mm - sAT], axis=1)
         return Z, A
 
     def moments(self, X: NDArray) -> Tuple[NDArray, NDArray]:
         """Weighted mean (n, q) and covariance (n, q, q) of transformed points X (n, p, q)."""
-        mx = np.einsum('p,npi->ni', self.weights, X)
+        mx = np.matmul(self.weights, X)
         D = X - mx[:, None, :]
-        Sx = np.einsum('p,npi,npj->nij', self.weights, D, D)
+        Sx = np.matmul(np.swapaxes(D * self.weights[None, :, None], 1, 2), D)
         return mx, Sx
 
     def backward(self, X: NDArray, mx: NDArray, J: NDArray, A: NDArray,
@@ -176,11 +178,11 @@ class UnscentedTransform:
         D = X - mx[:, None, :]
         g_Ss = g_Sx + np.swapaxes(g_Sx, 1, 2)
         # the term through mx vanishes because sum_p W_p (X_p - mx) = 0
-        g_X = self.weights[None, :, None] * (g_mx[:, None, :]
-                                             + np.einsum('nij,npj->npi', g_Ss, D))
-        g_Z = np.einsum('npq,npqk->npk', g_X, J)
+        g_X = self.weights[None, :, None] * (g_mx[:, None, :] + np.matmul(D, g_Ss))
+        g_Z = np.matmul(g_X[:, :, None, :], J)[:, :, 0, :]
         g_m = g_Z.sum(axis=1)
-        # Z_p = m + scale * A offsets_p  ->  dA[i, j] = scale * sum_p g_Z[p, i] offsets[p, j]
-        g_A = self.scale * np.einsum('npi,pj->nij', g_Z, self.offsets)
+        # Z_p = m +- scale * A e_j  ->  dA[:, i, j] = scale * (g_Z[+j, i] - g_Z[-j, i])
+        k = self.k
+        g_A = self.scale * np.swapaxes(g_Z[:, 1:k + 1, :] - g_Z[:, k + 1:, :], 1, 2)
         g_S = cholesky_backward(A, g_A)
         return g_m, g_S
