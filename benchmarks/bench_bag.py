@@ -70,6 +70,59 @@ def publisher(topic, count, rate, timeout, depth):
     rclpy.try_shutdown()
 
 
+def counter(topic, depth, seconds):
+    """Child process (baseline): a raw subscriber that only counts, draining like the
+    recorder; tells how much the transport alone loses under the current load."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    rclpy.init()
+    node = rclpy.create_node('bench_counter')
+    got = [0]
+    holder = []
+
+    def on_message(_data):
+        got[0] += 1
+        sub = holder[0]
+        with sub.handle:
+            while sub.handle.take_message(sub.msg_type, True) is not None:
+                got[0] += 1
+
+    holder.append(node.create_subscription(
+        JointState, topic, on_message,
+        QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE), raw=True))
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    print(f'COUNT {got[0]}', flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def run_baseline(rate, count, domain_id, timeout, pub_depth, queue_depth):
+    """Publisher -> counting subscriber: messages lost by the transport alone."""
+    topic = f'/bench_count_{rate}'
+    seconds = count / rate + 15
+    sub = subprocess.Popen([sys.executable, __file__, '--counter', topic, str(queue_depth),
+                            str(seconds)], env=env(domain_id), stdout=subprocess.PIPE,
+                           text=True)
+    pub = subprocess.Popen([sys.executable, __file__, '--publisher', topic, str(count),
+                            str(rate), str(timeout), str(pub_depth)], env=env(domain_id),
+                           stdout=subprocess.PIPE, text=True)
+    try:
+        out, _ = pub.communicate(timeout=timeout + 30)
+        sub_out, _ = sub.communicate(timeout=seconds + 30)
+    finally:
+        for p in (pub, sub):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    published = next((int(x.split()[1]) for x in out.splitlines()
+                      if x.startswith('PUBLISHED')), 0)
+    got = next((int(x.split()[1]) for x in sub_out.splitlines() if x.startswith('COUNT')), 0)
+    return published, got
+
+
 def run_one(rate, count, domain_id, timeout, pub_depth, queue_depth):
     from cdmp_ros.bag import BagReader
     from cdmp_ros.bag.cdr import decode_joint_state
@@ -137,6 +190,9 @@ def main(argv=None):
         publisher(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5]),
                   int(sys.argv[6]))
         return 0
+    if argv is None and len(sys.argv) > 1 and sys.argv[1] == '--counter':
+        counter(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]))
+        return 0
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--rates', type=int, nargs='+', default=[20000, 25000])
     parser.add_argument('--count', type=int, default=100000)
@@ -145,6 +201,8 @@ def main(argv=None):
                         help='publisher keep-last depth (0: keep-all)')
     parser.add_argument('--queue-depth', type=int, default=10000,
                         help='recorder subscription queue depth')
+    parser.add_argument('--baseline', action='store_true',
+                        help='also run each rate against a subscriber that only counts')
     parser.add_argument('--timeout', type=float, default=60.0,
                         help='longest publishing time per rate (s)')
     args = parser.parse_args(argv)
@@ -159,6 +217,11 @@ def main(argv=None):
               f"| {r['lost']} | {r['bursts']} | {r['in_order']} | {r['rec_rate']:.0f} "
               f"| {r['cpu_us']:.1f} | {r['rss']:.0f} | {r['mb']:.1f} |",
               flush=True)
+        if args.baseline:
+            published, got = run_baseline(rate, args.count, args.domain_id, args.timeout,
+                                          args.pub_depth, args.queue_depth)
+            print(f'| {rate} (baseline: count-only subscriber) | {published} | | {got} '
+                  f'| {published - got} | | | | | | |', flush=True)
     return 0
 
 
