@@ -12,9 +12,12 @@ import time
 from conftest import ros_env
 
 
-def start_node(node, params, remaps=(), domain_id=None, log_path=None):
-    """Start ``cdmp_ros.nodes.<node>`` with ``-p k:=v`` parameters; returns the Popen."""
-    cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{node}', '--ros-args']
+def start_node(node, params, remaps=(), domain_id=None, log_path=None, extra=()):
+    """Start ``cdmp_ros.nodes.<node>`` with ``-p k:=v`` parameters; returns the Popen.
+
+    ``extra`` ROS arguments (e.g. ``--params-file``) come first: later assignments win.
+    """
+    cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{node}', '--ros-args', *extra]
     for k, v in params.items():
         if isinstance(v, bool):
             v = 'true' if v else 'false'

@@ -68,7 +68,8 @@ def test_loop_replays_in_order_until_stopped(tmp_path, peer):
     _bag(bag, n=5, dt_ns=10_000_000)
     got = peer.collect(String, '/a')
     play = start_node('player', {'bag': bag, 'loop': True, 'wait_for_subscribers': 1,
-                                 'start_delay': 0.3}, log_path=str(tmp_path / 'play.log'))
+                                 'start_delay': 0.3}, log_path=str(tmp_path / 'play.log'),
+                      extra=['--params-file', os.path.join(ROOT, 'config', 'bag.yaml')])
     try:
         assert wait_for(lambda: len(got) >= 16, 20), len(got)
         assert stop(play) == 0

@@ -62,8 +62,10 @@ def test_records_all_discovered_topics_but_not_rosout(tmp_path, peer):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     bag = str(tmp_path / 'all')
+    params_file = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                               'config', 'bag.yaml')
     rec = start_node('recorder', {'output': bag, 'discovery_period': 0.1},
-                     log_path=str(tmp_path / 'rec.log'))
+                     log_path=str(tmp_path / 'rec.log'), extra=['--params-file', params_file])
     try:
         pa = peer.publisher(String, '/topic_a')
         pb = peer.publisher(JointState, '/topic_b')
