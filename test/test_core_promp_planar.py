@@ -24,8 +24,8 @@ def test_original_promp_reaches_the_end_point(rng):
 def test_planar_repeller_with_start_and_end_constraints_holds_by_sampling(rng):
     chain = planar_chain([1.0] * 4)
     ee, tasks = exp_planar.tasks(chain)
-    start, cons = tasks['repeller']
-    p, _ = exp_planar.original_promp(chain, start, rng, n_basis=5)
+    start, end_guess, cons = tasks['repeller']
+    p, _ = exp_planar.original_promp(chain, start, rng, n_basis=5, end_guess=end_guess)
     allc = exp_planar.base_constraints(chain, start, ee) + cons
     before = monte_carlo_satisfaction(p, cons, 3000, rng, 15)[0]
     q, rep = adapt(p, allc, AdaptationConfig(n_steps=15))

@@ -83,7 +83,7 @@ class AdaptationConfig:
     lbfgs_gtol: float = 1e-6
     lbfgs_maxcor: int = 20
     relative_step: bool = True
-    max_log_step: float = 1.0
+    max_log_step: float = 3.0
     whiten: bool = True
 
     def __post_init__(self):

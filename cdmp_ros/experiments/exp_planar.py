@@ -45,10 +45,15 @@ def _ik(chain, q_guess, target):
     return res.x
 
 
-def original_promp(chain, start, rng, n_basis=8, n_demos=12, spread=0.25):
-    """Learn the original ProMP from synthetic demonstrations and condition on the end."""
+ELBOW_UP = np.array([1.2, -0.9, -0.9, -0.6])
+ELBOW_DOWN = np.array([-1.0, 0.6, 0.6, 0.6])
+
+
+def original_promp(chain, start, rng, n_basis=8, n_demos=12, spread=0.25, end_guess=ELBOW_UP):
+    """Learn the original ProMP from synthetic demonstrations and condition on the end
+    configuration (inverse kinematics of (1.73, 0) from ``end_guess``)."""
     from cdmp_ros.core.promp import ProMP, RbfBasis
-    end = _ik(chain, np.array([-1.0, 0.6, 0.6, 0.6]), END_XY)
+    end = _ik(chain, np.asarray(end_guess, float), END_XY)
     T = np.linspace(0.0, 1.0, 80)
     s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
     demos = []
@@ -74,7 +79,9 @@ def base_constraints(chain, start, ee, offset=None):
 
 
 def tasks(chain):
-    """The four task constraint sets of Fig. 3 (name -> (start, constraints))."""
+    """The four task constraint sets of Fig. 3 (name -> (start, end guess, constraints)).
+    The corner and the wall use an elbow-down end configuration: with the elbow-up one the
+    final arm itself violates them (its links 2-3 end inside the corner / beyond the wall)."""
     from cdmp_ros.core.constraints import (ChainPoint, Hyperplane, NonConvexCorner, Repeller,
                                            Waypoint)
     from cdmp_ros.core.kinematics import PointOfInterest
@@ -85,12 +92,14 @@ def tasks(chain):
     corner = [NonConvexCorner(p, [1, 0], [0.5, 0.5], [0, 1], [0.5, 0.5], name=f'corner_{n}',
                               **kw) for p, n in ((ee, 'ee'), (x2, 'x2'), (x3, 'x3'))]
     return ee, {
-        'waypoint': (START_A, [Waypoint(ee, [3.4, 2.0], 0.05, support=(0.65, 0.75),
-                                        name='waypoint', **kw)]),
-        'repeller': (START_A, [Repeller(ee, [2.0, 3.0], 1.0, name='repeller', **kw)]),
-        'corner': (START_A, corner),
-        'hyperplane': (START_H, [Hyperplane(p, [1.0, 1.0], [0.0, 2.0], name=f'wall_{n}', **kw)
-                                 for p, n in ((ee, 'ee'), (x3, 'x3'))]),
+        'waypoint': (START_A, ELBOW_UP, [Waypoint(ee, [3.4, 2.0], 0.05, support=(0.65, 0.75),
+                                                  name='waypoint', **kw)]),
+        'repeller': (START_A, ELBOW_UP, [Repeller(ee, [2.0, 3.0], 1.0, name='repeller',
+                                                  **kw)]),
+        'corner': (START_A, ELBOW_DOWN, corner),
+        'hyperplane': (START_H, ELBOW_DOWN, [Hyperplane(p, [1.0, 1.0], [0.0, 2.0],
+                                                        name=f'wall_{n}', **kw)
+                                             for p, n in ((ee, 'ee'), (x3, 'x3'))]),
     }
 
 
@@ -103,10 +112,10 @@ def solve_all(seed=0, n_samples=10000, n_steps=50):
     ee, task_sets = tasks(chain)
     originals = {}
     rows, art = [], {'chain': chain, 'ee': ee, 'fig3': {}, 'originals': originals}
-    for name, (start, cons) in task_sets.items():
-        key = 'A' if start is START_A else 'H'
+    for name, (start, end_guess, cons) in task_sets.items():
+        key = (tuple(start), tuple(end_guess))
         if key not in originals:
-            originals[key] = original_promp(chain, start, rng)
+            originals[key] = original_promp(chain, start, rng, end_guess=end_guess)
         prior, _ = originals[key]
         allc = base_constraints(chain, start, ee) + cons
         for smooth in (False, True):
