@@ -9,6 +9,7 @@ package_name = 'cdmp_ros'
 # Every executable named in the design. Nodes are added here as they become real.
 CONSOLE_SCRIPTS = [
     'cdmp = cdmp_ros.cli.main:main',
+    'streamer = cdmp_ros.nodes.streamer:main',
     'recorder = cdmp_ros.nodes.recorder:main',
     'player = cdmp_ros.nodes.player:main',
 ]

@@ -55,8 +55,8 @@ class StreamerConfig:
     Ranges and descriptions live in the field metadata (used for the parameter descriptors).
     """
 
-    rate: float = _param(500.0, 'Publishing rate of joint_reference [Hz] (1 kHz supported).',
-                         1.0, 2000.0)
+    rate: float = _param(500.0, 'Publishing rate of joint_reference [Hz] (1 kHz supported); '
+                         'fixed at start.', 1.0, 2000.0, read_only=True)
     joint_states_timeout: float = _param(
         0.5, 'joint_states older than this [s] are stale: the reference stops smoothly and '
         'holds. 0 disables the check (open loop: the reference starts at the primitive start).',
@@ -95,6 +95,11 @@ class StreamerConfig:
         100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
     diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
                                        0.01, 60.0)
+    coupling_enabled: bool = _param(
+        True, 'Apply the obstacle coupling terms (paper 000, Eq. 7/12) every tick.')
+    coupling_links: Tuple[str, ...] = _param(
+        ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
+        '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
 
     def __post_init__(self):
         for f in fields(self):
@@ -144,6 +149,27 @@ class CouplingSource:
         a = self.coupling.joint_acceleration(y, yd, obstacles)
         self.min_distance = min(self.coupling.last_distances)
         return a
+
+
+class RateLimiter:
+    """Token bucket: at most ``rate`` events per second on average, bursts of ``burst``."""
+
+    def __init__(self, rate: float, burst: Optional[float] = None):
+        self.rate = float(rate)
+        self.burst = float(burst if burst is not None else max(10.0, 0.1 * rate))
+        self.tokens = self.burst
+        self.last: Optional[float] = None
+        self.dropped = 0
+
+    def allow(self, now: float) -> bool:
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        self.dropped += 1
+        return False
 
 
 class StreamState(enum.Enum):

@@ -1,0 +1,169 @@
+"""``diagnostic_msgs/DiagnosticArray`` reporting shared by the nodes.
+
+:class:`DiagnosticsReporter` collects, between two publications:
+
+- rejected inputs per topic (count since start, count since the last report, the last reason),
+  each also logged (throttled, so that a flood of bad messages does not flood the log);
+- timings (``timing(name, seconds)``): count, mean, p99 and max over a ring buffer of the last
+  ``window`` samples (allocation-free when recording);
+- the node's state: level (OK/WARN/ERROR), a message and key/values set by the node.
+
+``publish(now)`` sends one ``DiagnosticArray`` with a status ``<node>: state``, one
+``<node>: input <topic>`` per topic that ever had a rejection and one ``<node>: timing``.
+``publish_if_due`` also publishes early (at most every ``min_interval``) when something was
+rejected, so a rejection shows on ``diagnostics`` promptly but a flood is summarised.
+"""
+import math
+import time
+from typing import Dict, List, Optional, Tuple
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+OK = DiagnosticStatus.OK
+WARN = DiagnosticStatus.WARN
+ERROR = DiagnosticStatus.ERROR
+
+
+class _Timing:
+    __slots__ = ('buf', 'n', 'i', 'total', 'max')
+
+    def __init__(self, window: int):
+        self.buf = [0.0] * window
+        self.n = 0
+        self.i = 0
+        self.total = 0
+        self.max = 0.0
+
+    def add(self, v: float) -> None:
+        self.buf[self.i] = v
+        self.i = (self.i + 1) % len(self.buf)
+        if self.n < len(self.buf):
+            self.n += 1
+        self.total += 1
+        if v > self.max:
+            self.max = v
+
+    def stats(self) -> Tuple[float, float, float]:
+        vals = sorted(self.buf[:self.n])
+        if not vals:
+            return 0.0, 0.0, 0.0
+        p99 = vals[min(len(vals) - 1, int(math.ceil(0.99 * len(vals))) - 1)]
+        return sum(vals) / len(vals), p99, max(vals)
+
+
+class DiagnosticsReporter:
+    """Builds and publishes the node's ``DiagnosticArray`` (see the module docstring).
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+    publisher : rclpy publisher of DiagnosticArray
+    name : str
+        Prefix of the status names (the node name).
+    window : int
+        Number of samples kept per timing.
+    log_period : float
+        Minimum time [s] between two log lines for rejections on the same topic.
+    """
+
+    def __init__(self, node, publisher, name: str, window: int = 2000,
+                 log_period: float = 1.0):
+        self.node = node
+        self.publisher = publisher
+        self.name = name
+        self.window = window
+        self.log_period = log_period
+        self.level = OK
+        self.message = 'starting'
+        self.values: Dict[str, str] = {}
+        self._rejected: Dict[str, List] = {}  # topic -> [total, since_report, reason, last_log]
+        self._timings: Dict[str, _Timing] = {}
+        self._dirty = False
+        self._last_publish = -math.inf
+        self.published = 0
+
+    def set_state(self, level: int, message: str, **values) -> None:
+        """The node's summary status; ``values`` are added as key/values (str())."""
+        self.level = level
+        self.message = message
+        for k, v in values.items():
+            self.values[k] = str(v)
+
+    def reject(self, topic: str, reason: str) -> None:
+        """Record (and log, throttled) a rejected or sanitised input on ``topic``."""
+        entry = self._rejected.get(topic)
+        now = time.monotonic()
+        if entry is None:
+            entry = self._rejected[topic] = [0, 0, '', -math.inf]
+        entry[0] += 1
+        entry[1] += 1
+        entry[2] = reason
+        if now - entry[3] >= self.log_period:
+            extra = f' ({entry[1]} since last report)' if entry[1] > 1 else ''
+            self.node.get_logger().warning(f'{topic}: {reason}{extra}')
+            entry[3] = now
+        self._dirty = True
+
+    def rejected_count(self, topic: str) -> int:
+        entry = self._rejected.get(topic)
+        return entry[0] if entry else 0
+
+    def timing(self, name: str, seconds: float) -> None:
+        t = self._timings.get(name)
+        if t is None:
+            t = self._timings[name] = _Timing(self.window)
+        t.add(seconds)
+
+    def timing_stats(self, name: str) -> Optional[Tuple[float, float, float]]:
+        t = self._timings.get(name)
+        return None if t is None else t.stats()
+
+    def build(self, stamp) -> DiagnosticArray:
+        """The DiagnosticArray of the current state (``stamp``: builtin_interfaces/Time)."""
+        arr = DiagnosticArray()
+        arr.header.stamp = stamp
+        hw = self.node.get_fully_qualified_name()
+        level = self.level
+        recent = [t for t, e in self._rejected.items() if e[1]]
+        if recent and level == OK:
+            level = WARN
+        msg = self.message
+        if recent:
+            msg += '; rejected input on ' + ', '.join(sorted(recent))
+        arr.status.append(DiagnosticStatus(
+            level=level, name=f'{self.name}: state', message=msg, hardware_id=hw,
+            values=[KeyValue(key=k, value=v) for k, v in sorted(self.values.items())]))
+        for topic, (total, since, reason, _) in sorted(self._rejected.items()):
+            arr.status.append(DiagnosticStatus(
+                level=WARN if since else OK, name=f'{self.name}: input {topic}',
+                message=f'rejected: {reason}' if since else 'ok', hardware_id=hw,
+                values=[KeyValue(key='rejected_total', value=str(total)),
+                        KeyValue(key='rejected_since_last_report', value=str(since)),
+                        KeyValue(key='last_reason', value=reason)]))
+        if self._timings:
+            values = []
+            for name, t in sorted(self._timings.items()):
+                mean, p99, mx = t.stats()
+                values += [KeyValue(key=f'{name}_mean_ms', value=f'{mean * 1e3:.4f}'),
+                           KeyValue(key=f'{name}_p99_ms', value=f'{p99 * 1e3:.4f}'),
+                           KeyValue(key=f'{name}_max_ms', value=f'{mx * 1e3:.4f}'),
+                           KeyValue(key=f'{name}_count', value=str(t.total))]
+            arr.status.append(DiagnosticStatus(level=OK, name=f'{self.name}: timing',
+                                               message='timings', hardware_id=hw,
+                                               values=values))
+        return arr
+
+    def publish(self, stamp) -> None:
+        self.publisher.publish(self.build(stamp))
+        for entry in self._rejected.values():
+            entry[1] = 0
+        self._dirty = False
+        self._last_publish = time.monotonic()
+        self.published += 1
+
+    def publish_if_due(self, stamp, min_interval: float = 0.1) -> bool:
+        """Publish now if a rejection is pending and ``min_interval`` has passed."""
+        if self._dirty and time.monotonic() - self._last_publish >= min_interval:
+            self.publish(stamp)
+            return True
+        return False

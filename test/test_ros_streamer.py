@@ -1,0 +1,373 @@
+"""The streamer as a real process (``python -m cdmp_ros.nodes.streamer``), driven over DDS.
+
+One streamer process serves the module (domain 162, localhost only); the test process runs a
+fake robot (joint_states echoing the reference) and a listener that checks EVERY reference it
+receives (names, size, finite, inside the limits). Each bad-input case publishes its input,
+waits for the matching ``diagnostics`` entry, and checks that the stream continued within the
+limits. Bounded: every wait has a timeout of a few seconds.
+"""
+import json
+import time
+
+import numpy as np
+import pytest
+
+from cdmp_ros.core.primitive_io import dumps_primitive
+from streamer_harness import Harness, max_acceleration
+from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, reach_cdmp,
+                           start_streamer, stop_process)
+
+pytestmark = pytest.mark.ros
+DOMAIN = 162
+MAX_ACC = 100.0  # rad/s^2; a velocity jump of 0.2 rad/s at 500 Hz would be 100
+STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    log = tmp_path_factory.mktemp('streamer') / 'streamer.log'
+    proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=50.0'],
+                          log_path=str(log))
+    h = Harness(DOMAIN)
+    try:
+        from std_msgs.msg import String
+        h.publish('primitive', String(data=dumps_primitive(reach_cdmp(duration=1.5))))
+        ok = h.wait(lambda: h.n_refs() > 50 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        yield h, proc, log
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
+    assert not h.violations, h.violations[:5]
+
+
+def stream_continues(h, proc, seconds=0.3):
+    """The node is alive, references keep coming, every one of them valid."""
+    n0 = h.n_refs()
+    ok = h.wait(lambda: h.n_refs() >= n0 + 20, seconds + 5.0)
+    assert proc.poll() is None, 'streamer died'
+    assert ok, 'the stream stopped'
+    assert not h.violations, h.violations[:3]
+
+
+# -- normal operation --------------------------------------------------------------------------
+def test_streams_the_primitive_towards_its_goal(graph):
+    h, proc, _ = graph
+    assert h.wait(lambda: np.abs(h.last_ref()[2] - Q_GOAL).max() < 0.02, 10.0)
+    refs = h.refs_since(0)
+    assert np.abs(refs[0][2] - Q_START).max() < 0.05
+    assert max_acceleration(refs) < MAX_ACC
+    m, kv = h.last_state()
+    assert kv.get('state') == 'running' and 'cdmp from primitive' in kv.get('primitive', '')
+
+
+def test_shuffled_joint_states_are_mapped(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    perm = [6, 2, 0, 5, 1, 3, 4]
+    q = h.last_ref()[2]
+    h.robot_on = False
+    try:
+        for _ in range(30):
+            h.publish('joint_states', h.make_joint_state(q[perm],
+                                                         [PANDA_JOINTS[i] for i in perm]))
+            time.sleep(0.01)
+        stream_continues(h, proc)
+    finally:
+        h.robot_on = True
+    assert not h.wait_diag('joint_states', t0, timeout=0.5, name='input joint_states')
+
+
+def test_goal_change_is_followed_without_a_jump(graph):
+    h, proc, _ = graph
+    i0 = h.n_refs()
+    goal = np.array([0.3, 0.0, -0.2, -1.6, 0.1, 1.8, 0.5])
+    h.publish('goal', h.make_joint_state(goal))
+    assert h.wait(lambda: np.abs(h.last_ref()[2] - goal).max() < 0.02, 10.0)
+    refs = h.refs_since(i0)
+    assert max_acceleration(refs) < MAX_ACC
+
+
+def test_new_primitive_switches_without_a_jump(graph):
+    from std_msgs.msg import String
+    h, proc, _ = graph
+    q = h.last_ref()[2]
+    target = np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15])
+    h.publish('goal', h.make_joint_state(target))  # goal override follows the new primitive
+    i0 = h.n_refs()
+    # the adapter's topic; starts far away, from a different start
+    h.publish('adapted_primitive', String(data=dumps_primitive(reach_cdmp(Q_GOAL, target,
+                                                                          1.0))))
+    assert h.wait(lambda: np.abs(h.last_ref()[2] - target).max() < 0.02, 10.0)
+    refs = h.refs_since(i0)
+    assert np.abs(refs[0][2] - q).max() < 0.05  # continued from where it was
+    assert max_acceleration(refs) < MAX_ACC
+    _, kv = h.last_state()
+    assert 'adapted_primitive' in kv.get('primitive', '')
+
+
+def test_sphere_obstacle_changes_the_reference(graph):
+    from visualization_msgs.msg import Marker, MarkerArray
+    from geometry_msgs.msg import Point
+    import os
+    import pybullet_data
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    h, proc, _ = graph
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    ee = chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0]
+    m = Marker(ns='test', id=1, type=Marker.SPHERE, action=Marker.ADD)
+    m.header.frame_id = 'panda_link0'
+    m.pose.position = Point(x=float(ee[0]) + 0.08, y=float(ee[1]), z=float(ee[2]))
+    m.scale.x = m.scale.y = m.scale.z = 0.1
+    t0 = time.monotonic()
+    h.publish('obstacles', MarkerArray(markers=[m]))
+    moved = h.wait(lambda: np.linalg.norm(
+        chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0] - ee) > 0.01, 5.0)
+    assert moved
+    assert h.wait(lambda: int(h.last_state()[1].get('coupled', 0)) > 0
+                  and h.last_state()[1].get('obstacles') == '1', 3.0)
+    stream_continues(h, proc)
+    h.publish('obstacles', MarkerArray(markers=[Marker(ns='test', action=Marker.DELETEALL)]))
+    assert h.wait(lambda: h.last_state()[1].get('obstacles') == '0', 3.0)
+    assert not h.wait_diag('rejected', t0, timeout=0.1, name='input obstacles')
+
+
+# -- bad input: one test per case --------------------------------------------------------------
+def _js(h, **kw):
+    return h.make_joint_state(h.last_ref()[2], **kw)
+
+
+def _bad_joint_state(h, case):
+    q = h.last_ref()[2]
+    names = list(PANDA_JOINTS)
+    msg = h.make_joint_state(q)
+    if case == 'nan':
+        msg.position[2] = float('nan')
+    elif case == 'inf':
+        msg.position[4] = float('-inf')
+    elif case == 'wrong_length':
+        msg.position = msg.position[:5]
+    elif case == 'velocity_length':
+        msg.velocity = [0.0, 0.0]
+    elif case == 'unknown_name':
+        msg.name = names[:6] + ['elbow_joint']
+    elif case == 'missing_name':
+        msg.name = names[:6]
+        msg.position = msg.position[:6]
+    elif case == 'duplicate_name':
+        msg.name = names[:6] + [names[0]]
+    elif case == 'future_stamp':
+        msg = h.make_joint_state(q, stamp_offset=60.0)
+    elif case == 'past_stamp':
+        msg = h.make_joint_state(q, stamp_offset=-3600.0)
+    return msg
+
+
+JS_CASES = {  # case -> expected text in the diagnostics reason
+    'nan': 'expected a finite value, got nan', 'inf': 'expected a finite value, got -inf',
+    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
+    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
+    'future_stamp': 'in the future', 'past_stamp': 'in the past'}
+GOAL_CASES = dict(JS_CASES, unknown_name="unknown joints ['elbow_joint']")
+
+
+@pytest.mark.parametrize('case', sorted(JS_CASES))
+def test_bad_joint_states_are_rejected(graph, case):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    for _ in range(5):  # joint_states is best effort (sensor QoS): a sample may be dropped
+        h.publish('joint_states', _bad_joint_state(h, case))
+        time.sleep(0.01)
+    assert h.wait_diag(JS_CASES[case], t0, name='input joint_states'), h.diag_messages[-3:]
+    stream_continues(h, proc)
+
+
+@pytest.mark.parametrize('case', sorted(GOAL_CASES))
+def test_bad_goals_are_rejected(graph, case):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    h.publish('goal', _bad_joint_state(h, case))
+    assert h.wait_diag(GOAL_CASES[case], t0, name='input goal'), h.diag_messages[-3:]
+    stream_continues(h, proc)
+
+
+def test_goal_outside_the_limits_is_clipped_and_reported(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    goal = np.array([0.3, 5.0, -0.2, 1.0, 0.1, 1.8, 0.5])  # joints 2 and 4 beyond the limits
+    h.publish('goal', h.make_joint_state(goal))
+    assert h.wait_diag('clipped with the CDMP margin: panda_joint2 5 -> 1.831', t0,
+                       name='input goal')
+    assert h.wait(lambda: h.last_ref()[2][1] > 1.8, 10.0)
+    refs = h.refs_since(0)
+    assert all(np.all(r[2] <= UPPER) and np.all(r[2] >= LOWER) for r in refs)
+    stream_continues(h, proc)
+    h.publish('goal', h.make_joint_state(Q_GOAL))
+
+
+def _marker(**kw):
+    from visualization_msgs.msg import Marker
+    m = Marker(ns='bad', id=7, type=Marker.SPHERE, action=Marker.ADD)
+    m.header.frame_id = 'panda_link0'
+    m.pose.position.x = 2.0
+    m.scale.x = m.scale.y = m.scale.z = 0.1
+    for k, v in kw.items():
+        if k.startswith('scale_'):
+            setattr(m.scale, k[6:], v)
+        elif k == 'x':
+            m.pose.position.x = v
+        else:
+            setattr(m, k, v)
+    return m
+
+
+MARKER_CASES = {
+    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
+    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
+    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
+    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
+    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
+    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
+    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
+    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
+    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
+                                       'DELETEALL (3), got 5'),
+    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
+    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(MARKER_CASES))
+def test_bad_markers_are_rejected(graph, case):
+    from visualization_msgs.msg import MarkerArray
+    h, proc, _ = graph
+    kw, text = MARKER_CASES[case]
+    t0 = time.monotonic()
+    h.publish('obstacles', MarkerArray(markers=[_marker(**kw)]))
+    assert h.wait_diag(text, t0, name='input obstacles'), h.diag_messages[-3:]
+    assert h.last_state()[1].get('obstacles') == '0'
+    stream_continues(h, proc)
+
+
+def test_marker_in_another_frame_is_rejected(graph):
+    from visualization_msgs.msg import MarkerArray
+    h, proc, _ = graph
+    m = _marker()
+    m.header.frame_id = 'camera'
+    t0 = time.monotonic()
+    h.publish('obstacles', MarkerArray(markers=[m]))
+    assert h.wait_diag("expected the robot base frame 'panda_link0'", t0, name='input obst')
+    stream_continues(h, proc)
+
+
+PRIMITIVE_CASES = {
+    'malformed_json': (lambda d: json.dumps(d)[:-5], 'not valid JSON'),
+    'schema_violation': (lambda d: json.dumps(dict(d, duration=-1.0)),
+                         'primitive.duration: -1.0 is less than or equal to the minimum of 0'),
+    'wrong_joints': (lambda d: json.dumps(dict(d, joint_names=[f'j{i}' for i in range(7)])),
+                     'expected the streamer joints'),
+    'not_an_object': (lambda d: '[1, 2, 3]', 'expected a JSON object'),
+    'nan_constant': (lambda d: json.dumps(d).replace('"alpha_y": 25.0', '"alpha_y": NaN'),
+                     'alpha_y: expected a finite positive number, got nan'),
+    'nan_weights': (lambda d: json.dumps(d).replace('"weights": [[', '"weights": [[NaN, '),
+                    'primitive.dmp.weights: expected shape (7, 30)'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(PRIMITIVE_CASES))
+def test_bad_primitives_are_rejected(graph, case):
+    from std_msgs.msg import String
+    h, proc, _ = graph
+    make, text = PRIMITIVE_CASES[case]
+    d = json.loads(dumps_primitive(reach_cdmp(duration=1.5)))
+    t0 = time.monotonic()
+    h.publish('primitive', String(data=make(d)))
+    assert h.wait_diag(text, t0, name='input primitive'), h.diag_messages[-3:]
+    _, kv = h.last_state()
+    assert 'adapted_primitive' in kv.get('primitive', '')  # the active one is kept
+    stream_continues(h, proc)
+
+
+def test_flooding_is_dropped_and_reported(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    msg = h.make_joint_state(Q_GOAL, zero=True)
+    end = time.monotonic() + 1.0
+    sent = 0
+    while time.monotonic() < end:
+        h.publish('goal', msg)
+        sent += 1
+    assert sent > 200
+    assert h.wait_diag('flooding: more than 50 messages/s', t0, name='input goal')
+    stream_continues(h, proc)
+
+
+def test_stale_joint_states_stop_smoothly_and_resume(graph):
+    h, proc, _ = graph
+    h.publish('goal', h.make_joint_state(Q_START))
+    time.sleep(0.3)  # moving towards Q_START
+    i0 = h.n_refs()
+    t0 = time.monotonic()
+    h.robot_on = False
+    try:
+        assert h.wait_diag('holding: joint_states stale', t0, timeout=5.0, name='state')
+        refs = h.refs_since(i0)
+        assert np.abs(refs[-1][3]).max() == 0.0
+        assert max_acceleration(refs) < MAX_ACC
+        assert len(refs) > 100  # the stream continued while stopping and holding
+    finally:
+        h.robot_on = True
+    t1 = time.monotonic()
+    assert h.wait(lambda: h.last_state()[1].get('state') == 'running'
+                  and h.diag_messages[-1][0] > t1, 5.0)
+    assert max_acceleration(h.refs_since(i0)) < MAX_ACC
+
+
+def test_runtime_parameter_changes_are_validated(graph):
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    h, proc, _ = graph
+    client = h.node.create_client(SetParameters, '/streamer/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+
+        def set_(name, value):
+            req = SetParameters.Request(
+                parameters=[Parameter(name, value=value).to_parameter_msg()])
+            fut = client.call_async(req)
+            assert h.wait(fut.done, 10.0)
+            return fut.result().results[0]
+
+        r = set_('stop_time', -2.0)
+        assert not r.successful and 'stop_time' in r.reason
+        r = set_('repeller.gain', -1.0)
+        assert not r.successful and 'RepellerField.gain' in r.reason
+        r = set_('rate', 100.0)
+        assert not r.successful and 'read-only' in r.reason.lower()
+        r = set_('stop_time', 1)  # an integer for a float parameter is accepted
+        assert r.successful, r.reason
+        r = set_('repeller.gain', 0.02)
+        assert r.successful, r.reason
+    finally:
+        h.node.destroy_client(client)
+    stream_continues(h, proc)
+
+
+# -- start-up --------------------------------------------------------------------------------
+STARTUP_CASES = [('stop_time:=-1.0', 'stop_time'), ('joint_names:=[a,b]', 'joint_names'),
+                 ("urdf_path:='/nonexistent.urdf'", 'urdf_path'),
+                 ('repeller.gain:=-1.0', 'RepellerField.gain')]
+
+
+def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
+    procs = [(start_streamer(163 + i, [param], log_path=str(tmp_path / f'{i}.log')), text, i)
+             for i, (param, text) in enumerate(STARTUP_CASES)]  # in parallel: start-up is slow
+    try:
+        for proc, text, i in procs:
+            code = proc.wait(STARTUP)
+            log = (tmp_path / f'{i}.log').read_text()
+            assert code == 2 and text in log, log
+    finally:
+        for proc, _, _ in procs:
+            stop_process(proc)
