@@ -31,6 +31,10 @@ def graph(tmp_path_factory):
     h = Harness(DOMAIN)
     try:
         from std_msgs.msg import String
+        # holding the measured position (the fake robot's Q_START) before any primitive
+        ok = h.wait(lambda: h.n_refs() > 10 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        assert np.abs(h.last_ref()[2] - Q_START).max() == 0.0
         h.publish('primitive', String(data=dumps_primitive(reach_cdmp(duration=1.5))))
         ok = h.wait(lambda: h.n_refs() > 50 or proc.poll() is not None, STARTUP)
         assert ok and proc.poll() is None, log.read_text()

