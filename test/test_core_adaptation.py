@@ -137,7 +137,7 @@ def _check_by_sampling(q, cons, rng, n_steps):
 
 
 @pytest.mark.parametrize('kind', ['repeller', 'hyperplane', 'unbound_waypoint', 'waypoint',
-                                  'corner', 'joint_limit'])
+                                  'corner', 'joint_limit', 'time_varying_limit'])
 def test_adapted_promp_satisfies_constraint_at_its_confidence(kind, rng):
     prior = _table_prior(rng)
     mid = prior.mean([0.5])[0]
@@ -149,6 +149,8 @@ def test_adapted_promp_satisfies_constraint_at_its_confidence(kind, rng):
         'corner': [NonConvexCorner(CART, [1, 0], mid - [0.5, 0.5], [0, -1], mid + [0, 0.3],
                                    support=(0.2, 0.8))],
         'joint_limit': [JointLimit(1, -0.8, 0.6, support=(0.1, 0.9))],
+        'time_varying_limit': [JointLimit(1, lower=-1.5, upper=lambda t: 0.8 - 1.2 * t,
+                                          support=(0.2, 0.9))],
     }[kind]
     q, rep = adapt(prior, cons, AdaptationConfig(n_steps=41))
     assert rep.converged, rep.to_text()
