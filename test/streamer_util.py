@@ -38,9 +38,11 @@ def reach_dmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
     return DMP(7, joint_names=PANDA_JOINTS).fit(T, Y)
 
 
-def start_streamer(domain_id, params=(), log_path=None):
+def start_streamer(domain_id, params=(), log_path=None, params_file=None):
     """Start ``python -m cdmp_ros.nodes.streamer`` with ``-p`` parameters (name:=value)."""
     cmd = [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args']
+    if params_file:
+        cmd += ['--params-file', params_file]
     for p in params:
         cmd += ['-p', p]
     out = open(log_path, 'w') if log_path else subprocess.DEVNULL

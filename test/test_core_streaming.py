@@ -235,6 +235,19 @@ def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):
     np.testing.assert_allclose(st_.input.coupling, expected, rtol=1e-12)
 
 
+def test_coupling_decimation_holds_the_term(cdmp_text):
+    calls = []
+
+    def coupling(y, yd):
+        calls.append(1)
+        return [0.0] * 6 + [-4.0]
+    rs, prep = make_streamer(cdmp_text, timeout=0.0, coupling=coupling, coupling_decimation=5)
+    rs.activate(prep, 0.0)
+    flags = [rs.advance(1, 0.0) for _ in range(50)]
+    assert len(calls) == 10 and all(f & StreamFlags.COUPLED for f in flags)
+    assert prep.stepper.input.coupling[6] < 0.0
+
+
 def test_coupling_changes_the_motion_in_its_direction(cdmp_text):
     push = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -4.0]
     free, prep_f = make_streamer(cdmp_text, timeout=0.0)

@@ -253,3 +253,29 @@ def test_diagnostics_reporter_summarises_rejections_and_timings(node):
     st = {s.name: s for s in sent[-1].status}
     assert st['streamer: state'].level == DiagnosticStatus.OK
     assert st['streamer: input goal'].message == 'ok'
+
+
+def test_config_file_mirrors_every_parameter_with_its_default():
+    import os
+    import yaml
+    from cdmp_ros.core.coupling import DampingConfig
+    from cdmp_ros.core.fields import ConstantField, RepellerField
+    from cdmp_ros.core.obstacle_coupling import CouplingConfig
+    from cdmp_ros.core.streaming import StreamerConfig
+    from cdmp_ros.ros.params import parameter_fields
+    from conftest import REPO_ROOT
+    with open(os.path.join(REPO_ROOT, 'config', 'streamer.yaml')) as f:
+        params = yaml.safe_load(f)['/**']['ros__parameters']
+    sections = [('', StreamerConfig), ('coupling', CouplingConfig), ('damping', DampingConfig),
+                ('repeller', RepellerField), ('box_field', ConstantField)]
+    expected = {}
+    for prefix, cls in sections:
+        for f, kind, default in parameter_fields(cls):
+            expected[f'{prefix}.{f.name}' if prefix else f.name] = default
+    flat = {}
+    for k, v in params.items():
+        if isinstance(v, dict):
+            flat.update({f'{k}.{kk}': vv for kk, vv in v.items()})
+        else:
+            flat[k] = tuple(v) if isinstance(v, list) else v
+    assert flat == expected

@@ -27,7 +27,7 @@ STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
 def graph(tmp_path_factory):
     log = tmp_path_factory.mktemp('streamer') / 'streamer.log'
     proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=50.0'],
-                          log_path=str(log))
+                          log_path=str(log), params_file='config/streamer.yaml')
     h = Harness(DOMAIN)
     try:
         from std_msgs.msg import String

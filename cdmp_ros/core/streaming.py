@@ -97,6 +97,9 @@ class StreamerConfig:
                                        0.01, 60.0)
     coupling_enabled: bool = _param(
         True, 'Apply the obstacle coupling terms (paper 000, Eq. 7/12) every tick.')
+    coupling_decimation: int = _param(
+        1, 'Evaluate the coupling every N ticks and hold it in between (box obstacles with '
+        'link terms cost milliseconds per evaluation).', 1, 1000)
     coupling_links: Tuple[str, ...] = _param(
         ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
@@ -273,6 +276,8 @@ class ReferenceStreamer:
         self.last_measure: Optional[float] = None
         self.steps = 0
         self._stop: Optional[SmoothStop] = None
+        self._calls = 0
+        self._coupling_flags = 0
         self._jac_scale: Optional[List[float]] = None
 
     # -- configuration ------------------------------------------------------------------------
@@ -355,8 +360,13 @@ class ReferenceStreamer:
         flags = 0
         dt = self.config.dt
         if self.state is StreamState.RUNNING and self.coupling is not None:
-            # evaluated once per call (zero-order hold over catch-up steps)
-            flags = self._coupling_into(self.active.stepper)
+            # evaluated once per call (zero-order hold over catch-up steps), every
+            # coupling_decimation calls
+            self._calls += 1
+            if self._calls >= self.config.coupling_decimation:
+                self._calls = 0
+                self._coupling_flags = self._coupling_into(self.active.stepper)
+            flags = self._coupling_flags
         for _ in range(max(1, int(n_steps))):
             if self.state is StreamState.RUNNING:
                 flags |= self._step_primitive()
@@ -394,6 +404,7 @@ class ReferenceStreamer:
         goal = self.goal_override if self.goal_override is not None else prim.goal_y_
         y = np.asarray(self.y)
         prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
+        self._calls = self.config.coupling_decimation  # evaluate at the first step
         self._jac_scale = (prim.transform.y_delta.tolist() if prim.kind == 'cdmp' else None)
         self.state = StreamState.RUNNING
         self.reason = f'streaming the {prep.kind} from {prep.source}'
