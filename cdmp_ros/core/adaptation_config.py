@@ -1,0 +1,126 @@
+"""Settings and report of the constrained ProMP adaptation (paper 003, Algorithm 1)."""
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.validation import check_positive
+
+
+@dataclass(frozen=True)
+class AdaptationConfig:
+    """Optimiser settings (defaults: the authors' Table II settings, promp_benchmark_protocol).
+
+    Parameters
+    ----------
+    n_steps : int
+        Time grid s = linspace(0, 1, n_steps) on which path constraints are imposed.
+    lambda0 : float
+        Initial Lagrange multiplier of constraints without their own (Section III).
+    eta : float
+        EMM multiplier learning rate.
+    max_outer : int
+        Maximum number of multiplier (outer) updates.
+    max_inner : int
+        Maximum L-BFGS iterations per inner loop.
+    objective_tol : float
+        With the paper's absolute EMM step: stop (as infeasible) when the Lagrangian changes by
+        less than this between outer iterations.
+    feasibility_tol : float
+        A constraint counts as satisfied when F >= alpha - feasibility_tol.
+    kappa : float
+        Weight of the smoothness regulariser kappa * E[R(w)] (Eq. 14-15); 0 disables it.
+    smoothness_weights : tuple of float, optional
+        Per-dimension weights of R(w) (default all 1).
+    kl_blocks : tuple of (start, stop), optional
+        Use the sum of the marginal KLs of these weight blocks (mutual avoidance objective
+        (ii), Section II-E5) instead of the joint KL.
+    ut_alpha : float
+        Spread of the unscented transform's sigma points.
+    lbfgs_ftol, lbfgs_gtol : float
+        L-BFGS-B convergence tolerances of the inner loop.
+    lbfgs_maxcor : int
+        Number of L-BFGS correction pairs.
+    relative_step : bool
+        EMM step lambda <- lambda exp(eta C / (1 - alpha)) (clipped to +-max_log_step) instead
+        of the paper's lambda exp(eta C), C = alpha - F. With alpha close to 1 the paper's step
+        changes lambda by at most a factor exp(1 - alpha) once F is near alpha, so a constraint
+        that is almost satisfied stays slightly violated; the relative step is scale free.
+    max_log_step : float
+        Clip of the relative step's exponent.
+    whiten : bool
+        Precondition the parameters with the prior's Cholesky factor L0: mu = mu0 + L0 nu,
+        L = L0 L~, L~ = L~_tril + diag(exp(gamma~)). L stays lower triangular with
+        diag(L) = diag(L0) exp(gamma~), so this is the paper's parameterisation up to a fixed
+        linear map; the KL becomes 0.5 (|L~|_F^2 + |nu|^2 - n) - 1^T gamma~, perfectly
+        conditioned, which cuts the L-BFGS iterations.
+    """
+    n_steps: int = 101
+    lambda0: float = 20.0
+    eta: float = 1.0
+    max_outer: int = 10
+    max_inner: int = 500
+    objective_tol: float = 1e-2
+    feasibility_tol: float = 1e-4
+    kappa: float = 0.0
+    smoothness_weights: Optional[Tuple[float, ...]] = None
+    kl_blocks: Optional[Tuple[Tuple[int, int], ...]] = None
+    ut_alpha: float = 1.0
+    lbfgs_ftol: float = 1e-10
+    lbfgs_gtol: float = 1e-6
+    lbfgs_maxcor: int = 20
+    relative_step: bool = True
+    max_log_step: float = 3.0
+    whiten: bool = True
+
+    def __post_init__(self):
+        if int(self.n_steps) < 2:
+            raise ValidationError(f'n_steps: expected an integer >= 2, got {self.n_steps!r}')
+        check_positive('lambda0', self.lambda0)
+        check_positive('eta', self.eta)
+        for name in ('max_outer', 'max_inner'):
+            if int(getattr(self, name)) < 1:
+                raise ValidationError(f'{name}: expected an integer >= 1, '
+                                      f'got {getattr(self, name)!r}')
+        check_positive('objective_tol', self.objective_tol, allow_zero=True)
+        check_positive('feasibility_tol', self.feasibility_tol, allow_zero=True)
+        check_positive('kappa', self.kappa, allow_zero=True)
+        check_positive('ut_alpha', self.ut_alpha)
+
+
+@dataclass
+class ConstraintReport:
+    name: str
+    kind: str
+    alpha: float
+    probability: float      # the approximation's satisfaction probability (worst time)
+    satisfied: bool
+    lagrange_max: float
+
+
+@dataclass
+class AdaptationReport:
+    """Outcome of :func:`adapt`. ``converged`` is False for infeasible/unconverged problems."""
+    converged: bool
+    status: str
+    kl: float
+    kl_per_basis: float
+    n_outer: int
+    n_inner: int
+    n_evaluations: int
+    time_s: float
+    constraints: List[ConstraintReport] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d['constraints'] = [dict(c.__dict__) for c in self.constraints]
+        return d
+
+    def to_text(self) -> str:
+        lines = [f'status: {self.status} (converged: {self.converged})',
+                 f'KL(p || p0) = {self.kl:.6g} ({self.kl_per_basis:.4g} per basis function)',
+                 f'outer iterations: {self.n_outer}, L-BFGS iterations: {self.n_inner}, '
+                 f'evaluations: {self.n_evaluations}, time: {self.time_s * 1e3:.1f} ms']
+        for c in self.constraints:
+            lines.append(f'  {c.name} [{c.kind}]: P = {c.probability:.6f} '
+                         f'(alpha = {c.alpha}) {"ok" if c.satisfied else "VIOLATED"}')
+        return '\n'.join(lines)

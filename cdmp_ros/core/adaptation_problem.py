@@ -1,0 +1,311 @@
+"""The Lagrangian of the constrained ProMP adaptation (paper 003, Eq. 10 and 23) and its
+analytic gradient: KL objective, smoothness regulariser, and the constraints through the
+marginals of z_t, the points of interest (linear maps or the unscented transform through the
+kinematics) and the Cholesky parameterisation Sigma = L L^T, L = L_tril + diag(exp(gamma)).
+"""
+from typing import List, Optional, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdmp_ros.core.adaptation_config import AdaptationConfig
+from cdmp_ros.core.constraints.base import Constraint, WeightConstraint
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.gaussian import UnscentedTransform
+from cdmp_ros.core.promp import ProMP
+
+
+class _Group:
+    """Marginals of z_t at one set of times, shared by the constraints using them."""
+
+    def __init__(self, promp: ProMP, times: NDArray):
+        self.times = times
+        self.phi = promp.basis.features(times)          # (n, M)
+        self.D, self.M = promp.n_dims, promp.n_basis
+
+    def forward(self, mu, L):
+        D, M = self.D, self.M
+        self.m = self.phi @ mu.reshape(D, M).T          # (n, D)
+        Bd = np.matmul(self.phi, L.reshape(D, M, -1))  # (D, n, nw)
+        self.B = np.ascontiguousarray(Bd.transpose(1, 0, 2))   # (n, D, nw)
+        self.S = np.matmul(self.B, Bd.transpose(1, 2, 0))      # (n, D, D)
+        self.g_m = np.zeros_like(self.m)
+        self.g_S = np.zeros_like(self.S)
+
+    def backward(self, g_mu, g_L):
+        D, M = self.D, self.M
+        g_mu += (self.phi.T @ self.g_m).T.ravel()
+        g_B = np.matmul(self.g_S + np.swapaxes(self.g_S, 1, 2), self.B)   # (n, D, nw)
+        g_L += np.matmul(self.phi.T, g_B.transpose(1, 0, 2)).reshape(D * M, -1)
+
+
+class _PointMoments:
+    """Gaussian moments of one point of interest at the times of one group (shared by every
+    constraint on that point), with the backward pass to the group's marginals."""
+
+    def __init__(self, point, group: _Group, n_dims: int, ut_alpha: float):
+        self.point = point
+        self.group = group
+        point.check(n_dims)
+        self.dofs = np.asarray(point.dofs)
+        self.linear = point.linear
+        k = len(self.dofs)
+        self.identity = False
+        if self.linear:
+            X0, J0 = point.forward_and_jacobian(np.zeros(k))
+            self.A = np.asarray(J0, float)
+            self.x0 = np.asarray(X0, float)
+            self.identity = (k == n_dims and np.array_equal(self.dofs, np.arange(n_dims))
+                             and np.array_equal(self.A, np.eye(k)) and not np.any(self.x0))
+        else:
+            self.ut = UnscentedTransform(k, ut_alpha)
+
+    def compute(self):
+        g = self.group
+        if self.identity:
+            self.mx, self.Sx = g.m, g.S
+        else:
+            m = g.m[:, self.dofs]
+            S = g.S[:, self.dofs][:, :, self.dofs]
+            if self.linear:
+                self.mx, self.Sx = m @ self.A.T + self.x0, self.A @ S @ self.A.T
+            else:
+                Z, Achol = self.ut.points(m, S)
+                X, J = self.point.forward_and_jacobian(Z)
+                self.mx, self.Sx = self.ut.moments(X)
+                self._cache = (X, J, Achol)
+        self.g_mx = np.zeros_like(self.mx)
+        self.g_Sx = np.zeros_like(self.Sx)
+
+    def backward(self):
+        g = self.group
+        g_mx, g_Sx = self.g_mx, self.g_Sx
+        if self.identity:
+            g.g_m += g_mx
+            g.g_S += g_Sx
+            return
+        if self.linear:
+            g_m = g_mx @ self.A
+            g_S = self.A.T @ g_Sx @ self.A
+        else:
+            X, J, Achol = self._cache
+            g_m, g_S = self.ut.backward(X, self.mx, J, Achol, g_mx, g_Sx)
+        ix = np.ix_(np.arange(g.m.shape[0]), self.dofs)
+        g.g_m[ix] += g_m
+        g.g_S[:, self.dofs[:, None], self.dofs[None, :]] += g_S
+
+
+class Problem:
+    """The adaptation problem: prior p0, constraints and objective, with the analytic
+    Lagrangian and its gradient over theta = (mu, L_tril, gamma) (Eq. 23)."""
+
+    def __init__(self, prior: ProMP, constraints: Sequence, config: AdaptationConfig):
+        self.prior = prior
+        self.config = config
+        n = prior.n_weights
+        self.n = n
+        self.tril = np.tril_indices(n, -1)
+        self.grid = np.linspace(0.0, 1.0, int(config.n_steps))
+        self.mu0 = prior.mean_w.copy()
+        C0 = prior.cov_w
+        L0 = np.linalg.cholesky(C0 + 1e-12 * np.trace(C0) / n * np.eye(n))
+        self.L0 = L0
+        L0inv = np.linalg.inv(L0)
+        self.S0inv = L0inv.T @ L0inv
+        self.logdet0 = 2.0 * np.sum(np.log(np.diag(L0)))
+        self.blocks = None
+        if config.kl_blocks is not None:
+            self.blocks = []
+            for a, b in config.kl_blocks:
+                Cb = C0[a:b, a:b]
+                self.blocks.append((a, b, np.linalg.inv(Cb), np.linalg.slogdet(Cb)[1]))
+        self.Phi_R = None
+        if config.kappa > 0:
+            self.Phi_R = prior.smoothness_matrix(joint_weights=config.smoothness_weights)
+        groups = {}
+        points = {}
+        self.bound: List[Optional[_PointMoments]] = []
+        self.weight_constraints: List[WeightConstraint] = []
+        self.slices = []
+        offset = 0
+        for c in constraints:
+            if isinstance(c, WeightConstraint):
+                self.weight_constraints.append(c)
+                nv = 1
+                self.bound.append(None)
+            elif isinstance(c, Constraint):
+                times = c.times(self.grid)
+                key = times.tobytes()
+                if key not in groups:
+                    groups[key] = _Group(prior, times)
+                pkey = (id(c.point), key)
+                if pkey not in points:
+                    points[pkey] = _PointMoments(c.point, groups[key], prior.n_dims,
+                                                 config.ut_alpha)
+                self.bound.append(points[pkey])
+                nv = times.size if c.reduce == 'each' else 1
+            else:
+                raise ValidationError(f'constraints: expected Constraint objects, got '
+                                      f'{type(c).__name__}')
+            self.slices.append(slice(offset, offset + nv))
+            offset += nv
+        self.constraints = list(constraints)
+        self.groups = list(groups.values())
+        self.points = list(points.values())
+        self.n_values = offset
+        self.alpha = np.concatenate([np.full(s.stop - s.start, c.alpha)
+                                     for c, s in zip(self.constraints, self.slices)]) \
+            if self.constraints else np.zeros(0)
+        self.n_evaluations = 0
+
+    # --------------------------------------------------------------- parameters
+    def initial_theta(self) -> NDArray:
+        if self.config.whiten:
+            return np.zeros(2 * self.n + self.tril[0].size)
+        L0 = self.L0
+        return np.concatenate([self.mu0, L0[self.tril], np.log(np.diag(L0))])
+
+    def bounds(self):
+        """L-BFGS-B box on gamma only: the diagonal of L stays within [e^-25, e^5] times the
+        prior's, which keeps exp(gamma) finite during line searches."""
+        n, nt = self.n, self.tril[0].size
+        lo = np.full(2 * n + nt, -np.inf)
+        hi = np.full(2 * n + nt, np.inf)
+        base = 0.0 if self.config.whiten else np.log(np.diag(self.L0))
+        lo[n + nt:] = base - 25.0
+        hi[n + nt:] = base + 5.0
+        return list(zip(lo, hi))
+
+    def _factors(self, theta):
+        """First block, lower-triangular matrix and gamma of theta (raw or whitened)."""
+        n = self.n
+        first = theta[:n]
+        T = np.zeros((n, n))
+        T[self.tril] = theta[n:n + self.tril[0].size]
+        gamma = theta[n + self.tril[0].size:]
+        T[np.diag_indices(n)] = np.exp(gamma)
+        return first, T, gamma
+
+    def unpack(self, theta):
+        """(mu, L, gamma) with Sigma = L L^T in the original coordinates."""
+        first, T, gamma = self._factors(theta)
+        if self.config.whiten:
+            return self.mu0 + self.L0 @ first, self.L0 @ T, gamma
+        return first, T, gamma
+
+    # --------------------------------------------------------------- objective
+    def kl(self, mu, L, grads=False):
+        """KL(N(mu, L L^T) || p0) (or the sum of block marginals), with dKL/dmu and dKL/dL."""
+        dmu = mu - self.mu0
+        if self.blocks is None:
+            SL = self.S0inv @ L
+            d = np.diag(L)
+            kl = 0.5 * (np.sum(L * SL) + dmu @ self.S0inv @ dmu - self.n + self.logdet0) \
+                - np.sum(np.log(d))
+            if not grads:
+                return kl
+            return kl, self.S0inv @ dmu, SL - np.diag(1.0 / d)
+        kl = 0.0
+        g_mu = np.zeros(self.n)
+        g_L = np.zeros((self.n, self.n))
+        for a, b, Sinv, logdet in self.blocks:
+            Lb = L[a:b]
+            Sb = Lb @ Lb.T
+            cb = np.linalg.cholesky(Sb)
+            Sb_inv = np.linalg.inv(Sb)
+            db = dmu[a:b]
+            kl += 0.5 * (np.sum(Sinv * Sb) + db @ Sinv @ db - (b - a) + logdet
+                         - 2.0 * np.sum(np.log(np.diag(cb))))
+            g_mu[a:b] += Sinv @ db
+            g_L[a:b] += (Sinv - Sb_inv) @ Lb
+        if not grads:
+            return kl
+        return kl, g_mu, g_L
+
+    def constraint_values(self, mu, L, grads=False):
+        """F for every multiplier (n_values,), optionally with the backward closure."""
+        for g in self.groups:
+            g.forward(mu, L)
+        for pm in self.points:
+            pm.compute()
+        F = np.empty(self.n_values)
+        parts = []
+        Sigma = None
+        for c, b, sl in zip(self.constraints, self.bound, self.slices):
+            if b is None:
+                if Sigma is None:
+                    Sigma = L @ L.T
+                Fw, dmu, dS = c.probability_w(mu, Sigma)
+                F[sl] = Fw
+                parts.append((dmu, dS))
+                continue
+            Ft, dm, dS = c.probability(b.mx, b.Sx, b.group.times)
+            if c.reduce == 'max':
+                i = int(np.argmax(Ft))
+                F[sl] = Ft[i]
+                mask = np.zeros(Ft.size)
+                mask[i] = 1.0
+                parts.append((mask, dm, dS))
+            else:
+                F[sl] = Ft
+                parts.append((None, dm, dS))
+        if not grads:
+            return F
+        return F, parts
+
+    def lagrangian(self, theta, lam):
+        """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta."""
+        self.n_evaluations += 1
+        first, T, gamma = self._factors(theta)
+        whiten = self.config.whiten
+        if whiten:
+            mu, L = self.mu0 + self.L0 @ first, self.L0 @ T
+        else:
+            mu, L = first, T
+        value = 0.0
+        g_mu = np.zeros(self.n)
+        g_L = np.zeros((self.n, self.n))
+        if not (whiten and self.blocks is None):
+            value, g_mu_kl, g_L_kl = self.kl(mu, L, grads=True)
+            g_mu += g_mu_kl
+            g_L += g_L_kl
+        g_Sigma = None
+        if self.Phi_R is not None:
+            kappa = self.config.kappa
+            Pm = self.Phi_R @ mu
+            value += kappa * (mu @ Pm + np.sum(self.Phi_R * (L @ L.T)))
+            g_mu += 2.0 * kappa * Pm
+            g_Sigma = kappa * self.Phi_R
+        if self.n_values:
+            F, parts = self.constraint_values(mu, L, grads=True)
+            value += np.sum(lam * (self.alpha - F))
+            for c, b, sl, part in zip(self.constraints, self.bound, self.slices, parts):
+                w = -lam[sl]
+                if b is None:
+                    dmu, dS = part
+                    g_mu += w @ dmu
+                    gS = np.tensordot(w, dS, axes=1)
+                    g_Sigma = gS if g_Sigma is None else g_Sigma + gS
+                    continue
+                mask, dm, dS = part
+                wt = w[0] * mask if mask is not None else w
+                b.g_mx += wt[:, None] * dm
+                b.g_Sx += wt[:, None, None] * dS
+            for pm in self.points:
+                pm.backward()
+            for g in self.groups:
+                g.backward(g_mu, g_L)
+        if g_Sigma is not None:
+            g_L += (g_Sigma + g_Sigma.T) @ L
+        if whiten:
+            g_first = self.L0.T @ g_mu
+            g_T = self.L0.T @ g_L
+            if self.blocks is None:
+                # KL in whitened coordinates: 0.5 (|L~|^2 + |nu|^2 - n) - 1^T gamma~
+                value += 0.5 * (np.sum(T * T) + first @ first - self.n) - np.sum(gamma)
+                g_first += first
+                g_T += T - np.diag(1.0 / np.diag(T))
+        else:
+            g_first, g_T = g_mu, g_L
+        g_theta = np.concatenate([g_first, g_T[self.tril], np.diag(g_T) * np.exp(gamma)])
+        return value, g_theta
