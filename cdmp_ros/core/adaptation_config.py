@@ -65,8 +65,8 @@ class AdaptationConfig:
     smoothness_weights: Optional[Tuple[float, ...]] = None
     kl_blocks: Optional[Tuple[Tuple[int, int], ...]] = None
     ut_alpha: float = 1.0
-    lbfgs_ftol: float = 1e-10
-    lbfgs_gtol: float = 1e-6
+    lbfgs_ftol: float = 1e-6
+    lbfgs_gtol: float = 1e-4
     lbfgs_maxcor: int = 20
     relative_step: bool = True
     max_log_step: float = 3.0
