@@ -3,13 +3,14 @@ analytic gradient: KL objective, smoothness regulariser, and the constraints thr
 marginals of z_t, the points of interest (linear maps or the unscented transform through the
 kinematics) and the Cholesky parameterisation Sigma = L L^T, L = L_tril + diag(exp(gamma)).
 """
-from typing import List, Optional, Sequence
+from typing import List, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.adaptation_config import AdaptationConfig
 from cdmp_ros.core.constraints.base import Constraint, WeightConstraint
+from cdmp_ros.core.constraints.points import ChainPoint, StackedChainPoints
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.gaussian import UnscentedTransform
 from cdmp_ros.core.promp import ProMP
@@ -123,27 +124,48 @@ class Problem:
         if config.kappa > 0:
             self.Phi_R = prior.smoothness_matrix(joint_weights=config.smoothness_weights)
         groups = {}
+        keys = []
+        stacks = {}
+        for c in constraints:
+            if isinstance(c, Constraint):
+                times = c.times(self.grid)
+                key = times.tobytes()
+                if key not in groups:
+                    groups[key] = _Group(prior, times)
+                keys.append(key)
+                if isinstance(c.point, ChainPoint):
+                    skey = (id(c.point.chain), c.point.dofs, c.point.axes, key)
+                    members = stacks.setdefault(skey, [])
+                    if all(m is not c.point for m in members):
+                        members.append(c.point)
+            else:
+                keys.append(None)
         points = {}
-        self.bound: List[Optional[_PointMoments]] = []
+        where = {}        # (id(point), times key) -> (_PointMoments, slice or None)
+        for skey, members in stacks.items():
+            if len(members) > 1:
+                stacked = StackedChainPoints(members)
+                pm = _PointMoments(stacked, groups[skey[3]], prior.n_dims, config.ut_alpha)
+                points[('stack',) + skey] = pm
+                for i, m in enumerate(members):
+                    where[(id(m), skey[3])] = (pm, slice(i * stacked.q, (i + 1) * stacked.q))
+        self.bound: List = []
         self.weight_constraints: List[WeightConstraint] = []
         self.slices = []
         offset = 0
-        for c in constraints:
+        for c, key in zip(constraints, keys):
             if isinstance(c, WeightConstraint):
                 self.weight_constraints.append(c)
                 nv = 1
                 self.bound.append(None)
             elif isinstance(c, Constraint):
-                times = c.times(self.grid)
-                key = times.tobytes()
-                if key not in groups:
-                    groups[key] = _Group(prior, times)
                 pkey = (id(c.point), key)
-                if pkey not in points:
-                    points[pkey] = _PointMoments(c.point, groups[key], prior.n_dims,
-                                                 config.ut_alpha)
-                self.bound.append(points[pkey])
-                nv = times.size if c.reduce == 'each' else 1
+                if pkey not in where:
+                    pm = _PointMoments(c.point, groups[key], prior.n_dims, config.ut_alpha)
+                    points[pkey] = pm
+                    where[pkey] = (pm, None)
+                self.bound.append(where[pkey])
+                nv = groups[key].times.size if c.reduce == 'each' else 1
             else:
                 raise ValidationError(f'constraints: expected Constraint objects, got '
                                       f'{type(c).__name__}')
@@ -239,7 +261,11 @@ class Problem:
                 F[sl] = Fw
                 parts.append((dmu, dS))
                 continue
-            Ft, dm, dS = c.probability(b.mx, b.Sx, b.group.times)
+            pm, xs = b
+            if xs is None:
+                Ft, dm, dS = c.probability(pm.mx, pm.Sx, pm.group.times)
+            else:
+                Ft, dm, dS = c.probability(pm.mx[:, xs], pm.Sx[:, xs, xs], pm.group.times)
             if c.reduce == 'max':
                 i = int(np.argmax(Ft))
                 F[sl] = Ft[i]
@@ -289,8 +315,13 @@ class Problem:
                     continue
                 mask, dm, dS = part
                 wt = w[0] * mask if mask is not None else w
-                b.g_mx += wt[:, None] * dm
-                b.g_Sx += wt[:, None, None] * dS
+                pm, xs = b
+                if xs is None:
+                    pm.g_mx += wt[:, None] * dm
+                    pm.g_Sx += wt[:, None, None] * dS
+                else:
+                    pm.g_mx[:, xs] += wt[:, None] * dm
+                    pm.g_Sx[:, xs, xs] += wt[:, None, None] * dS
             for pm in self.points:
                 pm.backward()
             for g in self.groups:

@@ -100,3 +100,29 @@ class DifferencePoint(Point):
         J[..., self._ia] += Ja
         J[..., self._ib] -= Jb
         return Xa - Xb, J
+
+
+class StackedChainPoints(Point):
+    """Several ChainPoints of one chain (same ``dofs`` and ``axes``) evaluated together: one
+    forward-kinematics call and one unscented transform for all of them. Output: the points'
+    coordinates concatenated, point i at ``[i * q, (i + 1) * q)`` with q = len(axes)."""
+
+    def __init__(self, points: Sequence[ChainPoint]):
+        first = points[0]
+        for p in points[1:]:
+            if p.chain is not first.chain or p.dofs != first.dofs or p.axes != first.axes:
+                raise ValidationError('points: expected chain points of one chain with the '
+                                      'same dofs and axes')
+        self.points = list(points)
+        self.chain, self.dofs, self.axes = first.chain, first.dofs, first.axes
+        self.q = len(self.axes)
+        self.n_out = self.q * len(self.points)
+
+    def forward_and_jacobian(self, Z):
+        X, J = self.chain.forward_and_jacobian(Z, [p.point for p in self.points])
+        ax = list(self.axes)
+        X = X[..., ax]
+        J = J[..., ax, :]
+        lead = Z.shape[:-1]
+        return (X.reshape(lead + (self.n_out,)),
+                J.reshape(lead + (self.n_out, Z.shape[-1])))
