@@ -252,7 +252,8 @@ class StreamerNode(Node):
             changes = ', '.join(f'{names[j]} {g[j]:.4g} -> {gc[j]:.4g}' for j in clipped)
             self._reject('goal', f'goal.position outside the limits, clipped with the CDMP '
                                  f'margin: {changes}')
-        self.get_logger().info(f'new goal {np.round(self.streamer.goal_override, 4).tolist()}')
+        self.get_logger().info(f'new goal {np.round(self.streamer.goal_override, 4).tolist()}',
+                               throttle_duration_sec=1.0)
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
         now = time.monotonic()
