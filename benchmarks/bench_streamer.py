@@ -116,6 +116,110 @@ def listen(seconds, rate, obstacle, warmup):
     rclpy.try_shutdown()
 
 
+def listen_latency(reps):
+    """Listener: obstacle message -> first joint_reference that reflects it.
+
+    The open-loop reference converges to the goal and rests; a sphere is then published
+    0.1 m from the end effector (inside the repeller's influence distance); the first reference
+    whose position leaves the rest position by more than 1e-6 rad reflects it. The sphere is
+    deleted and the reference converges again before the next repetition.
+    """
+    import numpy as np
+    import pybullet_data
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from visualization_msgs.msg import Marker, MarkerArray
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    from cdmp_ros.ros import qos_profiles
+    from rclpy.experimental import EventsExecutor
+
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
+    rclpy.init()
+    node = rclpy.create_node('bench_latency')
+    prim_pub = node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
+    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
+    clock = node.get_clock()
+    last = {}
+
+    def on_ref(msg):
+        last['t'] = clock.now().nanoseconds
+        last['y'] = np.array(msg.position)
+        last['yd'] = np.array(msg.velocity)
+        watch = last.get('watch')
+        if watch is not None and 'hit' not in last and \
+                np.abs(last['y'] - watch).max() > 1e-6:
+            last['hit'] = last['t']
+
+    node.create_subscription(JointState, 'joint_reference', on_ref,
+                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    ex = EventsExecutor()
+    ex.add_node(node)
+    prim_pub.publish(String(data=panda_primitive_json()))
+
+    def spin_until(pred, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not pred():
+            ex.spin_once(timeout_sec=0.01)
+        return pred()
+
+    def rested():
+        return 'yd' in last and np.abs(last['yd']).max() < 1e-9
+
+    assert spin_until(lambda: obs_pub.get_subscription_count() > 0 and 'y' in last, 60.0)
+    print(json.dumps({'event': 'streaming'}), flush=True)
+    lat = []
+    for i in range(reps):
+        if not spin_until(rested, 15.0):
+            break
+        y0 = last['y'].copy()
+        ee = chain.forward(y0, [PointOfInterest('ee')])[0]
+        m = Marker(ns='bench', id=0, type=Marker.SPHERE, action=Marker.ADD)
+        m.header.frame_id = 'panda_link0'
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = (ee + [0.1, 0.0, 0.0]).tolist()
+        m.scale.x = m.scale.y = m.scale.z = 0.04
+        last.pop('hit', None)
+        last['watch'] = y0
+        t_pub = clock.now().nanoseconds
+        obs_pub.publish(MarkerArray(markers=[m]))
+        if spin_until(lambda: 'hit' in last, 2.0):
+            lat.append((last['hit'] - t_pub) * 1e-6)
+        last['watch'] = None
+        obs_pub.publish(MarkerArray(markers=[Marker(ns='bench', action=Marker.DELETEALL)]))
+    lat.sort()
+    print(json.dumps({'n': len(lat), 'p50_ms': lat[len(lat) // 2] if lat else None,
+                      'p99_ms': lat[int(0.99 * (len(lat) - 1))] if lat else None,
+                      'max_ms': lat[-1] if lat else None}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def run_latency(rate, reps, domain):
+    streamer = subprocess.Popen(
+        [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
+         '-p', 'joint_states_timeout:=0.0'],
+        env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    listener = subprocess.Popen(
+        [sys.executable, __file__, '--listen-latency', str(reps)],
+        env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        first = listener.stdout.readline()
+        assert 'streaming' in first, f'listener: {first!r}'
+        out = json.loads(listener.stdout.readline())
+        listener.wait(20)
+        return out
+    finally:
+        for p in (listener, streamer):
+            if p.poll() is None:
+                p.send_signal(2)
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+
 def run_config(rate, obstacle, seconds, domain, measure_cpu):
     import psutil
     streamer = subprocess.Popen(
@@ -157,9 +261,14 @@ def main():
     ap.add_argument('--listen', action='store_true', help=argparse.SUPPRESS)
     ap.add_argument('--rate', type=float, default=1000.0, help=argparse.SUPPRESS)
     ap.add_argument('--obstacle', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--latency-reps', type=int, default=15,
+                    help='repetitions of the obstacle -> reference latency measurement')
+    ap.add_argument('--listen-latency', type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.listen:
         return listen(args.seconds, args.rate, args.obstacle, warmup=1.0)
+    if args.listen_latency:
+        return listen_latency(args.listen_latency)
     rows = []
     for rate, obstacle in ((1000.0, False), (1000.0, True), (500.0, False), (500.0, True)):
         s = run_config(rate, obstacle, args.seconds, args.domain, measure_cpu=True)
@@ -175,6 +284,15 @@ def main():
               f'{s["missing"]} | {100 * s["on_time_fraction"]:.2f} % | '
               f'{s["delay_ms_p50"]:.3f} | {s["delay_ms_p99"]:.3f} | {s["rate_hz"]:.1f} | '
               f'{s["cpu_percent"]:.1f} |')
+    if args.latency_reps:
+        print('\nObstacle message published -> first joint_reference that reflects it (across '
+              'processes, 500 Hz, reference at rest, sphere 0.1 m from the end effector)\n')
+        print('| repetitions | p50 [ms] | p99 [ms] | max [ms] |')
+        print('|---|---|---|---|')
+        lat = run_latency(500.0, args.latency_reps, args.domain)
+        fmt = (lambda v: 'n/a' if v is None else f'{v:.2f}')
+        print(f'| {lat["n"]} | {fmt(lat["p50_ms"])} | {fmt(lat["p99_ms"])} | '
+              f'{fmt(lat["max_ms"])} |')
     return 0
 
 
