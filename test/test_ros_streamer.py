@@ -221,6 +221,8 @@ def _marker(**kw):
             setattr(m.scale, k[6:], v)
         elif k == 'x':
             m.pose.position.x = v
+        elif k == 'stamp':
+            m.header.stamp.sec = int(time.time() + v)
         else:
             setattr(m, k, v)
     return m
@@ -239,6 +241,8 @@ MARKER_CASES = {
                                        'DELETEALL (3), got 5'),
     'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
     'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
+    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
+    'future_stamp': (dict(stamp=3600), 'in the future'),
 }
 
 
