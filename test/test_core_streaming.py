@@ -219,6 +219,12 @@ def test_catch_up_equals_single_steps(cdmp_text):
         for _ in range(3):
             b.advance(1, 0.0)
     assert a.y == b.y and a.yd == b.yd and a.steps == b.steps == 150
+    seen = []
+    a.advance(4, 0.0, on_step=lambda i: seen.append((i, list(a.y))))
+    assert [i for i, _ in seen] == [0, 1, 2, 3]
+    for _, y in seen:  # every intermediate step is exposed, as the single steps produce it
+        b.advance(1, 0.0)
+        assert y == b.y
 
 
 def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):

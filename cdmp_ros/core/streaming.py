@@ -341,9 +341,12 @@ class ReferenceStreamer:
         return f'{prepared.source}: stored; inputs stale ({self.reason})'
 
     # -- the tick -----------------------------------------------------------------------------
-    def advance(self, n_steps: int, now: float) -> int:
+    def advance(self, n_steps: int, now: float,
+                on_step: Optional[Callable[[int], None]] = None) -> int:
         """Advance the reference by ``n_steps`` periods; returns :class:`StreamFlags` bits.
 
+        ``on_step(i)``, if given, is called after each step (``i = 0 .. n_steps - 1``) with
+        ``y, yd`` already checked (the node publishes every step of a catch-up).
         Never raises on account of inputs: the stepper does not raise, the coupling callable is
         guarded, and the guard keeps every position finite and inside the limits.
         """
@@ -367,14 +370,17 @@ class ReferenceStreamer:
                 self._calls = 0
                 self._coupling_flags = self._coupling_into(self.active.stepper)
             flags = self._coupling_flags
-        for _ in range(max(1, int(n_steps))):
+        for i in range(max(1, int(n_steps))):
             if self.state is StreamState.RUNNING:
                 flags |= self._step_primitive()
             elif self.state is StreamState.STOPPING:
                 if self._stop.advance(dt, self.y, self.yd, self.ydd):
                     self._hold()
             self.steps += 1
-        return flags | self._guard()
+            flags |= self._guard()
+            if on_step is not None:
+                on_step(i)
+        return flags
 
     # -- internals ----------------------------------------------------------------------------
     def _fresh(self, now: float) -> bool:

@@ -308,12 +308,19 @@ class StreamerNode(Node):
         steps = k - self._k
         if steps < 1:
             steps, k = 1, self._k + 1
-        elif steps > 1:
-            self.counts['missed_ticks'] += steps - 1
         cap = self.config.max_catch_up
+        if steps > cap:  # too late: skip the oldest slots (they are reported as missed)
+            self.counts['missed_ticks'] += steps - cap
+            steps = cap
         self._k = k
         st = self.streamer
-        flags = st.advance(steps if steps <= cap else cap, now)
+        if st.state is not StreamState.WAITING:
+            # every integrated slot is published with its own stamp (a late tick catches up)
+            self._pub_base = (self.get_clock().now().nanoseconds
+                              - int((now - (self._t0 + (k - steps + 1) * dt)) * 1e9))
+            flags = st.advance(steps, now, self._publish_step)
+        else:
+            flags = st.advance(steps, now)
         c = self.counts
         c['ticks'] += 1
         if flags:
@@ -323,12 +330,12 @@ class StreamerNode(Node):
                 c['coupling_rejected'] += 1
             if flags & StreamFlags.COUPLED:
                 c['coupled'] += 1
-        if st.state is not StreamState.WAITING:
-            stamp_ns = (self.get_clock().now().nanoseconds
-                        - int((now - (self._t0 + k * dt)) * 1e9))
-            self.pub.publish(self.writer.fill(stamp_ns, st.y, st.yd))
-            c['published'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
+
+    def _publish_step(self, i: int) -> None:
+        st = self.streamer
+        self.pub.publish(self.writer.fill(self._pub_base + int(i * self._dt * 1e9), st.y, st.yd))
+        self.counts['published'] += 1
 
     def _publish_diagnostics(self) -> None:
         st = self.streamer
