@@ -50,6 +50,11 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    try:
+        from rclpy._rclpy_pybind11 import RCLError
+    except ImportError:  # pragma: no cover - other rclpy builds
+        RCLError = RuntimeError
+
     stop = threading.Event()
     if graceful:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -71,6 +76,11 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
             executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # A signal can shut the context down between two waits of the executor; rcl then
+        # refuses to build the next wait set.  That is a shutdown, not a failure.
+        if rclpy.ok():
+            raise
     except CdmpError as exc:
         print(f'[{getattr(node, "get_name", lambda: "node")()}] error: {exc}', file=sys.stderr)
         code = 2
