@@ -1,0 +1,121 @@
+"""``cdmp bringup``: graph files are validated with errors naming the key, the nodes run as
+separate processes, and Ctrl-C / SIGTERM / --duration stop them all cleanly (exit 0)."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from cdmp_ros.cli.bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
+from cdmp_ros.core.errors import ValidationError
+from conftest import ros_env
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.mark.parametrize('data, needle', [
+    ([], 'graph: expected a mapping'),
+    ({'nodes': []}, 'graph.nodes'),
+    ({'nodes': [{'executable': 'nope'}]}, 'nodes[0].executable'),
+    ({'nodes': [{'executable': 'sim', 'colour': 1}]}, "nodes[0]: unknown keys ['colour']"),
+    ({'nodes': [{'executable': 'sim', 'params_file': 'missing.yaml'}]}, 'nodes[0].params_file'),
+    ({'nodes': [{'executable': 'sim', 'parameters': {'x': {'a': 1}}}]}, 'parameter value'),
+    ({'nodes': [{'executable': 'sim', 'delay': -1}]}, 'nodes[0].delay'),
+    ({'nodes': [{'executable': 'sim'}, {'executable': 'sim'}]}, "duplicate names ['sim']"),
+    ({'nodes': [{'executable': 'sim'}], 'stop_timeout': 0}, 'graph.stop_timeout'),
+    ({'nodes': [{'executable': 'sim'}], 'extra': 1}, "unknown keys ['extra']"),
+])
+def test_bad_graphs_are_rejected_naming_the_key(data, needle):
+    with pytest.raises(ValidationError, match=None) as err:
+        parse_graph(data)
+    assert needle in str(err.value)
+
+
+def test_commands_carry_params_remaps_and_namespace(tmp_path):
+    g = parse_graph({'nodes': [{'name': 'arm', 'executable': 'streamer',
+                                'params_file': 'streamer.yaml',
+                                'parameters': {'rate': 250.0, 'coupling_enabled': False,
+                                               'joint_names': ['a', 'b'], 'urdf_path': ''},
+                                'remappings': {'goal': '/arm/goal'}, 'namespace': '/left'}]})
+    cmd = g.nodes[0].command()
+    assert cmd[1:3] == ['-m', 'cdmp_ros.nodes.streamer']
+    assert cmd[cmd.index('--params-file') + 1].endswith(os.path.join('config', 'streamer.yaml'))
+    for piece in ['rate:=250.0', 'coupling_enabled:=false', "joint_names:=['a', 'b']",
+                  "urdf_path:=''", 'goal:=/arm/goal', '__ns:=/left']:
+        assert piece in cmd
+
+
+def test_unreadable_graph_file(tmp_path):
+    p = tmp_path / 'g.yaml'
+    p.write_text('nodes: [\n')
+    with pytest.raises(ValidationError, match='not valid YAML'):
+        load_graph(str(p))
+    with pytest.raises(ValidationError, match='No such file'):
+        load_graph(str(tmp_path / 'missing.yaml'))
+
+
+def _graph(tmp_path, bag):
+    p = tmp_path / 'graph.yaml'
+    p.write_text(yaml.safe_dump({
+        'stop_timeout': 10.0,
+        'nodes': [{'name': 'streamer', 'executable': 'streamer', 'params_file': 'streamer.yaml',
+                   'parameters': {'rate': 100.0}},
+                  {'name': 'recorder', 'executable': 'recorder',
+                   'parameters': {'output': str(bag), 'topics': ['/diagnostics']}}]}))
+    return str(p)
+
+
+def test_a_graph_runs_and_ctrl_c_stops_every_node(tmp_path):
+    bag = tmp_path / 'bag'
+    proc = subprocess.Popen([sys.executable, '-m', 'cdmp_ros.cli.main', 'bringup',
+                             _graph(tmp_path, bag)], env=ros_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    lines = []
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end:
+            line = proc.stdout.readline()
+            lines.append(line)
+            if '[streamer' in line and 'streaming 7 joints' in line:
+                break
+        assert any('streaming 7 joints' in x for x in lines), ''.join(lines)
+        time.sleep(1.5)  # the recorder sees some diagnostics
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal reaches the whole group
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    out = ''.join(lines) + out
+    assert proc.returncode == 0, out
+    assert 'all nodes stopped cleanly' in out
+    assert (bag / 'metadata.yaml').is_file(), out
+
+
+def test_sigterm_and_duration_stop_the_graph(tmp_path):
+    graph = load_graph(_graph(tmp_path, tmp_path / 'bag2'))
+    b = Bringup(graph, log=open(os.devnull, 'w'), extra_env=ros_env())
+    b.start()
+    try:
+        assert b.wait(timeout=2.0) is None  # nothing required exited
+        assert not b.exited()
+    finally:
+        codes = b.stop()
+    assert set(codes) == {'streamer', 'recorder'}
+    assert all(c in CLEAN_EXIT_CODES for c in codes.values()), codes
+    assert all(p.poll() is not None for p in b.procs.values())
+
+
+def test_a_required_node_that_fails_stops_the_graph(tmp_path):
+    p = tmp_path / 'g.yaml'
+    p.write_text(yaml.safe_dump({'nodes': [
+        {'name': 'bad', 'executable': 'streamer', 'parameters': {'rate': -5.0}},
+        {'name': 'ok', 'executable': 'streamer', 'required': False}]}))
+    proc = subprocess.run([sys.executable, '-m', 'cdmp_ros.cli.main', 'bringup', str(p)],
+                          env=ros_env(), capture_output=True, text=True, timeout=90)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "required node 'bad' exited" in proc.stdout
+    assert 'rate' in proc.stdout
