@@ -125,12 +125,19 @@ def test_sphere_obstacle_changes_the_reference(graph):
     m.pose.position = Point(x=float(ee[0]) + 0.08, y=float(ee[1]), z=float(ee[2]))
     m.scale.x = m.scale.y = m.scale.z = 0.1
     t0 = time.monotonic()
+    n_lat = int(h.last_state()[1].get('obstacle_latency_n', 0))
+    m.header.stamp = h.node.get_clock().now().to_msg()  # the latency counts from this stamp
     h.publish('obstacles', MarkerArray(markers=[m]))
     moved = h.wait(lambda: np.linalg.norm(
         chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0] - ee) > 0.01, 5.0)
     assert moved
     assert h.wait(lambda: int(h.last_state()[1].get('coupled', 0)) > 0
                   and h.last_state()[1].get('obstacles') == '1', 3.0)
+    # obstacle stamp -> first reference computed with it, reported on diagnostics
+    assert h.wait(lambda: int(h.last_state()[1].get('obstacle_latency_n', 0)) > n_lat, 3.0)
+    values = h.last_state()[1]
+    p50, p99 = float(values['obstacle_latency_ms_p50']), float(values['obstacle_latency_ms_p99'])
+    assert 0.0 < p50 <= p99 < 1000.0, values
     stream_continues(h, proc)
     h.publish('obstacles', MarkerArray(markers=[Marker(ns='test', action=Marker.DELETEALL)]))
     assert h.wait(lambda: h.last_state()[1].get('obstacles') == '0', 3.0)

@@ -35,6 +35,8 @@ from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
+#: Obstacle-to-reference latencies kept for the diagnostics percentiles (a ring).
+LATENCY_SAMPLES = 4096
 
 
 def default_urdf_path() -> str:
@@ -134,6 +136,10 @@ class StreamerNode(Node):
         self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
                        'coupling_rejected': 0, 'coupled': 0}
         self.active_text = None
+        # obstacle message stamp -> publication of the first reference computed with it
+        self._latency_ms = np.zeros(LATENCY_SAMPLES)
+        self._latency_n = 0
+        self._latency_pending_ns = 0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._dt = cfg.dt
         self._t0 = time.monotonic()
@@ -260,7 +266,9 @@ class StreamerNode(Node):
         if not self._admit('obstacles', now):
             return
         good = []
+        newest = 0
         for i, m in enumerate(msg.markers):
+            newest = max(newest, m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
             if m.action == 3:  # DELETEALL needs no stamp
                 good.append(m)
                 continue
@@ -270,6 +278,9 @@ class StreamerNode(Node):
         for exc in self.obstacles.apply(good, now):
             self._reject('obstacles', str(exc))
         self.coupling_source.obstacles = self.obstacles.snapshot.items
+        # the latency is counted from the publisher's stamp (same host clock), or from the
+        # arrival when the markers are unstamped
+        self._latency_pending_ns = newest or self.get_clock().now().nanoseconds
 
     def _admit_stamp(self, topic, name, stamp) -> bool:
         cfg = self.config
@@ -336,6 +347,11 @@ class StreamerNode(Node):
         st = self.streamer
         self.pub.publish(self.writer.fill(self._pub_base + int(i * self._dt * 1e9), st.y, st.yd))
         self.counts['published'] += 1
+        if self._latency_pending_ns:
+            lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
+            self._latency_pending_ns = 0
+            self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
+            self._latency_n += 1
 
     def _publish_diagnostics(self) -> None:
         st = self.streamer
@@ -348,8 +364,19 @@ class StreamerNode(Node):
             primitive=(f'{active.kind} from {active.source}' if active else 'none'),
             obstacles=len(self.obstacles),
             min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
-            rate_hz=f'{self.config.rate:g}', **self.counts)
+            rate_hz=f'{self.config.rate:g}', **self._latency_values(), **self.counts)
         self.reporter.publish(self.get_clock().now().to_msg())
+
+    def _latency_values(self) -> dict:
+        """Obstacle message stamp -> first joint_reference published with it, over the last
+        :data:`LATENCY_SAMPLES` obstacle messages (ms)."""
+        n = min(self._latency_n, LATENCY_SAMPLES)
+        if n == 0:
+            return {'obstacle_latency_n': 0}
+        p50, p99, top = np.percentile(self._latency_ms[:n], [50.0, 99.0, 100.0])
+        return {'obstacle_latency_n': self._latency_n,
+                'obstacle_latency_ms_p50': f'{p50:.3f}', 'obstacle_latency_ms_p99': f'{p99:.3f}',
+                'obstacle_latency_ms_max': f'{top:.3f}'}
 
     def close(self) -> None:
         self.worker.stop()
