@@ -1,0 +1,318 @@
+"""Adaptation requests of the adapter node: obstacles, goals and the current state turned into
+a constrained ProMP problem (paper 003), and joint goals for DMPs / CDMPs (paper 000).
+
+Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`AdaptRequest`, and
+:func:`run_request` (in a worker thread) builds and solves the problem:
+
+- the prior ProMP is conditioned on the current joint state at phase 0 and on the joint goal
+  at phase 1 (Gaussian conditioning in weight space, paper 003 Eq. 1-3);
+- every sphere obstacle near the prior mean path becomes a repeller (Eq. 18) on the end
+  effector and on each avoided link origin, of radius ``radius + obstacle_margin``;
+- every box obstacle near the path becomes a virtual wall (Eq. 16) on the same points: the
+  plane of the box face, pushed out by ``obstacle_margin``, that leaves the prior mean path the
+  most room (a convex box is avoided by staying on the free side of one of its faces);
+- the robot's joint limits become two-sided joint-limit constraints (Eq. 12);
+- the user's constraint set (``msg_schemas/constraints.schema.json``) is added as is.
+"""
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdmp_ros.core.adaptation import AdaptationConfig, AdaptationReport, adapt
+from cdmp_ros.core.adapter_config import AdaptRequestConfig
+from cdmp_ros.core.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.ik import IkResult, solve_position_ik
+from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere
+from cdmp_ros.core.kinematics.closest import box_signed_distance
+from cdmp_ros.core.promp import ProMP
+from cdmp_ros.core.validation import as_array
+
+Obstacle = Union[Sphere, Box]
+EE = PointOfInterest('ee')
+
+#: Outcomes reported by the adapter (diagnostics key ``outcome``).
+OUTCOMES = ('converged', 'infeasible', 'unconverged', 'rejected', 'retargeted')
+
+
+# -- joint order and goals ---------------------------------------------------------------------
+def permutation(received: Sequence[str], joint_names: Sequence[str], name: str = 'primitive'
+                ) -> List[int]:
+    """Index into ``received`` of each of ``joint_names``; raises naming the differences."""
+    missing = [n for n in joint_names if n not in received]
+    unknown = [n for n in received if n not in joint_names]
+    if missing or unknown or len(received) != len(joint_names):
+        raise ValidationError(f'{name}.joint_names: expected the robot joints '
+                              f'{list(joint_names)}, got {list(received)} (missing {missing}, '
+                              f'unknown {unknown})')
+    return [list(received).index(n) for n in joint_names]
+
+
+def reorder_promp(promp: ProMP, joint_names: Sequence[str]) -> ProMP:
+    """``promp`` with its dimensions (weight blocks of mean and covariance) in the order of
+    ``joint_names``; the same object when the order already matches."""
+    perm = permutation(promp.joint_names, joint_names)
+    if perm == list(range(len(perm))):
+        return promp
+    M = promp.n_basis
+    idx = (np.asarray(perm)[:, None] * M + np.arange(M)[None, :]).ravel()
+    out = ProMP(promp.n_dims, promp.basis, promp.mean_w[idx], promp.cov_w[np.ix_(idx, idx)],
+                promp.sigma_y[perm], promp.duration, list(joint_names))
+    out.metadata = dict(promp.metadata)
+    return out
+
+
+def clip_goal(goal_y: ArrayLike, lower: ArrayLike, upper: ArrayLike, margin: float
+              ) -> Tuple[NDArray[np.float64], List[int]]:
+    """Clip a joint goal to centre +- (1 - margin) * half range; returns (goal, clipped joints)."""
+    g = np.asarray(goal_y, dtype=float)
+    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * (1.0 - margin)
+    out = np.clip(g, mid - half, mid + half)
+    return out, [int(j) for j in np.flatnonzero(out != g)]
+
+
+def solve_goal_point(chain, target: ArrayLike, seeds: Sequence[ArrayLike], tol: float = 1e-3,
+                     max_iter: int = 200, margin: float = 1e-3) -> IkResult:
+    """Joint goal putting the end effector at ``target`` (3,) [m] in the base frame.
+
+    Damped least-squares IK (:func:`cdmp_ros.core.ik.solve_position_ik`) from each seed in
+    turn (e.g. the current joint state, the primitive's goal); the first solution within
+    ``tol`` is returned.
+
+    Raises
+    ------
+    ValidationError
+        ``target`` is not 3 finite numbers, or no seed reaches it; the message gives the
+        smallest residual [m].
+    """
+    target = as_array('goal_point.point', target, (3,))
+    best: Optional[IkResult] = None
+    for seed in seeds:
+        res = solve_position_ik(chain, EE, target, seed, tol=tol, max_iter=max_iter,
+                                margin=margin)
+        if res.error <= tol:
+            return res
+        if best is None or res.error < best.error:
+            best = res
+    residual = best.error if best is not None else float('inf')
+    raise ValidationError(f'goal_point: {np.round(target, 4).tolist()} is unreachable inside '
+                          f'the joint limits (IK residual {residual:.4f} m > {tol} m)')
+
+
+def retarget_primitive_dict(d: Dict[str, Any], goal_y: ArrayLike,
+                            joint_names: Sequence[str]) -> Dict[str, Any]:
+    """A copy of a dmp/cdmp primitive dict with the goal ``goal_y`` (given in the order of
+    ``joint_names``) written into ``dmp.goal`` in the primitive's own joint order; the
+    weights are unchanged (paper 000: the goal is a parameter of the transformation system)."""
+    perm = permutation(d['joint_names'], joint_names)
+    g = np.asarray(goal_y, dtype=float)
+    goal = [0.0] * len(perm)
+    for i, p in enumerate(perm):
+        goal[p] = float(g[i])
+    out = dict(d)
+    out['dmp'] = dict(d['dmp'], goal=goal)
+    return out
+
+
+# -- obstacles -> constraints ------------------------------------------------------------------
+def obstacle_distance(obstacle: Obstacle, X: ArrayLike) -> NDArray[np.float64]:
+    """Signed distance [m] of points X (..., 3) to the obstacle surface (< 0 inside)."""
+    X = np.asarray(X, dtype=float)
+    if isinstance(obstacle, Sphere):
+        return np.linalg.norm(X - np.asarray(obstacle.center), axis=-1) - obstacle.radius
+    return box_signed_distance(X, obstacle.lower, obstacle.upper)[0]
+
+
+def box_wall(box: Box, X: ArrayLike, margin: float = 0.0
+             ) -> Tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """The face plane of ``box`` that leaves the points X (n, 3) the most room.
+
+    Returns
+    -------
+    normal : (3,)
+        Unit normal pointing into the forbidden side (into the box), as
+        :class:`~cdmp_ros.core.constraints.Hyperplane` expects: the wall holds when
+        ``normal . (x - offset) <= 0``.
+    offset : (3,)
+        A point of the plane (the face centre moved out by ``margin``).
+    clearance : float
+        min over X of the distance to the plane on the free side (negative: some points are
+        on the forbidden side).
+    """
+    X = np.asarray(X, dtype=float).reshape(-1, 3)
+    lo, hi = np.asarray(box.lower), np.asarray(box.upper)
+    centre = 0.5 * (lo + hi)
+    best = None
+    for axis in range(3):
+        for sign, face in ((1.0, hi[axis]), (-1.0, lo[axis])):
+            clearance = float(np.min(sign * (X[:, axis] - face))) - margin
+            if best is None or clearance > best[2]:
+                u = np.zeros(3)
+                u[axis] = sign
+                offset = centre.copy()
+                offset[axis] = face + sign * margin
+                best = (-u, offset, clearance)
+    return best
+
+
+@dataclass(frozen=True)
+class AdaptRequest:
+    """A snapshot of the adapter's inputs (everything in the robot's joint order).
+
+    Attributes
+    ----------
+    prior : ProMP
+        The primitive to adapt (dimensions in the chain's joint order).
+    obstacles : tuple of Sphere or Box
+        In the robot base frame.
+    constraint_doc : dict, optional
+        The user's constraint set.
+    goal_y : (n_dims,), optional
+        Joint goal (conditioning at phase 1).
+    start_y : (n_dims,), optional
+        Current joint state (conditioning at phase 0).
+    """
+
+    prior: ProMP
+    obstacles: Tuple[Obstacle, ...] = ()
+    constraint_doc: Optional[dict] = None
+    goal_y: Optional[NDArray[np.float64]] = None
+    start_y: Optional[NDArray[np.float64]] = None
+
+
+@dataclass
+class BuiltProblem:
+    """A request turned into an optimisation problem (:func:`build_problem`)."""
+
+    prior: ProMP
+    constraints: list
+    config: AdaptationConfig
+    notes: List[str] = field(default_factory=list)
+    obstacles_used: int = 0
+    obstacles_ignored: int = 0
+
+
+def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltProblem:
+    """Condition the prior and collect the constraints of a request (see the module docstring).
+
+    Raises
+    ------
+    ValidationError / ConstraintSetError
+        A link of ``cfg.avoid_links`` that the chain does not have, or a user constraint set
+        that does not fit the primitive.
+    """
+    from cdmp_ros.core.constraints.parse import RobotContext, parse_constraint_set
+    prior = req.prior
+    n = prior.n_dims
+    if n != chain.n_dofs:
+        raise ValidationError(f'primitive.n_dims: expected {chain.n_dofs} (the robot), got {n}')
+    notes = []
+    s_obs, y_obs, var = [], [], []
+    if req.start_y is not None and cfg.condition_start:
+        s_obs.append(0.0)
+        y_obs.append(np.asarray(req.start_y, float))
+        var.append(cfg.start_var)
+    if req.goal_y is not None:
+        s_obs.append(1.0)
+        y_obs.append(np.asarray(req.goal_y, float))
+        var.append(cfg.goal_var)
+    if s_obs:  # Gaussian conditioning on via-points (paper 003, Section II-A)
+        prior = prior.condition(np.array(s_obs), np.array(y_obs),
+                                np.repeat(np.array(var)[:, None], n, axis=1))
+        notes.append('conditioned on ' + ' and '.join(
+            name for name, on in (('the current state', req.start_y is not None
+                                   and cfg.condition_start),
+                                  ('the goal', req.goal_y is not None)) if on))
+    for link in cfg.avoid_links:
+        if link not in chain.link_names:
+            raise ValidationError(f'adaptation.avoid_links: {link!r} is not a link of the '
+                                  f'robot {list(chain.link_names)}')
+    pois = [EE] + [PointOfInterest(link) for link in cfg.avoid_links]
+    names = ['ee'] + list(cfg.avoid_links)
+    points = [ChainPoint(chain, p) for p in pois]  # shared: one FK / UT per time step
+    constraints: list = []
+    if cfg.joint_limits:
+        constraints += [JointLimit(j, float(chain.lower[j]), float(chain.upper[j]),
+                                   alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
+                        for j in range(n)]
+    grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
+    X = chain.forward(prior.mean(grid), pois)          # (n_steps, n_points, 3)
+    used = ignored = 0
+    for k, ob in enumerate(req.obstacles):
+        d = obstacle_distance(ob, X)                     # (n_steps, n_points)
+        if float(d.min()) > cfg.influence_distance:
+            ignored += 1
+            continue
+        used += 1
+        for i, (pt, pname) in enumerate(zip(points, names)):
+            if isinstance(ob, Sphere):
+                constraints.append(Repeller(pt, ob.center, ob.radius + cfg.obstacle_margin,
+                                            alpha=cfg.alpha, name=f'obstacle_{k}_{pname}'))
+            else:
+                normal, offset, _ = box_wall(ob, X[:, i], cfg.obstacle_margin)
+                constraints.append(Hyperplane(pt, normal, offset, alpha=cfg.alpha,
+                                              name=f'obstacle_{k}_{pname}'))
+    overrides: Dict[str, Any] = {}
+    if req.constraint_doc is not None:
+        ctx = RobotContext(n, [(chain, range(n))])
+        user, overrides = parse_constraint_set(req.constraint_doc, prior, ctx)
+        constraints += user
+    opt = dict(n_steps=int(cfg.n_steps), max_outer=int(cfg.max_outer),
+               max_inner=int(cfg.max_inner), lambda0=float(cfg.lambda0))
+    opt.update(overrides)
+    return BuiltProblem(prior, constraints, AdaptationConfig(**opt), notes, used, ignored)
+
+
+def classify(report: AdaptationReport) -> str:
+    """``converged``, ``infeasible`` (the optimiser stalled with violated constraints) or
+    ``unconverged`` (the iteration budget ran out)."""
+    if report.converged:
+        return 'converged'
+    return 'infeasible' if report.status == 'stalled_infeasible' else 'unconverged'
+
+
+@dataclass
+class AdaptResult:
+    """Outcome of :func:`run_request`: the adapted ProMP (also when not converged), the
+    optimiser report and the built problem."""
+
+    adapted: ProMP
+    report: AdaptationReport
+    outcome: str
+    problem: BuiltProblem
+
+
+def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> AdaptResult:
+    """Build and solve one request (paper 003, Algorithm 1)."""
+    prob = build_problem(req, chain, cfg)
+    adapted, report = adapt(prob.prior, prob.constraints, prob.config)
+    return AdaptResult(adapted, report, classify(report), prob)
+
+
+# -- visualisation -----------------------------------------------------------------------------
+def ee_path(chain, Y: ArrayLike) -> NDArray[np.float64]:
+    """End-effector positions (n, 3) of joint positions Y (n, n_dofs)."""
+    return chain.forward(np.asarray(Y, dtype=float), [EE])[:, 0]
+
+
+def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
+            ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """End-effector mean and an uncertainty radius at phases ``s`` (n,).
+
+    Linearised: Cov[x_t] ~ J(E[z_t]) Cov[z_t] J(E[z_t])^T (paper 003 Eq. 2 through the
+    kinematics Jacobian); radius = ``n_sigma`` * sqrt(largest eigenvalue).
+
+    Returns
+    -------
+    centres : (n, 3); radii : (n,)
+    """
+    s = np.atleast_1d(np.asarray(s, dtype=float))
+    m = promp.mean(s)
+    X, J = chain.forward_and_jacobian(m, [EE])
+    J = J[:, 0]                                            # (n, 3, D)
+    C = J @ promp.cov(s) @ np.swapaxes(J, 1, 2)            # (n, 3, 3)
+    lam = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, -1]
+    return X[:, 0], n_sigma * np.sqrt(np.maximum(lam, 0.0))

@@ -1,0 +1,192 @@
+"""Adaptation requests of the adapter (cdmp_ros.core.adapt_requests): obstacles, goals and the
+current state turned into a constrained ProMP problem, checked against independent
+computations (closed-form distances, forward kinematics, Monte Carlo)."""
+import json
+
+import numpy as np
+import pytest
+
+from adapter_harness import PANDA_JOINTS, Q_GOAL, Q_START, panda_urdf, reach_cdmp, reach_promp
+from cdmp_ros.core.adapt_requests import (AdaptRequest, box_wall, build_problem, classify,
+                                          clip_goal, ee_band, ee_path, obstacle_distance,
+                                          reorder_promp, retarget_primitive_dict, run_request,
+                                          solve_goal_point)
+from cdmp_ros.core.adaptation import AdaptationReport, monte_carlo_satisfaction
+from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.constraints import Hyperplane, JointLimit, Repeller, Waypoint
+from cdmp_ros.core.errors import ConstraintSetError, ValidationError
+from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere, panda_chain
+from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
+
+EE = PointOfInterest('ee')
+
+
+@pytest.fixture(scope='module')
+def chain():
+    return panda_chain(panda_urdf())
+
+
+@pytest.fixture(scope='module')
+def prior():
+    return reach_promp(n_basis=5)
+
+
+def test_reorder_promp_keeps_every_joint_distribution(prior, rng):
+    perm = [3, 0, 6, 1, 5, 2, 4]
+    shuffled = reorder_promp(prior, [PANDA_JOINTS[i] for i in perm])
+    back = reorder_promp(shuffled, PANDA_JOINTS)
+    s = np.linspace(0, 1, 7)
+    np.testing.assert_allclose(shuffled.mean(s), prior.mean(s)[:, perm], atol=1e-12)
+    C, Cs = prior.cov(s), shuffled.cov(s)
+    np.testing.assert_allclose(Cs, C[:, perm][:, :, perm], atol=1e-12)
+    np.testing.assert_allclose(back.cov_w, prior.cov_w, atol=0)
+    assert reorder_promp(prior, PANDA_JOINTS) is prior
+    with pytest.raises(ValidationError, match=r"unknown \['panda_joint7'\]"):
+        reorder_promp(prior, list(PANDA_JOINTS[:6]) + ['other'])
+
+
+def test_clip_goal_keeps_the_cdmp_margin():
+    lo, hi = np.array([-1.0, 0.0]), np.array([1.0, 4.0])
+    g, clipped = clip_goal([5.0, 1.0], lo, hi, 0.01)
+    assert clipped == [0]
+    np.testing.assert_allclose(g, [0.99, 1.0])        # centre 0 + 0.99 * half range 1
+    g, clipped = clip_goal([-3.0, -1.0], lo, hi, 0.01)
+    assert clipped == [0, 1]
+    np.testing.assert_allclose(g, [-0.99, 2.0 - 1.98])
+
+
+def test_goal_point_ik_reaches_a_reachable_point(chain):
+    q_true = np.array([0.3, 0.1, -0.2, -1.5, 0.1, 1.8, 0.4])
+    target = chain.forward(q_true, [EE])[0]
+    res = solve_goal_point(chain, target, [Q_START], tol=1e-4)
+    x = chain.forward(res.q, [EE])[0]        # independent FK check
+    assert np.linalg.norm(x - target) <= 1e-4
+    assert np.all(res.q > chain.lower) and np.all(res.q < chain.upper)
+
+
+def test_unreachable_goal_point_is_rejected_with_the_residual(chain):
+    with pytest.raises(ValidationError, match=r'unreachable.*IK residual [0-9.]+ m > 0.001 m'):
+        solve_goal_point(chain, [3.0, 0.0, 0.5], [Q_START, Q_GOAL], tol=1e-3, max_iter=100)
+    with pytest.raises(ValidationError, match='goal_point.point'):
+        solve_goal_point(chain, [np.nan, 0.0, 0.5], [Q_START])
+
+
+def test_retarget_writes_the_goal_in_the_primitive_joint_order():
+    d = primitive_to_dict(reach_cdmp())
+    perm = [6, 5, 4, 3, 2, 1, 0]
+    d['joint_names'] = [d['joint_names'][i] for i in perm]   # pretend it was stored reversed
+    goal = np.array([0.1, 0.2, 0.3, -1.0, 0.5, 1.6, 0.7])     # robot order
+    out = retarget_primitive_dict(d, goal, PANDA_JOINTS)
+    by_name = dict(zip(out['joint_names'], out['dmp']['goal']))
+    assert [by_name[n] for n in PANDA_JOINTS] == pytest.approx(goal.tolist())
+    assert out['dmp']['weights'] == d['dmp']['weights']
+    assert d['dmp']['goal'] != out['dmp']['goal']             # the input is not modified
+    primitive_from_dict(out)                                  # still a valid primitive
+
+
+def test_obstacle_distance_closed_form():
+    X = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 3.0, 4.0]])
+    np.testing.assert_allclose(obstacle_distance(Sphere((0.0, 0.0, 0.0), 0.5), X),
+                               [0.5, -0.5, 4.5])
+    box = Box((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1))
+    np.testing.assert_allclose(obstacle_distance(box, X),
+                               [0.9, -0.1, np.hypot(2.9, 3.9)], atol=1e-12)
+
+
+def test_box_wall_is_the_face_leaving_the_most_room(rng):
+    box = Box((0.4, -0.2, 0.0), (0.6, 0.2, 0.5))
+    X = np.column_stack([rng.uniform(0.0, 1.0, 30), rng.uniform(0.25, 0.9, 30),
+                         rng.uniform(0.0, 0.5, 30)])          # all on the +y side
+    normal, offset, clearance = box_wall(box, X, margin=0.01)
+    np.testing.assert_allclose(normal, [0.0, -1.0, 0.0])     # into the box
+    assert offset[1] == pytest.approx(0.21)
+    assert clearance == pytest.approx(X[:, 1].min() - 0.21)
+    # independent: the best face over all six by brute force
+    lo, hi = np.asarray(box.lower), np.asarray(box.upper)
+    best = max(min(s * (X[:, a] - f)) for a in range(3)
+               for s, f in ((1, hi[a]), (-1, lo[a])))
+    assert clearance == pytest.approx(best - 0.01)
+    assert np.all((X - offset) @ normal <= 0.0)               # the points satisfy the wall
+
+
+def test_build_problem_collects_limits_near_obstacles_and_conditions(chain, prior):
+    cfg = AdaptRequestConfig(n_steps=20, obstacle_margin=0.02, influence_distance=0.2)
+    x_mid = ee_path(chain, prior.mean([0.5]))[0]
+    near = Sphere(tuple(x_mid + [0.03, 0.0, 0.0]), 0.04)
+    far = Sphere((3.0, 3.0, 3.0), 0.1)
+    box = Box(tuple(x_mid + [0.15, -0.05, -0.05]), tuple(x_mid + [0.25, 0.05, 0.05]))
+    q0 = Q_START + 0.05
+    req = AdaptRequest(prior, (near, far, box), None, Q_GOAL - 0.05, q0)
+    prob = build_problem(req, chain, cfg)
+    assert (prob.obstacles_used, prob.obstacles_ignored) == (2, 1)
+    kinds = [type(c) for c in prob.constraints]
+    assert kinds.count(JointLimit) == 7
+    assert kinds.count(Repeller) == 2 and kinds.count(Hyperplane) == 2   # ee + panda_link4
+    rep = [c for c in prob.constraints if isinstance(c, Repeller)]
+    assert rep[0].radius == pytest.approx(0.06)
+    np.testing.assert_allclose(prob.prior.mean([0.0])[0], q0, atol=0.02)
+    np.testing.assert_allclose(prob.prior.mean([1.0])[0], Q_GOAL - 0.05, atol=0.02)
+    assert prob.config.n_steps == 20
+    with pytest.raises(ValidationError, match='avoid_links'):
+        build_problem(req, chain, AdaptRequestConfig(avoid_links=('no_such_link',)))
+
+
+def test_user_constraint_set_is_added_and_validated(chain, prior):
+    doc = {'constraints': [{'type': 'waypoint', 'name': 'via', 'point': {'link': 'ee'},
+                            'center': [0.4, 0.0, 0.5], 'radius': 0.05, 'support': [0.5, 0.5]}],
+           'optimizer': {'max_outer': 3}}
+    prob = build_problem(AdaptRequest(prior, (), doc), chain, AdaptRequestConfig())
+    assert isinstance(prob.constraints[-1], Waypoint) and prob.constraints[-1].name == 'via'
+    assert prob.config.max_outer == 3
+    bad = json.loads(json.dumps(doc))
+    bad['constraints'][0]['point'] = {'joint': 9}
+    with pytest.raises(ConstraintSetError, match='joint'):
+        build_problem(AdaptRequest(prior, (), bad), chain, AdaptRequestConfig())
+
+
+def test_run_request_avoids_a_sphere_on_the_mean_path(chain, prior, rng):
+    cfg = AdaptRequestConfig(n_steps=25, alpha=0.95, obstacle_margin=0.0)
+    centre = ee_path(chain, prior.mean([0.5]))[0]
+    ob = Sphere(tuple(centre), 0.05)
+    res = run_request(AdaptRequest(prior, (ob,), None, None, Q_START), chain, cfg)
+    assert res.outcome == 'converged', res.report.to_text()
+    path = ee_path(chain, res.adapted.mean(np.linspace(0, 1, 201)))
+    assert np.min(np.linalg.norm(path - centre, axis=1)) > 0.05     # the mean goes around
+    # Monte Carlo over sampled trajectories on the optimiser's grid (independent of the
+    # Gamma approximation): every per-time satisfaction close to alpha or better
+    reps = [c for c in res.problem.constraints if isinstance(c, Repeller)]
+    per_time, _, _ = monte_carlo_satisfaction(res.adapted, reps, 4000, rng, n_steps=25)
+    assert np.all(per_time >= 0.93), per_time
+
+
+def test_classify():
+    def report(conv, status):
+        return AdaptationReport(conv, status, 0.0, 0.0, 1, 1, 1, 0.0, [])
+    assert classify(report(True, 'converged')) == 'converged'
+    assert classify(report(False, 'stalled_infeasible')) == 'infeasible'
+    assert classify(report(False, 'infeasible_or_unconverged')) == 'unconverged'
+
+
+def test_ee_band_matches_monte_carlo(chain, prior, rng):
+    s = np.linspace(0.1, 0.9, 5)
+    centres, radii = ee_band(prior, chain, s, n_sigma=2.0)
+    Y = prior.sample_trajectories(s, 20000, rng)              # (n_samples, 5, 7)
+    X = chain.forward(Y, [EE])[:, :, 0]                       # (n_samples, 5, 3)
+    for i in range(len(s)):
+        C = np.cov(X[:, i].T)
+        sd = np.sqrt(np.linalg.eigvalsh(C)[-1])
+        assert radii[i] == pytest.approx(2.0 * sd, rel=0.1)
+        np.testing.assert_allclose(centres[i], X[:, i].mean(axis=0), atol=0.01)
+
+
+@pytest.mark.parametrize('cls, kw, text', [
+    (AdapterConfig, dict(max_input_rate=-1.0), 'max_input_rate'),
+    (AdapterConfig, dict(joint_names=('a', 'a')), 'joint_names'),
+    (AdapterConfig, dict(path_points=1), 'path_points'),
+    (AdaptRequestConfig, dict(alpha=1.0), 'alpha'),
+    (AdaptRequestConfig, dict(n_steps=2.5), 'n_steps'),
+    (AdaptRequestConfig, dict(avoid_links=('x', 'x')), 'avoid_links'),
+    (AdaptRequestConfig, dict(joint_limits=1), 'joint_limits')])
+def test_configs_refuse_bad_values(cls, kw, text):
+    with pytest.raises(ValidationError, match=text):
+        cls(**kw)
