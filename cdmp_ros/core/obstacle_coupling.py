@@ -22,8 +22,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.coupling import DampingConfig, coupling_3d, scalar_coupling
+from cdmp_ros.core.coupling_kernel import compile_coupling
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.fields import ZERO, BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import Box, Sphere, segment_box
 from cdmp_ros.core.validation import check_positive
@@ -111,13 +112,24 @@ class ObstacleCoupling:
             points += [PointOfInterest(name, start), PointOfInterest(name, end)]
         self.points = tuple(points)
         self._kernel = chain.fast_kernel(self.points)
-        frames, _ = chain.resolve(self.points)
+        frames, coords = chain.resolve(self.points)
         # joints that move each segment: J_o columns beyond are zero and are cut off
         self._n_moving = [int(frames[1 + 2 * i]) for i in range(len(self.segments))]
         self._axes = chain.task_axes
         fields = (sphere_field, box_field)
         self._needs_velocity = any(getattr(f, 'damping', 0.0) for f in fields)
         self.last_distances: List[float] = []
+        self._eps2 = config.damping.epsilon ** 2
+        self._lam2 = config.damping.lambda_max ** 2
+        # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
+        # generic path below handles the rest and serves as its reference in the tests.
+        self._coupled = None
+        if self._axes == (0, 1, 2) and not self._needs_velocity:
+            self._coupled = compile_coupling(
+                chain.B, chain.base_transform, chain.prismatic,
+                (int(frames[0]), coords[0]),
+                [(int(frames[1 + 2 * i]), coords[1 + 2 * i], coords[2 + 2 * i])
+                 for i in range(len(self.segments))])
 
     def _field(self, obstacle) -> Field:
         if isinstance(obstacle, Sphere):
@@ -151,6 +163,92 @@ class ObstacleCoupling:
             signed distance of the end effector and of every chosen link to its nearest
             obstacle.
         """
+        coupled = self._coupled
+        if coupled is not None:
+            dq = coupled(q.tolist() if isinstance(q, np.ndarray) else q, self._gate, obstacles,
+                         self._eps2, self._lam2)
+            return [0.0] * self.chain.n_dofs if dq is None else dq
+        return self.joint_acceleration_generic(q, qd, obstacles)
+
+    def _gate(self, x: List[float], obstacles) -> Optional[list]:
+        """Closest points and fields for the generated path (see ``compile_coupling``).
+
+        ``x``: end effector, then start and end of every segment (world). Returns None when
+        no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``.
+        """
+        radius = self.config.link_radius
+        sphere_field, box_field = self.sphere_field, self.box_field
+        use_ee = self.config.end_effector
+        e0, e1, e2 = ee = x[0], x[1], x[2]
+        ax = ay = az = 0.0
+        dmin = math.inf
+        for obs in obstacles:
+            if type(obs) is Sphere:
+                c = obs.center
+                v0, v1, v2 = e0 - c[0], e1 - c[1], e2 - c[2]
+                r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                if r > 1e-12:
+                    d, normal = r - obs.radius, (v0 / r, v1 / r, v2 / r)
+                else:
+                    d, normal = -obs.radius, (0.0, 0.0, 1.0)
+                f = sphere_field
+            elif type(obs) is Box:
+                d, normal = _point_box(ee, obs.lower, obs.upper)
+                f = box_field
+            else:
+                self._field(obs)                                # raises ValidationError
+            if d < dmin:
+                dmin = d
+            if use_ee:
+                a = f.acceleration(ee, ZERO, obs, d, normal)
+                ax += a[0]
+                ay += a[1]
+                az += a[2]
+        dists = [dmin]
+        out = [ax, ay, az]
+        active = ax != 0.0 or ay != 0.0 or az != 0.0
+        for i in range(len(self.segments)):
+            j = 3 + 6 * i
+            a0, a1, a2, b0, b1, b2 = x[j:j + 6]
+            u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
+            uu = u0 * u0 + u1 * u1 + u2 * u2
+            best_d, best = math.inf, None
+            for obs in obstacles:
+                if type(obs) is Sphere:
+                    c0, c1, c2 = obs.center
+                    t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu \
+                        if uu > 0.0 else 0.0
+                    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
+                    r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    d = r - obs.radius - radius
+                    if d < best_d:
+                        normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
+                        best_d, best = d, (obs, t, normal, sphere_field)
+                else:
+                    tt, dd, _, nn = segment_box((a0, a1, a2), (b0, b1, b2),
+                                                obs.lower, obs.upper)
+                    d = float(dd) - radius
+                    if d < best_d:
+                        best_d, best = d, (obs, float(tt), tuple(nn.tolist()), box_field)
+            dists.append(best_d)
+            if best is not None:
+                obs, t, normal, f = best
+                p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
+                a = f.acceleration(p, ZERO, obs, best_d, normal)
+                if a[0] or a[1] or a[2]:
+                    out += (True, p[0], p[1], p[2], a[0], a[1], a[2])
+                    active = True
+                    continue
+            out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self.last_distances = dists
+        return out if active else None
+
+    def joint_acceleration_generic(self, q: Sequence[float], qd: Optional[Sequence[float]],
+                                   obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
+        """:meth:`joint_acceleration` without the generated kernel (any task axes, fields
+        that depend on the velocity): kernel of both segment ends, ``J_o`` interpolated, and
+        :func:`~cdmp_ros.core.coupling.coupling_3d` / ``scalar_coupling``."""
         n = self.chain.n_dofs
         ql = q.tolist() if isinstance(q, np.ndarray) else list(q)
         qdl = (qd.tolist() if isinstance(qd, np.ndarray) else list(qd)) if qd is not None \

@@ -10,17 +10,25 @@ turns each constant rotation into a renaming of columns. The generated source is
 ``kernel.source`` for inspection; test/test_core_kinematics.py checks it against the batched
 numpy path.
 """
-from typing import Callable, List, Sequence, Tuple, Union
+import math
+import re
+from collections import Counter
+from typing import Callable, Dict, List, Sequence, Tuple, Union
 
 Value = Union[float, str]
 
 
 class _Emitter:
-    """Builds straight-line code; values are float constants or variable names."""
+    """Builds straight-line code; values are float constants or variable names.
+
+    Identical expressions are emitted once (``cache``: expression -> name; a caller that
+    opens a conditional block saves and restores it around the block)."""
 
     def __init__(self):
         self.lines: List[str] = []
         self.count = 0
+        self.indent = '    '
+        self.cache: Dict[str, str] = {}
 
     def sum(self, terms: Sequence[Tuple[float, Value, Value]]) -> Value:
         """Emit ``sum(sign * a * b)``, folding constants; return a constant or a name."""
@@ -56,10 +64,96 @@ class _Emitter:
         return self.assign(expr)
 
     def assign(self, expr: str) -> str:
-        name = f'v{self.count}'
-        self.count += 1
-        self.lines.append(f'    {name} = {expr}')
+        name = self.cache.get(expr)
+        if name is None:
+            name = self.cache[expr] = f'v{self.count}'
+            self.count += 1
+            self.lines.append(f'{self.indent}{name} = {expr}')
         return name
+
+
+_ASSIGN = re.compile(r'^\s+(v\d+) = ')
+_NAME = re.compile(r'\bv\d+\b')
+
+
+def prune(lines: List[str]) -> List[str]:
+    """Drop the generated assignments ``vN = ...`` whose value is never used."""
+    while True:
+        uses = Counter(_NAME.findall('\n'.join(lines)))
+        keep = [line for line in lines
+                if not ((m := _ASSIGN.match(line)) and uses[m.group(1)] == 1)]
+        if len(keep) == len(lines):
+            return lines
+        lines = keep
+
+
+def emit_frames(em: _Emitter, B, base, prismatic, qn: Sequence[str]):
+    """Emit the frame recursion of :meth:`Chain._frames`; returns the rotations ``Rs`` and
+    origins ``ps`` of internal frames 0..n_dofs (3x3 and 3 lists of values)."""
+    R = [[float(base[i, j]) for j in range(3)] for i in range(3)]
+    p = [float(base[i, 3]) for i in range(3)]
+    Rs, ps = [R], [p]
+    for k in range(len(prismatic)):
+        b = B[k]
+        p = [em.sum([(1.0, p[i], 1.0)] + [(1.0, R[i][m], float(b[m, 3])) for m in range(3)])
+             for i in range(3)]
+        M = [[em.sum([(1.0, R[i][m], float(b[m, j])) for m in range(3)]) for j in range(3)]
+             for i in range(3)]
+        if prismatic[k]:
+            p = [em.sum([(1.0, p[i], 1.0), (1.0, M[i][2], qn[k])]) for i in range(3)]
+            R = M
+        else:
+            c = em.assign(f'cos({qn[k]})')
+            s = em.assign(f'sin({qn[k]})')
+            R = [[em.sum([(1.0, M[i][0], c), (1.0, M[i][1], s)]),
+                  em.sum([(1.0, M[i][1], c), (-1.0, M[i][0], s)]),
+                  M[i][2]] for i in range(3)]
+        Rs.append(R)
+        ps.append(p)
+    return Rs, ps
+
+
+def emit_point(em: _Emitter, Rs, ps, k: int, coords) -> List[Value]:
+    """Emit the world position of the point with coordinates ``coords`` in frame ``k``."""
+    c = [float(v) for v in coords]
+    return [em.sum([(1.0, ps[k][i], 1.0)] + [(1.0, Rs[k][i][m], c[m]) for m in range(3)])
+            for i in range(3)]
+
+
+def emit_jacobian(em: _Emitter, Rs, ps, prismatic, k: int, x: Sequence[Value]
+                  ) -> List[Tuple[Value, Value, Value]]:
+    """Emit the Jacobian columns (n_dofs 3-tuples) of the world point ``x`` rigidly attached
+    to internal frame ``k``: ``z_j x (x - p_j)`` (revolute) or ``z_j`` (prismatic), zero for
+    the joints at or after ``k``."""
+    cols = []
+    for j in range(len(prismatic)):
+        if j >= k:
+            cols.append((0.0, 0.0, 0.0))
+            continue
+        z = [Rs[j + 1][i][2] for i in range(3)]
+        if prismatic[j]:
+            cols.append(tuple(z))
+            continue
+        d = [em.sum([(1.0, x[i], 1.0), (-1.0, ps[j + 1][i], 1.0)]) for i in range(3)]
+        cols.append((em.sum([(1.0, z[1], d[2]), (-1.0, z[2], d[1])]),
+                     em.sum([(1.0, z[2], d[0]), (-1.0, z[0], d[2])]),
+                     em.sum([(1.0, z[0], d[1]), (-1.0, z[1], d[0])])))
+    return cols
+
+
+def literal(v: Value) -> str:
+    """Source text of a value (a float constant or a variable name)."""
+    return repr(v) if isinstance(v, float) else v
+
+
+def build(source: str, name: str, namespace: dict):
+    """Compile generated ``source`` and return its function ``name`` (``.source`` attached)."""
+    scope = {}
+    exec(compile(source, '<cdmp_ros.kinematics.fast>', 'exec'),  # noqa: S102 (generated)
+         dict(namespace), scope)
+    fn = scope[name]
+    fn.source = source
+    return fn
 
 
 def compile_kernel(B, base, prismatic, frames: Sequence[int], coords
@@ -89,54 +183,16 @@ def compile_kernel(B, base, prismatic, frames: Sequence[int], coords
     em = _Emitter()
     qn = [f'q{k}' for k in range(n)]
     em.lines.append(f'    {", ".join(qn)}, = q')
-    R = [[float(base[i, j]) for j in range(3)] for i in range(3)]
-    p = [float(base[i, 3]) for i in range(3)]
-    Rs, ps = [R], [p]
-    for k in range(n):
-        b = B[k]
-        p = [em.sum([(1.0, p[i], 1.0)] + [(1.0, R[i][m], float(b[m, 3])) for m in range(3)])
-             for i in range(3)]
-        M = [[em.sum([(1.0, R[i][m], float(b[m, j])) for m in range(3)]) for j in range(3)]
-             for i in range(3)]
-        if prismatic[k]:
-            p = [em.sum([(1.0, p[i], 1.0), (1.0, M[i][2], qn[k])]) for i in range(3)]
-            R = M
-        else:
-            c = em.assign(f'cos({qn[k]})')
-            s = em.assign(f'sin({qn[k]})')
-            R = [[em.sum([(1.0, M[i][0], c), (1.0, M[i][1], s)]),
-                  em.sum([(1.0, M[i][1], c), (-1.0, M[i][0], s)]),
-                  M[i][2]] for i in range(3)]
-        Rs.append(R)
-        ps.append(p)
+    Rs, ps = emit_frames(em, B, base, prismatic, qn)
     xs, jac = [], []
     for k, c in zip(frames, coords):
-        c = [float(v) for v in c]
-        x = [em.sum([(1.0, ps[k][i], 1.0)] + [(1.0, Rs[k][i][m], c[m]) for m in range(3)])
-             for i in range(3)]
+        x = emit_point(em, Rs, ps, k, c)
         xs += x
-        cols = []
-        for j in range(n):
-            if j >= k:
-                cols.append((0.0, 0.0, 0.0))
-                continue
-            z = [Rs[j + 1][i][2] for i in range(3)]
-            if prismatic[j]:
-                cols.append(tuple(z))
-                continue
-            d = [em.sum([(1.0, x[i], 1.0), (-1.0, ps[j + 1][i], 1.0)]) for i in range(3)]
-            cols.append((em.sum([(1.0, z[1], d[2]), (-1.0, z[2], d[1])]),
-                         em.sum([(1.0, z[2], d[0]), (-1.0, z[0], d[2])]),
-                         em.sum([(1.0, z[0], d[1]), (-1.0, z[1], d[0])])))
+        cols = emit_jacobian(em, Rs, ps, prismatic, k, x)
         for i in range(3):
             jac += [col[i] for col in cols]
-    body = '\n'.join(em.lines)
-    ret_x = ', '.join(repr(v) if isinstance(v, float) else v for v in xs)
-    ret_j = ', '.join(repr(v) if isinstance(v, float) else v for v in jac)
-    source = (f'def kernel(q):\n{body}\n    return [{ret_x}], [{ret_j}]\n')
-    namespace = {}
-    exec(compile(source, '<cdmp_ros.kinematics.fast>', 'exec'),  # noqa: S102 (generated)
-         {'cos': __import__('math').cos, 'sin': __import__('math').sin}, namespace)
-    kernel = namespace['kernel']
-    kernel.source = source
-    return kernel
+    ret_x = ', '.join(literal(v) for v in xs)
+    ret_j = ', '.join(literal(v) for v in jac)
+    body = '\n'.join(prune(em.lines + [f'    return [{ret_x}], [{ret_j}]']))
+    source = f'def kernel(q):\n{body}\n'
+    return build(source, 'kernel', {'cos': math.cos, 'sin': math.sin})
