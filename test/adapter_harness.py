@@ -3,6 +3,7 @@ a recorder of ``adapted_primitive``, ``visualization`` and ``diagnostics``.
 
 Runs in its own rclpy context on a private domain id, spun by a background thread.
 """
+import hashlib
 import json
 import os
 import signal
@@ -110,6 +111,8 @@ class Harness:
                               qos_profiles.LATCHED)
         n.create_subscription(MarkerArray, 'visualization', self._on_viz, qos_profiles.LATCHED)
         n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
+        self.robot_q = None      # published on joint_states at 20 Hz while not None
+        n.create_timer(0.05, self._robot)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)
         self._stop = threading.Event()
@@ -142,6 +145,11 @@ class Harness:
                                            if isinstance(s.level, bytes) else int(s.level),
                                            {kv.key: kv.value for kv in s.values}))
 
+    def _robot(self):
+        q = self.robot_q
+        if q is not None:
+            self.pub['joint_states'].publish(self.make_joint_state(q))
+
     # -- helpers -----------------------------------------------------------------------------
     def publish(self, topic, msg):
         self.pub[topic].publish(msg)
@@ -162,10 +170,21 @@ class Harness:
             time.sleep(0.02)
         return pred()
 
-    def wait_adapted(self, n0, timeout=20.0):
-        """Wait for an adapted primitive after the first ``n0``; returns its dict or None."""
-        if self.wait(lambda: self.n_adapted() > n0, timeout):
-            return self.last_adapted()
+    def wait_adapted(self, n0, timeout=20.0, trigger=None, source=None):
+        """Wait for an adapted primitive after the first ``n0`` (caused by ``trigger``, and
+        adapted from the primitive JSON text ``source``, if given); returns its dict or None."""
+        sha = None if source is None else hashlib.sha1(source.encode()).hexdigest()
+
+        def match():
+            with self.lock:
+                for _, d in self.adapted[n0:]:
+                    meta = d.get('metadata', {}).get('adapter', {})
+                    if ((trigger is None or meta.get('trigger') == trigger)
+                            and (sha is None or meta.get('source_sha1') == sha)):
+                        return d
+            return None
+        if self.wait(lambda: match() is not None, timeout):
+            return match()
         return None
 
     def wait_diag(self, text, since, timeout=5.0, name=None):

@@ -1,0 +1,497 @@
+"""The adapter node: the slow path of the graph (design.md, Data flow).
+
+Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
+(MarkerArray), ``goal`` (JointState), ``goal_point`` (PointStamped, base frame),
+``constraints`` (JSON constraint set) and ``joint_states``; publishes ``adapted_primitive``
+(JSON, latched), ``visualization`` (MarkerArray, latched) and ``diagnostics``.
+
+- DMP / CDMP primitives: a goal (``goal``, or ``goal_point`` through the IK) gives an adapted
+  primitive with the new goal and the same weights, published at once. Obstacles are handled
+  by the streamer's coupling terms; the adapter only shows them on ``visualization``.
+- ProMPs: every change of the primitive, the obstacles, the goal or the constraint set submits
+  an adaptation request (:mod:`cdmp_ros.core.adapt_requests`) to the solver thread
+  (:mod:`cdmp_ros.ros.adapter_worker`: latest request wins, stale converged results are still
+  published). Only converged adaptations are published; an infeasible or unconverged solve is
+  reported on ``diagnostics`` (WARN / ERROR with the satisfaction probabilities) and the last
+  good primitive stays latched.
+- A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
+
+Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
+each rejection is logged and counted on ``diagnostics``.
+
+QoS (:mod:`cdmp_ros.ros.qos_profiles`): ``primitive`` subscribed and ``adapted_primitive``
+published transient-local (a restarted adapter gets the latched primitive; a restarted
+streamer gets the latest adapted one); ``visualization`` transient-local (a late RViz sees
+the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
+``diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
+"""
+import hashlib
+import json
+import math
+import os
+import time
+from typing import Optional
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from visualization_msgs.msg import MarkerArray
+
+from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, ee_path, permutation,
+                                          reorder_promp, retarget_primitive_dict,
+                                          solve_goal_point)
+from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.constraints.parse import (RobotContext, parse_constraint_set,
+                                             validate_constraint_set)
+from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.kinematics import panda_chain
+from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
+from cdmp_ros.core.streaming import RateLimiter
+from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros.adapter_viz import build_markers
+from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker, solve_job
+from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp, stamp_to_ns
+from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.params import ConfigParameters
+
+INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
+
+
+def default_urdf_path() -> str:
+    """The Panda URDF shipped with pybullet_data (as the streamer's)."""
+    import pybullet_data
+    return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
+
+
+class AdapterNode(Node):
+    """See the module docstring; parameters mirror :class:`AdapterConfig` (top level) and
+    :class:`AdaptRequestConfig` (``adaptation.*``)."""
+
+    def __init__(self, **kwargs):
+        super().__init__('adapter', **kwargs)
+        self.params = ConfigParameters(self, [('', AdapterConfig),
+                                              ('adaptation', AdaptRequestConfig)],
+                                       on_change=self._on_params)
+        cfg: AdapterConfig = self.params['']
+        self.urdf_path = cfg.urdf_path or default_urdf_path()
+        self.chain = self._load_chain(cfg)
+        self._check_links(self.params['adaptation'])
+        self.joint_names = list(cfg.joint_names)
+        self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
+        self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
+        self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
+                                     cfg.max_obstacle_distance)
+        self._limiters = {}
+        self._make_limiters(cfg)
+        # state
+        self.primitive = None        # dict: kind, d (validated dict), prim, perm
+        self.primitive_id = 0
+        self.constraint_doc = None
+        self.goal_y: Optional[np.ndarray] = None
+        self.goal_point: Optional[np.ndarray] = None
+        self.q: Optional[np.ndarray] = None
+        self.q_time = -math.inf
+        self._obstacle_items = ()
+        self.counts = {'published': 0, 'outcome_converged': 0, 'outcome_infeasible': 0,
+                       'outcome_unconverged': 0, 'outcome_rejected': 0,
+                       'requests_outdated': 0}
+
+        self.pub = self.create_publisher(String, 'adapted_primitive', qos_profiles.LATCHED)
+        self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos_profiles.LATCHED)
+        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+                                              qos_profiles.COMMAND)
+        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
+        self.reporter.set_state(OK, 'waiting for a primitive', outcome='none')
+        self.create_subscription(String, 'primitive', self._on_primitive, qos_profiles.LATCHED)
+        self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
+                                 qos_profiles.COMMAND)
+        self.create_subscription(JointState, 'goal', self._on_goal, qos_profiles.COMMAND)
+        self.create_subscription(PointStamped, 'goal_point', self._on_goal_point,
+                                 qos_profiles.COMMAND)
+        self.create_subscription(String, 'constraints', self._on_constraints,
+                                 qos_profiles.COMMAND)
+        self.create_subscription(JointState, 'joint_states', self._on_joint_states,
+                                 qos_profiles.SENSOR)
+        self._results_ready = self.create_guard_condition(self._on_results)
+        self.worker = SolveWorker(lambda job: solve_job(job, self.chain),
+                                  self._results_ready.trigger)
+        self.worker.start()
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
+                                            clock=self._steady)
+        self.get_logger().info(
+            f'adapting primitives from {self.resolve_topic_name("primitive")} to '
+            f'{self.resolve_topic_name("adapted_primitive")}; robot {self.urdf_path}')
+
+    # -- setup -------------------------------------------------------------------------------
+    def _load_chain(self, cfg: AdapterConfig):
+        try:
+            chain = panda_chain(self.urdf_path)
+        except (OSError, CdmpError) as exc:
+            raise ValidationError(f'urdf_path: cannot load a Panda from {self.urdf_path!r}: '
+                                  f'{exc}') from None
+        if list(chain.joint_names) != list(cfg.joint_names):
+            raise ValidationError(f'joint_names: expected the joints of {self.urdf_path!r} '
+                                  f'{list(chain.joint_names)}, got {list(cfg.joint_names)}')
+        return chain
+
+    def _check_links(self, acfg: AdaptRequestConfig) -> None:
+        bad = [n for n in acfg.avoid_links if n not in self.chain.link_names]
+        if bad:
+            raise ValidationError(f'adaptation.avoid_links: {bad} are not links of the robot '
+                                  f'{list(self.chain.link_names)}')
+
+    def _make_limiters(self, cfg: AdapterConfig) -> None:
+        for topic in INPUT_TOPICS:
+            self._limiters[topic] = RateLimiter(cfg.max_input_rate)
+        self._limiters['joint_states'] = RateLimiter(cfg.max_joint_states_rate)
+
+    def _on_params(self, configs) -> None:
+        """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
+        cfg: AdapterConfig = configs['']
+        self._check_links(configs['adaptation'])
+        self.obstacles.max_obstacles = cfg.max_obstacles
+        self.obstacles.max_size = cfg.max_obstacle_size
+        self.obstacles.max_distance = cfg.max_obstacle_distance
+        self._make_limiters(cfg)
+        if abs(cfg.diagnostics_period - self.diag_timer.timer_period_ns * 1e-9) > 1e-9:
+            self.diag_timer.cancel()
+            self.destroy_timer(self.diag_timer)
+            self.diag_timer = self.create_timer(cfg.diagnostics_period,
+                                                self._publish_diagnostics, clock=self._steady)
+
+    @property
+    def config(self) -> AdapterConfig:
+        return self.params['']
+
+    # -- input checks ------------------------------------------------------------------------
+    def _admit(self, topic: str, stamps=()) -> bool:
+        """Flooding and stamp checks shared by the subscriptions."""
+        lim = self._limiters[topic]
+        if not lim.allow(time.monotonic()):
+            if lim.dropped == 1 or lim.dropped % 100 == 0:
+                self.reporter.reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
+                                            f'{lim.dropped} dropped so far')
+            return False
+        cfg = self.config
+        now_ns = self.get_clock().now().nanoseconds
+        try:
+            for name, stamp in stamps:
+                check_stamp(name, stamp, now_ns, cfg.max_stamp_age, cfg.max_stamp_lead,
+                            cfg.accept_unstamped)
+        except ValidationError as exc:
+            self._reject(topic, str(exc))
+            return False
+        return True
+
+    def _reject(self, topic: str, reason: str) -> None:
+        self.reporter.reject(topic, reason)
+        self.reporter.publish_if_due(self.get_clock().now().to_msg())
+
+    def _json(self, topic: str, text: str):
+        """Size check and JSON decoding of a String payload (raises ValidationError)."""
+        size = len(text.encode('utf-8', 'surrogatepass'))
+        if size > self.config.max_json_bytes:
+            raise ValidationError(f'{topic}: payload of {size} bytes exceeds max_json_bytes '
+                                  f'= {self.config.max_json_bytes}')
+        try:
+            return json.loads(text)
+        except (json.JSONDecodeError, RecursionError) as exc:
+            raise ValidationError(f'{topic}: not valid JSON ({exc})') from None
+
+    # -- subscriptions -----------------------------------------------------------------------
+    def _on_joint_states(self, msg: JointState) -> None:
+        if not self._admit('joint_states', [('joint_states.header.stamp', msg.header.stamp)]):
+            return
+        try:
+            q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
+        except ValidationError as exc:
+            self._reject('joint_states', str(exc))
+            return
+        lo, hi, tol = self.chain.lower, self.chain.upper, self.config.joint_states_tolerance
+        out = np.flatnonzero((q < lo - tol) | (q > hi + tol))
+        if out.size:
+            j = int(out[0])
+            self._reject('joint_states', f'joint_states.position of {self.joint_names[j]!r}: '
+                                         f'{q[j]:.4g} is outside the limits [{lo[j]}, {hi[j]}]')
+            return
+        self.q = np.clip(q, lo, hi)
+        self.q_time = time.monotonic()
+
+    def _on_primitive(self, msg: String) -> None:
+        if not self._admit('primitive'):
+            return
+        try:
+            d = self._json('primitive', msg.data)
+            validate_primitive_dict(d)
+            perm = permutation(d['joint_names'], self.joint_names)
+            prim = primitive_from_dict(d)
+            if d['kind'] == 'promp':
+                prim = reorder_promp(prim, self.joint_names)
+        except CdmpError as exc:
+            self._reject('primitive', str(exc))
+            return
+        except (ValueError, TypeError, KeyError) as exc:
+            self._reject('primitive', f'primitive: cannot be used: {exc!r}')
+            return
+        self.primitive_id += 1
+        self.primitive = {'kind': d['kind'], 'd': d, 'prim': prim, 'perm': perm,
+                          'sha1': hashlib.sha1(msg.data.encode('utf-8', 'surrogatepass'))
+                          .hexdigest()}
+        self.goal_y = self.goal_point = None
+        self.get_logger().info(f'new {d["kind"]} primitive ({len(msg.data)} bytes)')
+        self._trigger('primitive', 0)
+
+    def _on_constraints(self, msg: String) -> None:
+        if not self._admit('constraints'):
+            return
+        try:
+            doc = self._json('constraints', msg.data)
+            validate_constraint_set(doc)
+            if self.primitive is not None and self.primitive['kind'] == 'promp':
+                n = self.chain.n_dofs
+                parse_constraint_set(doc, self.primitive['prim'],
+                                     RobotContext(n, [(self.chain, range(n))]))
+        except CdmpError as exc:
+            self._reject('constraints', str(exc))
+            return
+        self.constraint_doc = doc if doc['constraints'] or doc.get('optimizer') else None
+        self.get_logger().info(f'constraint set with {len(doc["constraints"])} constraints')
+        self._trigger('constraints', 0)
+
+    def _on_goal(self, msg: JointState) -> None:
+        if not self._admit('goal', [('goal.header.stamp', msg.header.stamp)]):
+            return
+        try:
+            g, _ = self.goal_mapper.to_arrays(msg, 'goal')
+        except ValidationError as exc:
+            self._reject('goal', str(exc))
+            return
+        self._set_goal('goal', g, None, stamp_to_ns(msg.header.stamp))
+
+    def _on_goal_point(self, msg: PointStamped) -> None:
+        if not self._admit('goal_point', [('goal_point.header.stamp', msg.header.stamp)]):
+            return
+        cfg = self.config
+        frame = msg.header.frame_id
+        try:
+            if frame and frame.lstrip('/') != cfg.base_frame:
+                raise ValidationError(f'goal_point.header.frame_id: expected the robot base '
+                                      f'frame {cfg.base_frame!r} (or empty), got {frame!r}')
+            p = msg.point
+            target = np.array([p.x, p.y, p.z])
+            for axis, v in zip('xyz', target):
+                if not math.isfinite(v):
+                    raise ValidationError(f'goal_point.point.{axis}: expected a finite value, '
+                                          f'got {v}')
+            res = solve_goal_point(self.chain, target, self._ik_seeds(), cfg.ik_tolerance,
+                                   cfg.ik_max_iter, margin=cfg.goal_margin)
+        except ValidationError as exc:
+            self._reject('goal_point', str(exc))
+            return
+        self._set_goal('goal_point', res.q, target, stamp_to_ns(msg.header.stamp))
+
+    def _ik_seeds(self):
+        seeds = []
+        if self.q is not None:
+            seeds.append(self.q)
+        g = self._primitive_goal()
+        if g is not None:
+            seeds.append(g)
+        seeds.append(0.5 * (self.chain.lower + self.chain.upper))
+        return seeds
+
+    def _primitive_goal(self) -> Optional[np.ndarray]:
+        """The primitive's own goal in the robot joint order."""
+        p = self.primitive
+        if p is None:
+            return None
+        if p['kind'] == 'promp':
+            return p['prim'].mean([1.0])[0]
+        return np.asarray(p['d']['dmp']['goal'], dtype=float)[p['perm']]
+
+    def _set_goal(self, topic: str, g: np.ndarray, point, stamp_ns: int) -> None:
+        lo, hi = self.chain.lower, self.chain.upper
+        gc, clipped = clip_goal(g, lo, hi, self.config.goal_margin)
+        if clipped:
+            changes = ', '.join(f'{self.joint_names[j]} {g[j]:.4g} -> {gc[j]:.4g}'
+                                for j in clipped)
+            self._reject(topic, f'{topic} outside the limits, clipped with the CDMP margin: '
+                                f'{changes}')
+        self.goal_y, self.goal_point = gc, point
+        self.get_logger().info(f'new goal from {topic}: {np.round(gc, 4).tolist()}',
+                               throttle_duration_sec=1.0)
+        self._trigger(topic, stamp_ns)
+
+    def _on_obstacles(self, msg: MarkerArray) -> None:
+        if not self._admit('obstacles'):
+            return
+        good, stamp_ns = [], 0
+        cfg = self.config
+        now_ns = self.get_clock().now().nanoseconds
+        for i, m in enumerate(msg.markers):
+            if m.action != 3:  # DELETEALL needs no stamp
+                try:
+                    check_stamp(f'obstacles.markers[{i}].header.stamp', m.header.stamp, now_ns,
+                                cfg.max_stamp_age, cfg.max_stamp_lead, cfg.accept_unstamped)
+                except ValidationError as exc:
+                    self._reject('obstacles', str(exc))
+                    continue
+                stamp_ns = max(stamp_ns, stamp_to_ns(m.header.stamp))
+            good.append(m)
+        for exc in self.obstacles.apply(good, time.monotonic()):
+            self._reject('obstacles', str(exc))
+        self._obstacles_changed('obstacles', stamp_ns)
+
+    def _obstacles_changed(self, topic: str, stamp_ns: int) -> None:
+        items = self.obstacles.snapshot.items
+        if items == self._obstacle_items:
+            return
+        self._obstacle_items = items
+        if self.primitive is not None and self.primitive['kind'] == 'promp':
+            self._trigger(topic, stamp_ns)
+        else:  # DMP / CDMP: the streamer's coupling handles obstacles
+            self._publish_dmp_visualization()
+
+    # -- requests ----------------------------------------------------------------------------
+    def _trigger(self, topic: str, stamp_ns: int) -> None:
+        p = self.primitive
+        if p is None:
+            self.reporter.set_state(OK, f'waiting for a primitive ({topic} stored)')
+            self._publish_dmp_visualization()
+            return
+        if p['kind'] != 'promp':
+            self._retarget_dmp(topic)
+            return
+        cfg = self.config
+        start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
+        req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
+                           self.goal_y, start)
+        self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
+                               time.monotonic(), self.primitive_id, p['sha1']))
+
+    def _retarget_dmp(self, topic: str) -> None:
+        """DMP / CDMP: publish the primitive with the new goal (same weights)."""
+        if self.goal_y is None:
+            self._publish_dmp_visualization()
+            return
+        p = self.primitive
+        goal = self.goal_y
+        if 'limits' in p['d']:  # a CDMP's own limits may be tighter than the robot's
+            lim = p['d']['limits']
+            goal, clipped = clip_goal(goal, np.asarray(lim['lower'])[p['perm']],
+                                      np.asarray(lim['upper'])[p['perm']],
+                                      self.config.goal_margin)
+            if clipped:
+                self._reject(topic, f'{topic} outside the primitive limits, clipped: '
+                                    + ', '.join(self.joint_names[j] for j in clipped))
+        d = retarget_primitive_dict(p['d'], goal, self.joint_names)
+        d['metadata'] = dict(d.get('metadata') or {})
+        d['metadata']['adapter'] = {'trigger': topic, 'outcome': 'retargeted',
+                                    'source_sha1': p['sha1']}
+        self.pub.publish(String(data=json.dumps(d)))
+        self.counts['published'] += 1
+        self.reporter.set_state(OK, f'{p["kind"]} retargeted to the goal from {topic}',
+                                outcome='retargeted')
+        self._publish_dmp_visualization(d)
+
+    def _publish_dmp_visualization(self, d=None) -> None:
+        """Obstacles and (with a DMP/CDMP primitive) its rollout from the current state."""
+        path = None
+        p = self.primitive
+        if p is not None and p['kind'] != 'promp':
+            try:
+                prim = primitive_from_dict(d) if d is not None else p['prim']
+                perm = p['perm']
+                start = None
+                if self.q is not None:
+                    start = np.empty(len(perm))
+                    start[perm] = self.q
+                tr = prim.rollout(dt=0.01, start_y=start, duration=1.2 * prim.tau_)
+                Y = tr.Y[:, perm]
+                idx = np.linspace(0, len(Y) - 1, self.config.path_points).round().astype(int)
+                path = ee_path(self.chain, Y[idx])
+            except (CdmpError, ValueError) as exc:  # a primitive that cannot be rolled out
+                self.get_logger().warning(f'visualization: {exc}', throttle_duration_sec=5.0)
+        self._publish_markers(path, None)
+
+    def _publish_markers(self, path, band) -> None:
+        self.viz_pub.publish(build_markers(self.config.base_frame,
+                                           self.get_clock().now().to_msg(), path, band,
+                                           self.obstacles.snapshot.items, self.goal_point))
+
+    # -- results -----------------------------------------------------------------------------
+    def _on_results(self) -> None:
+        for res in self.worker.take():
+            self._handle_result(res)
+
+    def _handle_result(self, res: JobResult) -> None:
+        job = res.job
+        if job.primitive_id != self.primitive_id:  # adapted a primitive replaced since
+            self.counts['requests_outdated'] += 1
+            return
+        self.counts[f'outcome_{res.outcome}'] += 1
+        self.reporter.timing('solve', res.solve_time)
+        values = {k: v for k, v in self.reporter.values.items() if not k.startswith('p.')}
+        self.reporter.values = values
+        kv = {'outcome': res.outcome, 'solve_time_ms': f'{res.solve_time * 1e3:.1f}',
+              'trigger': job.trigger, 'request_id': job.id, 'stale': res.stale}
+        if res.outcome == 'rejected':
+            self._reject(res.error_topic or job.trigger, res.error)
+            self.reporter.set_state(ERROR, f'request {job.id} ({job.trigger}) rejected: '
+                                           f'{res.error}', **kv)
+            self._publish_now()
+            return
+        rep = res.result.report
+        kv.update(kl=f'{rep.kl:.6g}', iterations=rep.n_inner, outer_iterations=rep.n_outer,
+                  obstacles_used=res.result.problem.obstacles_used,
+                  obstacles_ignored=res.result.problem.obstacles_ignored)
+        for c in rep.constraints:
+            kv[f'p.{c.name}'] = f'{c.probability:.6f} (alpha {c.alpha:g})'
+        if res.outcome == 'converged':
+            self.pub.publish(String(data=res.text))
+            self._publish_markers(res.path, res.band)
+            self.counts['published'] += 1
+            latency = time.monotonic() - job.received
+            self.reporter.timing('request_to_publish', latency)
+            kv['latency_ms'] = f'{latency * 1e3:.1f}'
+            self.reporter.set_state(OK, f'request {job.id} ({job.trigger}) converged'
+                                    + (' (stale: a newer request is pending)'
+                                       if res.stale else ''), **kv)
+        else:
+            violated = [f'{c.name} P={c.probability:.4f} < {c.alpha:g}'
+                        for c in rep.constraints if not c.satisfied]
+            level = ERROR if res.outcome == 'infeasible' else WARN
+            self.reporter.set_state(level, f'request {job.id} ({job.trigger}) {res.outcome}: '
+                                           f'{", ".join(violated[:5])}; last good primitive '
+                                           f'kept', **kv)
+            self.get_logger().warning(f'adaptation {res.outcome} ({rep.status}): '
+                                      f'{", ".join(violated[:5])}')
+        self._publish_now()
+
+    # -- diagnostics -------------------------------------------------------------------------
+    def _publish_now(self) -> None:
+        self.reporter.set_state(self.reporter.level, self.reporter.message,
+                                **self.worker.summary(), **self.counts)
+        self.reporter.publish(self.get_clock().now().to_msg())
+
+    def _publish_diagnostics(self) -> None:
+        if self.obstacles.expire(time.monotonic()):
+            self._obstacles_changed('obstacles', 0)
+        p = self.primitive
+        self.reporter.set_state(self.reporter.level, self.reporter.message,
+                                primitive=p['kind'] if p else 'none',
+                                obstacles=len(self.obstacles),
+                                constraints=(len(self.constraint_doc['constraints'])
+                                             if self.constraint_doc else 0),
+                                goal=('none' if self.goal_y is None
+                                      else np.round(self.goal_y, 4).tolist()))
+        self._publish_now()
+
+    def close(self) -> None:
+        self.worker.stop()
+        self.worker.join(timeout=2.0)

@@ -1,0 +1,160 @@
+"""The adapter's solver thread: constrained ProMP adaptations off the executor thread.
+
+:class:`SolveWorker` runs one request at a time; ``submit`` replaces a request that has not
+started yet (latest request wins: the replaced one is counted as *dropped*). A running solve is
+never interrupted. When it finishes while a newer request is already waiting, its result is
+marked *stale*; the node still publishes a stale result if it converged (a newer plan follows
+within one solve time, and publishing avoids starving the output while obstacles keep
+moving), and says so on ``diagnostics``. A result computed for a primitive that has been
+replaced in the meantime is discarded by the node (counted as ``requests_outdated``).
+
+The worker calls ``notify()`` (a ROS guard condition's ``trigger``) after each result, so the
+executor publishes it without polling. Everything computed here is plain data (JSON text,
+numpy arrays); no ROS call is made from this thread.
+"""
+import json
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional
+
+import numpy as np
+
+from cdmp_ros.core.adapt_requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
+                                          run_request)
+from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.errors import CdmpError, ConstraintSetError
+from cdmp_ros.core.primitive_io import primitive_to_dict
+
+
+@dataclass
+class Job:
+    """One adaptation request with its provenance."""
+
+    request: AdaptRequest
+    config: AdaptRequestConfig
+    node_config: AdapterConfig
+    trigger: str                  # topic whose message caused the request
+    trigger_stamp_ns: int         # header stamp of that message (0 if none)
+    received: float               # time.monotonic() of the triggering callback
+    primitive_id: int = 0         # which received primitive the request adapts
+    source_sha1: str = ''         # SHA-1 of that primitive's JSON text
+    id: int = 0
+
+
+@dataclass
+class JobResult:
+    """What the executor publishes for a finished job."""
+
+    job: Job
+    outcome: str                          # converged / infeasible / unconverged / rejected
+    solve_time: float                     # [s], building + solving
+    text: Optional[str] = None            # adapted primitive JSON (all outcomes but rejected)
+    result: Optional[AdaptResult] = None
+    path: Optional[np.ndarray] = None     # (n, 3) end-effector mean path
+    band: Optional[tuple] = None          # (centres (k, 3), radii (k,))
+    error: Optional[str] = None
+    error_topic: Optional[str] = None
+    stale: bool = False
+    finished: float = 0.0
+
+
+def solve_job(job: Job, chain) -> JobResult:
+    """Build, solve and serialise one job (runs in the worker thread)."""
+    t0 = time.perf_counter()
+    try:
+        res = run_request(job.request, chain, job.config)
+    except ConstraintSetError as exc:
+        return JobResult(job, 'rejected', time.perf_counter() - t0, error=str(exc),
+                         error_topic='constraints')
+    except CdmpError as exc:
+        return JobResult(job, 'rejected', time.perf_counter() - t0, error=str(exc),
+                         error_topic=job.trigger)
+    adapted = res.adapted
+    adapted.metadata = dict(job.request.prior.metadata or {})
+    report = res.report.as_dict()
+    adapted.metadata['adaptation'] = report
+    adapted.metadata['adapter'] = {
+        'request_id': job.id, 'trigger': job.trigger, 'source_sha1': job.source_sha1,
+        'trigger_stamp_ns': int(job.trigger_stamp_ns), 'outcome': res.outcome,
+        'obstacles_used': res.problem.obstacles_used,
+        'obstacles_ignored': res.problem.obstacles_ignored, 'notes': res.problem.notes}
+    text = json.dumps(primitive_to_dict(adapted))
+    nc = job.node_config
+    path = ee_path(chain, adapted.mean(np.linspace(0.0, 1.0, nc.path_points)))
+    band = None
+    if nc.band_points:
+        band = ee_band(adapted, chain, np.linspace(0.0, 1.0, nc.band_points), nc.band_sigma)
+    return JobResult(job, res.outcome, time.perf_counter() - t0, text=text, result=res,
+                     path=path, band=band)
+
+
+class SolveWorker(threading.Thread):
+    """Latest-request-wins solver thread (see the module docstring).
+
+    Parameters
+    ----------
+    solve : callable
+        ``solve(job) -> JobResult``.
+    notify : callable
+        Called (from this thread) after each result is queued.
+    """
+
+    def __init__(self, solve: Callable[[Job], JobResult], notify: Callable[[], None]):
+        super().__init__(name='adapter-solver', daemon=True)
+        self._solve = solve
+        self._notify = notify
+        self._cv = threading.Condition()
+        self._pending: Optional[Job] = None
+        self._results: List[JobResult] = []
+        self._stopping = False
+        self.busy = False
+        self.counts: Dict[str, int] = {'requests_received': 0, 'requests_dropped': 0,
+                                       'requests_stale': 0, 'requests_solved': 0}
+
+    def submit(self, job: Job) -> None:
+        with self._cv:
+            self.counts['requests_received'] += 1
+            job.id = self.counts['requests_received']
+            if self._pending is not None:
+                self.counts['requests_dropped'] += 1   # coalesced: only the newest counts
+            self._pending = job
+            self._cv.notify()
+
+    def take(self) -> List[JobResult]:
+        with self._cv:
+            out, self._results = self._results, []
+        return out
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stopping = True
+            self._cv.notify()
+
+    def run(self) -> None:
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stopping:
+                    self._cv.wait()
+                if self._stopping:
+                    return
+                job, self._pending = self._pending, None
+                self.busy = True
+            try:
+                res = self._solve(job)
+            except Exception as exc:  # noqa: BLE001 -- the solver thread must survive anything
+                res = JobResult(job, 'rejected', 0.0, error=f'adaptation failed: {exc!r}',
+                                error_topic=job.trigger)
+            res.finished = time.monotonic()
+            with self._cv:
+                self.busy = False
+                res.stale = self._pending is not None
+                self.counts['requests_solved'] += 1
+                if res.stale:
+                    self.counts['requests_stale'] += 1
+                self._results.append(res)
+            self._notify()
+
+    def summary(self) -> Dict[str, Any]:
+        with self._cv:
+            return dict(self.counts, solver_busy=self.busy)

@@ -1,0 +1,532 @@
+"""The adapter as a real process (``python -m cdmp_ros.nodes.adapter``), driven over DDS.
+
+One adapter process serves the module (localhost only, the session's private domain id); the
+test process publishes primitives, obstacles, goals, constraint sets and joint_states, and
+records adapted_primitive, visualization and diagnostics. Each bad-input case publishes its
+input, waits for the matching ``diagnostics`` entry and checks that the node is still up.
+Bounded: every wait has a timeout.
+"""
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+
+from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, panda_urdf, reach_cdmp,
+                             reach_promp, start_adapter, stop_process)
+from cdmp_ros.core.primitive_io import dumps_primitive
+
+pytestmark = pytest.mark.ros
+DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
+STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
+PARAMS = ['diagnostics_period:=0.2', 'max_input_rate:=20.0', 'max_json_bytes:=300000',
+          'adaptation.n_steps:=20', 'adaptation.alpha:=0.99', 'adaptation.max_outer:=4',
+          'adaptation.max_inner:=150']
+Q_ROBOT = Q_START + np.array([0.05, -0.05, 0.05, 0.05, -0.05, 0.05, -0.05])
+
+
+@pytest.fixture(scope='module')
+def chain():
+    from cdmp_ros.core.kinematics import panda_chain
+    return panda_chain(panda_urdf())
+
+
+@pytest.fixture(scope='module')
+def prims():
+    return {'promp': dumps_primitive(reach_promp(n_basis=5)),
+            'cdmp': dumps_primitive(reach_cdmp())}
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    log = tmp_path_factory.mktemp('adapter') / 'adapter.log'
+    proc = start_adapter(DOMAIN, PARAMS, log_path=str(log))
+    h = Harness(DOMAIN)
+    try:
+        ok = h.wait(lambda: bool(h.states_since(0)) or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        h.robot_q = Q_ROBOT
+        yield h, proc, log
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, f'adapter exit code {code}\n{log.read_text()}'
+
+
+def use(h, prims, kind):
+    """Make ``kind`` the adapter's primitive (a ProMP is adapted at once: wait for it)."""
+    from std_msgs.msg import String
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('primitive', String(data=prims[kind]))
+    assert h.wait_state(lambda m, lv, kv: kv.get('primitive') == kind, t0, 10.0)
+    if kind == 'promp':
+        d = h.wait_adapted(n0, source=prims[kind])  # any trigger: the latest request wins
+        assert d is not None and d['kind'] == 'promp', h.states_since(t0)[-2:]
+        return d
+    return None
+
+
+def alive(h, proc):
+    """The node is up and still reporting."""
+    t = time.monotonic()
+    assert proc.poll() is None, 'adapter died'
+    assert h.wait_state(lambda m, lv, kv: True, t, 5.0), 'no diagnostics any more'
+
+
+def promp_of(d):
+    from cdmp_ros.core.promp_io import promp_from_dict
+    return promp_from_dict(d)
+
+
+def ee(chain, Y):
+    from cdmp_ros.core.kinematics import PointOfInterest
+    return chain.forward(np.asarray(Y), [PointOfInterest('ee')])[..., 0, :]
+
+
+def converged_state(h, t0, request_trigger):
+    return h.wait_state(lambda m, lv, kv: kv.get('outcome') == 'converged'
+                        and kv.get('trigger') == request_trigger, t0, 20.0)
+
+
+# -- ProMP -------------------------------------------------------------------------------------
+def test_promp_is_adapted_conditioned_on_the_current_state(graph, prims):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    d = use(h, prims, 'promp')
+    assert d['metadata']['adapter']['trigger'] == 'primitive'
+    assert d['metadata']['adapter']['outcome'] == 'converged'
+    np.testing.assert_allclose(promp_of(d).mean([0.0])[0], Q_ROBOT, atol=0.03)
+    m, level, kv = converged_state(h, t0, 'primitive')
+    assert level == 0
+    for key in ('solve_time_ms', 'kl', 'iterations', 'requests_received', 'requests_dropped',
+                'p.limit_panda_joint4'):
+        assert key in kv, kv
+    assert float(kv['p.limit_panda_joint4'].split()[0]) >= 0.99
+
+
+def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
+    from visualization_msgs.msg import Marker, MarkerArray
+    h, proc, _ = graph
+    prior = promp_of(use(h, prims, 'promp'))
+    centre = ee(chain, prior.mean([0.5]))[0]
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('obstacles', MarkerArray(markers=[h.sphere(centre, 0.05)]))
+    d = h.wait_adapted(n0, trigger='obstacles')
+    assert d is not None and d['metadata']['adapter']['trigger'] == 'obstacles'
+    path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
+    assert np.linalg.norm(path - centre, axis=1).min() > 0.05
+    m, level, kv = converged_state(h, t0, 'obstacles')
+    assert kv['obstacles_used'] == '1' and 'p.obstacle_0_ee' in kv
+    assert 'p.obstacle_0_panda_link4' in kv
+    assert h.wait(lambda: any(mk.ns == 'obstacles' for mk in h.last_viz().markers), 5.0)
+    viz = h.last_viz().markers
+    assert viz[0].action == Marker.DELETEALL
+    line = [mk for mk in viz if mk.ns == 'path']
+    assert len(line) == 1 and line[0].type == Marker.LINE_STRIP and len(line[0].points) == 50
+    band = [mk for mk in viz if mk.ns == 'uncertainty']
+    assert len(band) == 10 and all(mk.scale.x > 0 for mk in band)
+    obs = [mk for mk in viz if mk.ns == 'obstacles']
+    assert len(obs) == 1 and obs[0].scale.x == pytest.approx(0.1)
+    n0 = h.n_adapted()
+    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    d = h.wait_adapted(n0, trigger='obstacles')
+    assert d['metadata']['adapter']['obstacles_used'] == 0
+
+
+def test_box_obstacle_becomes_a_wall(graph, prims, chain):
+    from cdmp_ros.core.adapt_requests import obstacle_distance
+    from cdmp_ros.core.kinematics import Box
+    from visualization_msgs.msg import Marker, MarkerArray
+    h, proc, _ = graph
+    prior = promp_of(use(h, prims, 'promp'))
+    centre = ee(chain, prior.mean([0.5]))[0] + np.array([0.0, 0.0, -0.12])
+    m = h.sphere(centre, 0.05, mid=2)
+    m.type = Marker.CUBE
+    m.scale.x, m.scale.y, m.scale.z = 0.3, 0.3, 0.1
+    n0 = h.n_adapted()
+    h.publish('obstacles', MarkerArray(markers=[m]))
+    d = h.wait_adapted(n0, trigger='obstacles')
+    assert d is not None and d['metadata']['adapter']['obstacles_used'] == 1
+    box = Box(tuple(centre - [0.15, 0.15, 0.05]), tuple(centre + [0.15, 0.15, 0.05]))
+    path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
+    assert obstacle_distance(box, path).min() > 0.0
+    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+
+
+def test_goal_and_goal_point_condition_the_end(graph, prims, chain):
+    h, proc, _ = graph
+    use(h, prims, 'promp')
+    goal = Q_GOAL + 0.1
+    n0 = h.n_adapted()
+    h.publish('goal', h.make_joint_state(goal))
+    d = h.wait_adapted(n0, trigger='goal')
+    assert d['metadata']['adapter']['trigger'] == 'goal'
+    np.testing.assert_allclose(promp_of(d).mean([1.0])[0], goal, atol=0.03)
+    target = ee(chain, Q_GOAL - 0.1)
+    n0 = h.n_adapted()
+    h.publish('goal_point', h.make_point(target))
+    d = h.wait_adapted(n0, trigger='goal_point')
+    assert d['metadata']['adapter']['trigger'] == 'goal_point'
+    assert np.linalg.norm(ee(chain, promp_of(d).mean([1.0])[0]) - target) < 0.02
+    assert h.wait(lambda: any(mk.ns == 'goal' for mk in h.last_viz().markers), 5.0)
+
+
+def test_user_constraint_set_is_applied(graph, prims):
+    from std_msgs.msg import String
+    h, proc, _ = graph
+    before = promp_of(use(h, prims, 'promp'))
+    via = float(before.mean([0.5])[0][0]) + 0.08   # about one standard deviation away
+    doc = {'constraints': [{'type': 'waypoint', 'name': 'via', 'point': {'joint': 0},
+                            'center': [via], 'radius': 0.03, 'support': [0.5, 0.5],
+                            'alpha': 0.95}]}
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('constraints', String(data=json.dumps(doc)))
+    d = h.wait_adapted(n0, trigger='constraints')
+    assert abs(promp_of(d).mean([0.5])[0][0] - via) < 0.03
+    m, level, kv = converged_state(h, t0, 'constraints')
+    assert float(kv['p.via'].split()[0]) >= 0.95 - 1e-3
+    n0 = h.n_adapted()
+    h.publish('constraints', String(data=json.dumps({'constraints': []})))
+    assert h.wait_adapted(n0, trigger='constraints') is not None
+
+
+def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
+    from visualization_msgs.msg import Marker, MarkerArray
+    h, proc, _ = graph
+    use(h, prims, 'promp')
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    # the robot (where the ProMP is conditioned to start) is inside the sphere
+    h.publish('obstacles', MarkerArray(markers=[h.sphere(ee(chain, Q_ROBOT), 0.1, mid=3)]))
+    st = h.wait_state(lambda m, lv, kv: kv.get('outcome') in ('infeasible', 'unconverged')
+                      and kv.get('trigger') == 'obstacles', t0, 30.0)
+    assert st is not None
+    m, level, kv = st
+    assert level in (1, 2) and 'last good primitive kept' in m
+    assert 'p.obstacle_0_ee' in kv and float(kv['p.obstacle_0_ee'].split()[0]) < 0.99
+    assert h.n_adapted() == n0
+    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    assert h.wait_adapted(n0, trigger='obstacles') is not None
+    alive(h, proc)
+
+
+def test_flooding_is_dropped_and_latest_request_wins(graph, prims):
+    h, proc, _ = graph
+    use(h, prims, 'promp')
+    t0 = time.monotonic()
+    end = t0 + 1.0
+    sent = 0
+    while time.monotonic() < end:
+        h.publish('goal', h.make_joint_state(Q_GOAL + 0.001 * (sent % 50), zero=True))
+        sent += 1
+    assert sent > 100
+    assert h.wait_diag('flooding: more than 20 messages/s', t0, name='input goal')
+    st = h.wait_state(lambda m, lv, kv: int(kv.get('requests_dropped', 0)) > 0, t0, 20.0)
+    assert st is not None
+    alive(h, proc)
+
+
+# -- DMP / CDMP --------------------------------------------------------------------------------
+def test_cdmp_goal_is_retargeted_with_the_same_weights(graph, prims):
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    goal = np.array([0.3, 0.0, -0.2, -1.6, 0.1, 1.8, 0.5])
+    n0 = h.n_adapted()
+    h.publish('goal', h.make_joint_state(goal[::-1], names=PANDA_JOINTS[::-1]))  # shuffled
+    d = h.wait_adapted(n0, trigger='goal')
+    assert d['kind'] == 'cdmp' and d['metadata']['adapter']['outcome'] == 'retargeted'
+    np.testing.assert_allclose(d['dmp']['goal'], goal)
+    assert d['dmp']['weights'] == json.loads(prims['cdmp'])['dmp']['weights']
+
+
+def test_cdmp_goal_outside_the_limits_is_clipped(graph, prims, chain):
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    t0 = time.monotonic()
+    goal = np.array([0.3, 5.0, -0.2, 1.0, 0.1, 1.8, 0.5])
+    n0 = h.n_adapted()
+    h.publish('goal', h.make_joint_state(goal))
+    d = h.wait_adapted(n0, trigger='goal')
+    assert h.wait_diag('clipped with the CDMP margin: panda_joint2 5 -> 1.831', t0,
+                       name='input goal')
+    g = np.array(d['dmp']['goal'])
+    assert np.all(g < chain.upper) and np.all(g > chain.lower)
+
+
+def test_cdmp_goal_point_goes_through_the_ik(graph, prims, chain):
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    target = ee(chain, np.array([0.5, 0.1, 0.2, -1.4, 0.1, 1.9, 0.4]))
+    n0 = h.n_adapted()
+    h.publish('goal_point', h.make_point(target))
+    d = h.wait_adapted(n0, trigger='goal_point')
+    assert np.linalg.norm(ee(chain, d['dmp']['goal']) - target) <= 1e-3 + 1e-9
+
+
+def test_cdmp_obstacles_are_only_shown(graph, prims):
+    from visualization_msgs.msg import Marker, MarkerArray
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    n0 = h.n_adapted()
+    h.publish('obstacles', MarkerArray(markers=[h.sphere([0.4, 0.3, 0.4], 0.05, mid=9)]))
+    assert h.wait(lambda: any(mk.ns == 'obstacles' for mk in h.last_viz().markers)
+                  and any(mk.ns == 'path' for mk in h.last_viz().markers), 5.0)
+    assert h.n_adapted() == n0
+    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+
+
+# -- bad input: one test per case --------------------------------------------------------------
+def _bad_joint_state(h, case):
+    names = list(PANDA_JOINTS)
+    msg = h.make_joint_state(Q_ROBOT)
+    if case == 'nan':
+        msg.position[2] = float('nan')
+    elif case == 'inf':
+        msg.position[4] = float('-inf')
+    elif case == 'wrong_length':
+        msg.position = msg.position[:5]
+    elif case == 'velocity_length':
+        msg.velocity = [0.0, 0.0]
+    elif case == 'unknown_name':
+        msg.name = names[:6] + ['elbow_joint']
+    elif case == 'missing_name':
+        msg.name = names[:6]
+        msg.position = msg.position[:6]
+    elif case == 'duplicate_name':
+        msg.name = names[:6] + [names[0]]
+    elif case == 'future_stamp':
+        msg = h.make_joint_state(Q_ROBOT, stamp_offset=60.0)
+    elif case == 'past_stamp':
+        msg = h.make_joint_state(Q_ROBOT, stamp_offset=-3600.0)
+    elif case == 'outside_limits':
+        msg.position[3] = 1.0
+    return msg
+
+
+JS_CASES = {  # case -> expected text in the diagnostics reason
+    'nan': 'expected a finite value, got nan', 'inf': 'expected a finite value, got -inf',
+    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
+    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
+    'future_stamp': 'in the future', 'past_stamp': 'in the past',
+    'outside_limits': "'panda_joint4': 1 is outside the limits"}
+GOAL_CASES = dict({k: v for k, v in JS_CASES.items() if k != 'outside_limits'},
+                  unknown_name="unknown joints ['elbow_joint']")
+
+
+@pytest.mark.parametrize('case', sorted(JS_CASES))
+def test_bad_joint_states_are_rejected(graph, case):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    for _ in range(5):  # joint_states is best effort (sensor QoS): a sample may be dropped
+        h.publish('joint_states', _bad_joint_state(h, case))
+        time.sleep(0.01)
+    assert h.wait_diag(JS_CASES[case], t0, name='input joint_states')
+    alive(h, proc)
+
+
+@pytest.mark.parametrize('case', sorted(GOAL_CASES))
+def test_bad_goals_are_rejected(graph, case):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('goal', _bad_joint_state(h, case))
+    assert h.wait_diag(GOAL_CASES[case], t0, name='input goal')
+    assert h.n_adapted() == n0
+    alive(h, proc)
+
+
+GOAL_POINT_CASES = {
+    'nan': (dict(xyz=[float('nan'), 0.0, 0.5]), 'point.x: expected a finite value, got nan'),
+    'inf': (dict(xyz=[0.3, float('inf'), 0.5]), 'point.y: expected a finite value, got inf'),
+    'other_frame': (dict(frame='camera'), "expected the robot base frame 'panda_link0'"),
+    'future_stamp': (dict(stamp_offset=60.0), 'in the future'),
+    'past_stamp': (dict(stamp_offset=-3600.0), 'in the past'),
+    'unreachable': (dict(xyz=[3.0, 0.0, 0.5]), 'unreachable inside the joint limits (IK '
+                                               'residual'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(GOAL_POINT_CASES))
+def test_bad_goal_points_are_rejected(graph, case):
+    h, proc, _ = graph
+    kw, text = GOAL_POINT_CASES[case]
+    kw = dict(kw)
+    xyz = kw.pop('xyz', [0.4, 0.0, 0.5])
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('goal_point', h.make_point(xyz, **kw))
+    assert h.wait_diag(text, t0, name='input goal_point')
+    assert h.n_adapted() == n0
+    alive(h, proc)
+
+
+def _marker(h, **kw):
+    m = h.sphere([2.0, 0.0, 0.0], 0.05, mid=7, ns='bad')
+    m.header.stamp.sec = m.header.stamp.nanosec = 0
+    for k, v in kw.items():
+        if k.startswith('scale_'):
+            setattr(m.scale, k[6:], v)
+        elif k == 'x':
+            m.pose.position.x = v
+        elif k == 'stamp':
+            m.header.stamp.sec = int(time.time() + v)
+        else:
+            setattr(m, k, v)
+    return m
+
+
+MARKER_CASES = {
+    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
+    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
+    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
+    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
+    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
+    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
+    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
+    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
+    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
+                                       'DELETEALL (3), got 5'),
+    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
+    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
+    'other_frame': (dict(), "expected the robot base frame 'panda_link0'"),
+    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
+    'future_stamp': (dict(stamp=3600), 'in the future'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(MARKER_CASES))
+def test_bad_markers_are_rejected(graph, case):
+    from visualization_msgs.msg import MarkerArray
+    h, proc, _ = graph
+    kw, text = MARKER_CASES[case]
+    m = _marker(h, **kw)
+    if case == 'other_frame':
+        m.header.frame_id = 'camera'
+    t0 = time.monotonic()
+    h.publish('obstacles', MarkerArray(markers=[m]))
+    assert h.wait_diag(text, t0, name='input obstacles')
+    assert h.wait_state(lambda msg, lv, kv: kv.get('obstacles') == '0', t0, 5.0)
+    alive(h, proc)
+
+
+def _promp_dict(prims):
+    return json.loads(prims['promp'])
+
+
+PRIMITIVE_CASES = {
+    'malformed_json': (lambda d: json.dumps(d)[:-5], 'primitive: not valid JSON'),
+    'not_an_object': (lambda d: '[1, 2, 3]', 'expected a JSON object'),
+    'schema_violation': (lambda d: json.dumps(dict(d, duration=-1.0)),
+                         'primitive.duration: -1.0 is less than or equal to the minimum of 0'),
+    'wrong_joints': (lambda d: json.dumps(dict(d, joint_names=[f'j{i}' for i in range(7)])),
+                     'expected the robot joints'),
+    'nan_mean': (lambda d: json.dumps(d).replace('"mean_w": [', '"mean_w": [NaN, ', 1),
+                 'primitive.promp'),
+    'too_large': (lambda d: json.dumps(dict(d, metadata={'pad': 'x' * 400000})),
+                  'exceeds max_json_bytes = 300000'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(PRIMITIVE_CASES))
+def test_bad_primitives_are_rejected(graph, prims, case):
+    from std_msgs.msg import String
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    make, text = PRIMITIVE_CASES[case]
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('primitive', String(data=make(_promp_dict(prims))))
+    assert h.wait_diag(text, t0, name='input primitive')
+    assert h.wait_state(lambda m, lv, kv: kv.get('primitive') == 'cdmp', t0, 5.0)  # kept
+    assert h.n_adapted() == n0
+    alive(h, proc)
+
+
+CONSTRAINT_CASES = {
+    'malformed_json': ('{"constraints": [', 'constraints: not valid JSON'),
+    'not_an_object': ('[]', 'constraint_set: expected a JSON object'),
+    'unknown_type': (json.dumps({'constraints': [{'type': 'teleport'}]}),
+                     "'teleport' is not one of"),
+    'bad_alpha': (json.dumps({'constraints': [{'type': 'joint_limit', 'joint': 0,
+                                               'upper': 1.0, 'alpha': 1.5}]}),
+                  'constraints[0].alpha (joint_limit): 1.5 is greater than or equal to the '
+                  'maximum of 1'),
+    'joint_out_of_range': (json.dumps({'constraints': [
+        {'type': 'joint_limit', 'joint': 9, 'upper': 1.0}]}), 'expected an index < 7'),
+    'unknown_link': (json.dumps({'constraints': [
+        {'type': 'repeller', 'point': {'link': 'nose'}, 'center': [0, 0, 0], 'radius': 0.1}]}),
+        'expected "ee" or one of'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(CONSTRAINT_CASES))
+def test_bad_constraint_sets_are_rejected(graph, prims, case):
+    from std_msgs.msg import String
+    h, proc, _ = graph
+    use(h, prims, 'promp')
+    text, reason = CONSTRAINT_CASES[case]
+    t0 = time.monotonic()
+    h.publish('constraints', String(data=text))
+    assert h.wait_diag(reason, t0, name='input constraints'), h.diag_messages[-3:]
+    alive(h, proc)
+
+
+def test_runtime_parameter_changes_are_validated(graph):
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    h, proc, _ = graph
+    client = h.node.create_client(SetParameters, '/adapter/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+
+        def set_(name, value):
+            req = SetParameters.Request(
+                parameters=[Parameter(name, value=value).to_parameter_msg()])
+            fut = client.call_async(req)
+            assert h.wait(fut.done, 10.0)
+            return fut.result().results[0]
+
+        r = set_('adaptation.alpha', 1.5)
+        assert not r.successful and 'alpha' in r.reason
+        r = set_('adaptation.avoid_links', ['panda_link4', 'nose'])
+        assert not r.successful and "['nose'] are not links of the robot" in r.reason
+        r = set_('max_input_rate', -5.0)
+        assert not r.successful and 'max_input_rate' in r.reason
+        r = set_('joint_names', ['a'])
+        assert not r.successful and 'read-only' in r.reason.lower()
+        r = set_('adaptation.obstacle_margin', 0)  # an integer for a float is accepted
+        assert r.successful, r.reason
+        r = set_('adaptation.obstacle_margin', 0.02)
+        assert r.successful, r.reason
+    finally:
+        h.node.destroy_client(client)
+    alive(h, proc)
+
+
+# -- start-up --------------------------------------------------------------------------------
+STARTUP_CASES = [('adaptation.alpha:=2.0', 'alpha'), ("urdf_path:='/nonexistent.urdf'",
+                                                      'urdf_path'),
+                 ('adaptation.avoid_links:=[nose]', 'avoid_links'),
+                 ('max_input_rate:=-1.0', 'max_input_rate')]
+
+
+def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
+    bad_file = tmp_path / 'bad.yaml'
+    bad_file.write_text('/**:\n  ros__parameters:\n    adaptation:\n      n_steps: 1\n')
+    cases = [([p], None, text) for p, text in STARTUP_CASES]
+    cases.append(([], str(bad_file), 'n_steps'))
+    procs = [(start_adapter(DOMAIN, params, log_path=str(tmp_path / f'{i}.log'),
+                            params_file=pf or 'config/adapter.yaml'), text, i)
+             for i, (params, pf, text) in enumerate(cases)]  # in parallel: start-up is slow
+    try:
+        for proc, text, i in procs:
+            code = proc.wait(STARTUP)
+            log = (tmp_path / f'{i}.log').read_text()
+            assert code == 2 and text in log, log
+    finally:
+        for proc, _, _ in procs:
+            stop_process(proc)
