@@ -10,6 +10,7 @@ package_name = 'cdmp_ros'
 CONSOLE_SCRIPTS = [
     'cdmp = cdmp_ros.cli.main:main',
     'streamer = cdmp_ros.nodes.streamer:main',
+    'adapter = cdmp_ros.nodes.adapter:main',
     'recorder = cdmp_ros.nodes.recorder:main',
     'player = cdmp_ros.nodes.player:main',
 ]
