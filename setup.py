@@ -13,6 +13,7 @@ CONSOLE_SCRIPTS = [
     'adapter = cdmp_ros.nodes.adapter:main',
     'recorder = cdmp_ros.nodes.recorder:main',
     'player = cdmp_ros.nodes.player:main',
+    'learner = cdmp_ros.nodes.learner:main',
 ]
 
 
@@ -30,6 +31,7 @@ setup(
         ('share/' + package_name + '/config', _files('config/*.yaml')),
         ('share/' + package_name + '/msg_schemas', _files('msg_schemas/*.json')),
         ('share/' + package_name + '/msg_schemas/msg', _files('msg_schemas/msg/*.msg')),
+        *[('share/' + package_name + '/' + os.path.dirname(f), [f]) for f in _files('bags/**/*')],
     ],
     install_requires=['setuptools', 'numpy', 'scipy', 'jsonschema', 'pyyaml'],
     zip_safe=True,

@@ -1,0 +1,21 @@
+"""``learner`` executable: fits primitives from demonstrations, publishes ``primitive``.
+
+Run: ``ros2 run cdmp_ros learner --ros-args --params-file config/learner.yaml`` or
+``python -m cdmp_ros.nodes.learner --ros-args -p kind:=promp``. Services (std_srvs/Trigger):
+``~/refit``, ``~/save``, ``~/improve``. The logic is in :mod:`cdmp_ros.core.learning`,
+:mod:`cdmp_ros.core.demonstrations` and :mod:`cdmp_ros.core.improve`, the ROS glue in
+:mod:`cdmp_ros.ros.learner_node`. Spun in the graceful loop of
+:func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM stop a running improvement first).
+"""
+import sys
+
+from cdmp_ros.ros.node_main import run_node
+
+
+def main(args=None) -> int:
+    from cdmp_ros.ros.learner_node import LearnerNode
+    return run_node(LearnerNode, args, graceful=True)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,383 @@
+"""The learner as a real process (``python -m cdmp_ros.nodes.learner``), driven over DDS.
+
+One learner process serves the module (domain 172, localhost only), started from
+config/learner.yaml with narrow explicit limits around the sample demonstrations (so that
+exploration noise would leave them for a plain DMP). The test process publishes
+demonstrations, calls ``~/refit``, ``~/save`` and ``~/improve``, and reads ``primitive`` and
+``diagnostics``. Each bad-input case publishes its input and waits for the matching
+``diagnostics`` entry; the node must stay up (and exit 0 on SIGINT at the end).
+"""
+import os
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from conftest import REPO_ROOT
+from learner_harness import PANDA_JOINTS, LearnerHarness, start_learner
+from streamer_util import stop_process
+
+pytestmark = pytest.mark.ros
+DOMAIN = 172
+STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
+BAGS = os.path.join(REPO_ROOT, 'bags', 'panda_reach')
+
+
+def bag_demos():
+    from cdmp_ros.bag import read_demonstrations
+    return read_demonstrations(BAGS)
+
+
+def narrow_limits():
+    """Demonstrated range +- 0.1 rad (rounded): inside the Panda's, tight for exploration."""
+    Ys = np.vstack([Y for _, Y, _ in bag_demos()])
+    return np.round(Ys.min(0) - 0.1, 2), np.round(Ys.max(0) + 0.1, 2)
+
+
+def _list(v):
+    return '[' + ', '.join(f'{x:.2f}' for x in v) + ']'
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    log = tmp_path_factory.mktemp('learner') / 'learner.log'
+    lo, hi = narrow_limits()
+    t_start = time.monotonic()
+    proc = start_learner(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=1000.0',
+                                  'demonstration_gap:=0.3', f'limits.lower:={_list(lo)}',
+                                  f'limits.upper:={_list(hi)}', 'improve.shape_std:=100.0',
+                                  'improve.updates:=30', 'improve.rollouts_per_update:=8'],
+                         log_path=str(log), params_file='config/learner.yaml')
+    h = LearnerHarness(DOMAIN)
+    try:
+        ok = h.wait(lambda: h.n_primitives() > 0 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        h.first_primitive_s = h.primitives[0][0] - t_start
+        h.limits = (lo, hi)
+        yield h, proc, log
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, f'learner exit code {code}\n{log.read_text()}'
+
+
+def alive(h, proc):
+    assert proc.poll() is None, 'learner died'
+    assert h.call('refit').success  # still serving (and fitting)
+
+
+# -- normal operation --------------------------------------------------------------------------
+def test_publishes_the_bag_primitive_at_start(graph):
+    from cdmp_ros.core.primitive_io import primitive_from_dict
+    h, proc, log = graph
+    d = h.last_primitive()
+    print(f'process start -> first primitive received: {h.first_primitive_s:.2f} s')
+    assert d['kind'] == 'cdmp' and d['joint_names'] == list(PANDA_JOINTS)
+    assert d['metadata']['demonstrations']['from_bags'] == 5
+    assert d['limits']['lower'] == pytest.approx(h.limits[0].tolist(), abs=1e-12)
+    goals = np.array([Y[-1] for _, Y, _ in bag_demos()])
+    assert np.allclose(d['dmp']['goal'], goals.mean(axis=0), atol=1e-12)
+    prim = primitive_from_dict(d)
+    Y = prim.rollout(dt=0.01).Y
+    assert np.abs(Y[-1] - goals.mean(axis=0)).max() < 0.02
+    assert 'cdmp from 5 demonstration(s) (5 from bags, 0 from the topic)' in log.read_text()
+
+
+def test_topic_demonstration_with_shuffled_names_is_mapped_and_refitted(graph):
+    h, proc, _ = graph
+    T, Y, _ = bag_demos()[2]
+    Y = Y + np.linspace(0.0, 0.05, 7)  # a distinct goal, still inside the limits
+    perm = [6, 2, 0, 5, 1, 3, 4]
+    _, kv0 = h.last_state()
+    n0 = int(kv0.get('topic_demonstrations', 0))
+    h.publish_demo(T, Y, order=perm, period=0.002)
+    assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1, 10)
+    k = h.n_primitives()
+    r = h.call('refit')
+    assert r.success and f'{n0 + 1} from the topic' in r.message, r.message
+    assert h.wait(lambda: h.n_primitives() > k, 5)
+    d = h.last_primitive()
+    goals = [y[-1] for _, y, _ in bag_demos()] + [Y[-1]] * (n0 + 1)
+    assert d['metadata']['demonstrations']['from_topic'] == n0 + 1
+    assert np.allclose(d['dmp']['goal'], np.mean(goals, axis=0), atol=1e-9)
+
+
+def test_a_gap_ends_a_demonstration(graph):
+    h, proc, _ = graph
+    T, Y, _ = bag_demos()[0]
+    n0 = int(h.last_state()[1].get('topic_demonstrations', 0))
+    h.publish_demo(T[:40], Y[:40], end=False, period=0.002)  # no end marker: the gap ends it
+    assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1, 10)
+
+
+# -- bad input on demonstration: one test per case --------------------------------------------
+def _bad(h, case):
+    from sensor_msgs.msg import JointState
+    q = bag_demos()[0][1][0]
+    now = h.now_ns()
+    msg = h.joint_state(q, stamp_ns=now)
+    names = list(PANDA_JOINTS)
+    if case == 'nan':
+        msg.position[2] = float('nan')
+    elif case == 'inf':
+        msg.position[4] = float('inf')
+    elif case == 'wrong_length':
+        msg.position = msg.position[:5]
+    elif case == 'velocity_length':
+        msg.velocity = [0.0, 0.0]
+    elif case == 'unknown_name':
+        msg.name = names[:6] + ['elbow_joint']
+    elif case == 'missing_name':
+        msg.name, msg.position = names[:6], msg.position[:6]
+    elif case == 'duplicate_name':
+        msg.name = names[:6] + [names[0]]
+    elif case == 'future_stamp':
+        msg = h.joint_state(q, stamp_ns=now + 60 * 10 ** 9)
+    elif case == 'past_stamp':
+        msg = h.joint_state(q, stamp_ns=now - 3600 * 10 ** 9)
+    elif case == 'outside_limits':
+        msg.position[1] = float(h.limits[1][1] + 0.5)
+    elif case == 'non_monotonic':
+        return [h.joint_state(q, stamp_ns=now), h.joint_state(q, stamp_ns=now - 10 ** 8)]
+    elif case == 'too_short':
+        return [h.joint_state(q, stamp_ns=now + i * 10 ** 7) for i in range(3)] + [JointState()]
+    return [msg]
+
+
+BAD_CASES = {  # case -> expected text in the diagnostics reason
+    'nan': "position of 'panda_joint3': expected a finite value, got nan",
+    'inf': "position of 'panda_joint5': expected a finite value, got inf",
+    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
+    'unknown_name': "unknown joints ['elbow_joint']",
+    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
+    'future_stamp': 'in the future', 'past_stamp': 'in the past',
+    'outside_limits': "of 'panda_joint2': ", 'non_monotonic': 'non-monotonic time',
+    'too_short': 'expected at least min_samples=10'}
+
+
+@pytest.mark.parametrize('case', sorted(BAD_CASES))
+def test_bad_demonstration_samples_are_rejected(graph, case):
+    from sensor_msgs.msg import JointState
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    for msg in _bad(h, case):
+        h.demo_pub.publish(msg)
+    assert h.wait_diag(BAD_CASES[case], t0, name='input demonstration'), h.recent_diag()
+    assert proc.poll() is None
+    h.demo_pub.publish(JointState())  # discard what a case left pending, before the next one
+    t1 = time.monotonic()
+    assert h.wait(lambda: h.last_state()[1].get('pending_samples') == '0'
+                  and h.diag_messages[-1][0] > t1, 5)
+
+
+def test_flooding_is_dropped_and_reported(graph):
+    from sensor_msgs.msg import JointState
+    h, proc, _ = graph
+    assert h.set_parameter('max_input_rate', 100.0).successful
+    try:
+        t0 = time.monotonic()
+        end = time.monotonic() + 1.0
+        sent = 0
+        while time.monotonic() < end:
+            h.demo_pub.publish(JointState())  # end markers: harmless when admitted
+            sent += 1
+        assert sent > 1000
+        assert h.wait_diag('flooding: more than 100 messages/s', t0,
+                           name='input demonstration'), h.recent_diag()
+    finally:
+        assert h.set_parameter('max_input_rate', 1000.0).successful
+    alive(h, proc)
+
+
+def test_bad_and_corrupted_bags_are_reported_and_the_good_one_used(graph, tmp_path):
+    h, proc, _ = graph
+    corrupt = tmp_path / 'corrupt'
+    shutil.copytree(os.path.join(BAGS, 'demo_00'), corrupt)
+    mcap = next(corrupt.glob('*.mcap'))
+    data = bytearray(mcap.read_bytes())
+    data[2000:6000] = b'\xab' * 4000
+    mcap.write_bytes(bytes(data))
+    truncated = tmp_path / 'truncated'
+    shutil.copytree(os.path.join(BAGS, 'demo_01'), truncated)
+    mcap = next(truncated.glob('*.mcap'))
+    mcap.write_bytes(mcap.read_bytes()[:10000])
+    bags = [str(tmp_path / 'missing'), str(corrupt), str(truncated),
+            os.path.join(REPO_ROOT, 'bags', 'dual_panda'), BAGS]
+    assert h.set_parameter('demonstration_bags', bags).successful
+    try:
+        t0 = time.monotonic()
+        r = h.call('refit')
+        assert r.success and '5 from bags' in r.message, r.message
+        for text in ("missing': not found", "corrupt': ", 'the file is truncated',
+                     "dual_panda': bag", "missing joints ['panda_joint1'"):
+            assert h.wait_diag(text, t0, name='input demonstration_bags'), (text,
+                                                                            h.recent_diag())
+        assert h.set_parameter('demonstration_bags', bags[:4]).successful
+        r = h.call('refit')  # the topic demonstrations alone
+        assert r.success and '0 from bags' in r.message, r.message
+    finally:
+        assert h.set_parameter('demonstration_bags', ['bags/panda_reach']).successful
+    alive(h, proc)
+
+
+def test_save_writes_the_primitive_file(graph, tmp_path):
+    from cdmp_ros.core.primitive_io import load_primitive, primitive_to_dict
+    h, proc, _ = graph
+    path = tmp_path / 'reach.json'
+    assert h.set_parameter('primitive_path', str(path)).successful
+    r = h.call('save')
+    assert r.success and r.message == str(path)
+    assert primitive_to_dict(load_primitive(path)) == h.last_primitive()
+    assert h.set_parameter('primitive_path', str(tmp_path / 'no' / 'dir.json')).successful
+    r = h.call('save')
+    assert not r.success and 'cannot write' in r.message
+    alive(h, proc)
+
+
+def test_improve_runs_pi2_in_a_worker_within_the_limits(graph):
+    from cdmp_ros.core.dmp import limit_usage
+    from cdmp_ros.core.primitive_io import primitive_from_dict
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    k = h.n_primitives()
+    r = h.call('improve')
+    assert r.success and '30 PI2 updates of 8 rollouts' in r.message, r.message
+    again = h.call('improve')
+    assert not again.success and 'already running' in again.message
+    refit = h.call('refit')  # the node stays responsive, and refuses to refit meanwhile
+    assert not refit.success and 'improvement is running' in refit.message
+    assert h.wait_diag('improving: update', t0, timeout=30, name='state')
+    assert h.wait(lambda: h.last_state()[1].get('improve', '').startswith('done'), 60)
+    kv = h.last_state()[1]
+    before, after = float(kv['improve_cost_before']), float(kv['improve_cost_after'])
+    print(f'improve: cost {before:.4g} -> {after:.4g}, {kv["improve_rollouts"]} rollouts in '
+          f'{kv["improve_time_s"]} s, max limit usage {kv["improve_max_limit_usage"]}')
+    assert after < 0.5 * before
+    assert kv['improve_rollouts'] == '240' and kv['improve_rollouts_outside_limits'] == '0'
+    # exploration went close to the narrow limits (a plain DMP leaves them: test_core_improve)
+    assert 0.9 < float(kv['improve_max_limit_usage']) < 1.0
+    assert h.wait(lambda: h.n_primitives() > k, 5)
+    d = h.last_primitive()
+    assert d['metadata']['pi2']['updates'] == 30
+    prim = primitive_from_dict(d)
+    assert limit_usage(prim.rollout(dt=0.005).Y, *h.limits) < 1.0
+    alive(h, proc)
+
+
+def test_improve_against_the_sim(graph):
+    h, proc, _ = graph
+    for name, value in (('improve.cost', 'sim'), ('improve.updates', 2),
+                        ('improve.rollouts_per_update', 3)):
+        assert h.set_parameter(name, value).successful
+    try:
+        t0 = time.monotonic()
+        r = h.call('improve')
+        assert r.success and "cost 'sim'" in r.message, r.message
+        assert h.wait(lambda: h.last_state()[1].get('improve') == 'done 2 updates', 60), \
+            h.recent_diag()
+        kv = h.last_state()[1]
+        assert kv['improve_rollouts'] == '6' and kv['improve_rollouts_outside_limits'] == '0'
+        assert float(kv['improve_cost_after']) > 0.0
+        assert not h.wait_diag('improvement failed', t0, timeout=0.1)
+    finally:
+        for name, value in (('improve.cost', 'scripted'), ('improve.updates', 30),
+                            ('improve.rollouts_per_update', 8)):
+            h.set_parameter(name, value)
+    alive(h, proc)
+
+
+def test_runtime_parameter_changes_are_validated(graph):
+    h, proc, _ = graph
+    r = h.set_parameter('kind', 'spline')
+    assert not r.successful and "kind: expected one of ['cdmp', 'dmp', 'promp']" in r.reason
+    r = h.set_parameter('dmp.alpha_y', -1.0)
+    assert not r.successful and 'alpha_y' in r.reason
+    r = h.set_parameter('improve.rollouts_per_update', 1)
+    assert not r.successful and 'rollouts_per_update' in r.reason
+    r = h.set_parameter('joint_names', ['a', 'b'])
+    assert not r.successful and 'read-only' in r.reason.lower()
+    r = h.set_parameter('limits.lower', [0.0] * 7)
+    assert not r.successful and 'read-only' in r.reason.lower()
+    r = h.set_parameter('kind', 'promp')
+    assert r.successful, r.reason
+    try:
+        k = h.n_primitives()
+        r = h.call('refit')
+        assert r.success and 'promp from' in r.message, r.message
+        assert h.wait(lambda: h.n_primitives() > k, 5)
+        assert h.last_primitive()['kind'] == 'promp'
+        r = h.call('improve')
+        assert not r.success and 'PI2 improves dmp and cdmp primitives' in r.message
+    finally:
+        assert h.set_parameter('kind', 'cdmp').successful
+    alive(h, proc)
+
+
+# -- start-up ----------------------------------------------------------------------------------
+STARTUP_CASES = [('kind:=spline', 'kind: expected one of'),
+                 ('dmp.n_weights_per_dim:=0', 'n_weights_per_dim'),
+                 ('limits.lower:=[0.0, 1.0]', 'limits.lower/upper: expected 7 values'),
+                 ('improve.cost:=bogus', "cost: expected one of ['scripted', 'sim']")]
+
+
+def test_bad_startup_parameters_exit_nonzero_and_bad_bags_do_not(tmp_path):
+    procs = [(start_learner(173 + i, [param], log_path=str(tmp_path / f'{i}.log')), text, i)
+             for i, (param, text) in enumerate(STARTUP_CASES)]  # in parallel: start-up is slow
+    bad_bags = start_learner(178, ["demonstration_bags:=['/nonexistent/bag']",
+                                   'diagnostics_period:=0.2'],
+                             log_path=str(tmp_path / 'bags.log'))
+    h = None
+    try:
+        for proc, text, i in procs:
+            code = proc.wait(STARTUP)
+            log = (tmp_path / f'{i}.log').read_text()
+            assert code == 2 and text in log, log
+        h = LearnerHarness(178)
+        r = h.call('refit')
+        assert not r.success and "'/nonexistent/bag': not found" in r.message, r.message
+        assert h.wait_diag("'/nonexistent/bag': not found", 0.0, timeout=STARTUP,
+                           name='input demonstration_bags'), (tmp_path / 'bags.log').read_text()
+        assert bad_bags.poll() is None and h.n_primitives() == 0
+        r = h.call('save')
+        assert not r.success and 'no primitive' in r.message
+    finally:
+        if h is not None:
+            h.close()
+        for proc, _, _ in procs:
+            stop_process(proc)
+        assert stop_process(bad_bags) == 0
+
+
+# -- files -------------------------------------------------------------------------------------
+def test_config_file_mirrors_every_parameter_with_its_default():
+    import yaml
+    from cdmp_ros.core.dmp import DmpConfig
+    from cdmp_ros.core.improve import CostConfig, ImproveConfig
+    from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig
+    from cdmp_ros.ros.params import parameter_fields
+    with open(os.path.join(REPO_ROOT, 'config', 'learner.yaml')) as f:
+        params = yaml.safe_load(f)['/**']['ros__parameters']
+    expected = {}
+    for prefix, cls in [('', LearnerConfig), ('dmp', DmpConfig), ('promp', PrompLearnConfig),
+                        ('improve', ImproveConfig), ('cost', CostConfig)]:
+        for f, kind, default in parameter_fields(cls):
+            expected[f'{prefix}.{f.name}' if prefix else f.name] = default
+    flat = {}
+    for k, v in params.items():
+        if isinstance(v, dict):
+            flat.update({f'{k}.{kk}': vv for kk, vv in v.items()})
+        else:
+            flat[k] = tuple(v) if isinstance(v, list) else v
+    assert flat == expected
+
+
+def test_default_bags_resolve_in_the_source_tree_and_an_install(tmp_path, monkeypatch):
+    from cdmp_ros.ros.learner_improve import resolve_bag_path
+    monkeypatch.chdir(tmp_path)
+    assert resolve_bag_path('bags/panda_reach') == BAGS
+    share = tmp_path / 'prefix' / 'share' / 'cdmp_ros' / 'bags' / 'installed_only'
+    share.mkdir(parents=True)
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path / 'prefix'))
+    assert resolve_bag_path('bags/installed_only') == str(share)
+    assert resolve_bag_path('bags/nowhere') == 'bags/nowhere'
