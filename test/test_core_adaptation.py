@@ -88,6 +88,13 @@ def test_lagrangian_gradient_matches_finite_differences(name, whiten, rng):
     _check_gradient(Problem(prior, cons, cfg), rng)
 
 
+@pytest.mark.parametrize('ut_alpha', [0.8, 1.5])
+def test_gradient_with_unscented_centre_point(ut_alpha, rng):
+    cons = [Repeller(Planar2(), [1.2, 0.9], 0.3), Hyperplane(Planar2(), [0.0, 1.0], [0.0, 1.5])]
+    cfg = AdaptationConfig(n_steps=9, ut_alpha=ut_alpha)
+    _check_gradient(Problem(_prior(rng), cons, cfg), rng)
+
+
 def test_gradient_with_smoothness_regulariser_and_constraint(rng):
     prior = _prior(rng)
     Phi = prior.smoothness_matrix(joint_weights=[2.0, 0.1])
@@ -95,6 +102,41 @@ def test_gradient_with_smoothness_regulariser_and_constraint(rng):
     cons = [SmoothnessConstraint(Phi, bound), Repeller(CART, [0.0, 0.0], 0.2)]
     cfg = AdaptationConfig(n_steps=11, kappa=0.01, smoothness_weights=(2.0, 0.1))
     _check_gradient(Problem(prior, cons, cfg), rng)
+
+
+def test_batched_constraint_evaluation_matches_one_problem_per_constraint(rng):
+    """Constraints of one kind are evaluated in one vectorised call (limits on several joints,
+    repellers and waypoints on one point, walls through two non-linear points, contiguous
+    DofPoints read from the marginals directly): same F as one Problem per constraint, and
+    the gradient of the whole Lagrangian still matches finite differences."""
+    prior = _prior(rng, D=4)
+    cons = [JointLimit(0, -0.5, 0.4), JointLimit(3, upper=lambda t: 0.2 + t, support=(0.3, 1)),
+            Repeller(CART, [0.2, 0.1], 0.3), Waypoint(CART, [0.5, -0.2], 0.4, support=(0.4, 0.5)),
+            UnboundWaypoint(CART, [0.4, 0.3], 0.1, support=(0.2, 0.9)),
+            Repeller(DofPoint([2, 3]), [0.0, 0.1], 0.2), Repeller(DofPoint([3, 1]), [0, 0], 0.3),
+            Hyperplane(Planar2(), [0.0, 1.0], [0.0, 1.5]),
+            Hyperplane(Planar2((2, 3)), [1.0, 0.0], [1.0, 0.0], support=(0.5, 1.0)),
+            NonConvexCorner(CART, [1, 0], [0.1, 0.1], [0, 1], [0.1, 0.1])]
+    cfg = AdaptationConfig(n_steps=15)
+    prob = Problem(prior, cons, cfg)
+    assert len(prob.batches) < len(cons)
+    theta = prob.initial_theta() + 0.05 * rng.standard_normal(prob.initial_theta().size)
+    mu, L, _ = prob.unpack(theta)
+    F = prob.constraint_values(mu, L)
+    for c, sl in zip(cons, prob.slices):
+        F1 = Problem(prior, [c], cfg).constraint_values(mu, L)
+        times = c.times(prob.grid)
+        m = prior.basis.features(times) @ mu.reshape(4, -1).T
+        assert np.allclose(F[sl], F1, rtol=0, atol=1e-13), c.name
+        if isinstance(c.point, DofPoint):          # and the per-constraint API agrees
+            Phi = np.kron(np.eye(4), prior.basis.features(times))      # (4n, 4M) by dims
+            S = (Phi @ L @ L.T @ Phi.T).reshape(4, times.size, 4, times.size)
+            S = np.einsum('itjt->tij', S)
+            d = list(c.point.dofs)
+            Fc = c.probability(m[:, d], S[:, d][:, :, d], times)[0]
+            Fc = Fc.max(keepdims=True) if c.reduce == 'max' else Fc
+            assert np.allclose(F[sl], Fc, rtol=0, atol=1e-12), c.name
+    _check_gradient(prob, rng, n_checks=20)
 
 
 @pytest.mark.parametrize('whiten', [True, False])

@@ -60,8 +60,10 @@ def test_cholesky_backward_matches_finite_differences(rng):
         assert np.isclose(fd, expected, rtol=1e-5, atol=1e-8)
 
 
-def test_unscented_transform_is_exact_for_linear_maps(rng):
-    ut = UnscentedTransform(3)
+@pytest.mark.parametrize('alpha', [1.0, 0.8, 1.5])
+def test_unscented_transform_is_exact_for_linear_maps(alpha, rng):
+    ut = UnscentedTransform(3, alpha)
+    assert len(ut.weights) == (6 if alpha == 1.0 else 7)     # zero-weight centre dropped
     m = rng.standard_normal((5, 3))
     B = rng.standard_normal((5, 3, 3))
     S = B @ np.swapaxes(B, 1, 2)

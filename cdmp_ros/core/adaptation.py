@@ -43,22 +43,28 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
-    bounds = prob.bounds()
+    # EMM aim: violation probability target * (1 - alpha); acceptance stays F >= alpha - tol
+    alpha_aim = 1.0 - config.violation_target * (1.0 - prob.alpha)
     n_inner = 0
     n_outer = 0
     prev = None
     status = 'max_outer_reached'
     feasible = False
     for n_outer in range(1, int(config.max_outer) + 1):
+        ftol = config.lbfgs_ftol
+        if config.lbfgs_ftol_first is not None:
+            # inexact early inner loops: the multipliers are still far from their values
+            ftol = max(ftol, config.lbfgs_ftol_first * 0.1 ** (n_outer - 1))
         res = minimize(prob.lagrangian, theta, args=(lam,), jac=True, method='L-BFGS-B',
-                       bounds=bounds,
-                       options={'maxiter': int(config.max_inner), 'ftol': config.lbfgs_ftol,
+                       options={'maxiter': int(config.max_inner), 'ftol': ftol,
                                 'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
         if np.all(np.isfinite(res.x)):
             theta = res.x
         n_inner += int(res.nit)
-        mu, L, _ = prob.unpack(theta)
-        F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
+        F = prob.cached_values(theta)
+        if F is None:
+            mu, L, _ = prob.unpack(theta)
+            F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
         C = prob.alpha - F
         feasible = bool(np.all(C <= config.feasibility_tol))
         value = float(res.fun)
@@ -70,11 +76,12 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
             status = 'stalled_infeasible'
             break
         prev = value
+        C_aim = alpha_aim - F
         if config.relative_step:
-            step = np.clip(eta * C / (1.0 - prob.alpha), -config.max_log_step,
+            step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_step,
                            config.max_log_step)
         else:
-            step = eta * C
+            step = eta * C_aim
         lam = lam * np.exp(step)    # exponential method of multipliers (Algorithm 1)
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T

@@ -40,6 +40,19 @@ class AdaptationConfig:
         L-BFGS-B convergence tolerances of the inner loop.
     lbfgs_maxcor : int
         Number of L-BFGS correction pairs.
+    lbfgs_ftol_first : float, optional
+        Inexact early inner loops: outer iteration r (1-based) uses
+        ftol = max(lbfgs_ftol, lbfgs_ftol_first * 10^-(r-1)) (None: lbfgs_ftol throughout).
+        While the multipliers are far from their final values a precise inner solve is
+        wasted; the final iterations are as precise as before.
+    violation_target : float
+        Confidence margin of the EMM updates, in (0, 1]: the multipliers aim at the violation
+        probability violation_target * (1 - alpha) (the step uses
+        alpha' = 1 - violation_target (1 - alpha) in place of alpha), while the stopping rule
+        (and ``converged``) still only requires F >= alpha - feasibility_tol. A target below 1
+        overshoots slightly, so the outer loop typically stops after one or two multiplier
+        updates instead of creeping up to alpha, at the price of a slightly larger KL; it
+        also absorbs part of the Gamma approximation's underestimated tails.
     relative_step : bool
         EMM step lambda <- lambda exp(eta C / (1 - alpha)) (clipped to +-max_log_step) instead
         of the paper's lambda exp(eta C), C = alpha - F. With alpha close to 1 the paper's step
@@ -68,6 +81,8 @@ class AdaptationConfig:
     lbfgs_ftol: float = 1e-6
     lbfgs_gtol: float = 1e-4
     lbfgs_maxcor: int = 20
+    lbfgs_ftol_first: Optional[float] = 1e-3
+    violation_target: float = 0.6
     relative_step: bool = True
     max_log_step: float = 3.0
     whiten: bool = True
@@ -85,6 +100,11 @@ class AdaptationConfig:
         check_positive('feasibility_tol', self.feasibility_tol, allow_zero=True)
         check_positive('kappa', self.kappa, allow_zero=True)
         check_positive('ut_alpha', self.ut_alpha)
+        if self.lbfgs_ftol_first is not None:
+            check_positive('lbfgs_ftol_first', self.lbfgs_ftol_first)
+        if not 0.0 < float(self.violation_target) <= 1.0:
+            raise ValidationError(f'violation_target: expected a value in (0, 1], '
+                                  f'got {self.violation_target!r}')
 
 
 @dataclass

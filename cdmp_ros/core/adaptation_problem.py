@@ -10,10 +10,20 @@ from numpy.typing import NDArray
 
 from cdmp_ros.core.adaptation_config import AdaptationConfig
 from cdmp_ros.core.constraints.base import Constraint, WeightConstraint
-from cdmp_ros.core.constraints.points import ChainPoint, StackedChainPoints
+from cdmp_ros.core.constraints.points import ChainPoint, DofPoint, StackedChainPoints
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.gaussian import UnscentedTransform
 from cdmp_ros.core.promp import ProMP
+
+
+def _contiguous_dofs(point):
+    """The slice of z_t a plain DofPoint selects, if its dofs are contiguous and increasing."""
+    if type(point) is not DofPoint:
+        return None
+    d = list(point.dofs)
+    if d != list(range(d[0], d[0] + len(d))):
+        return None
+    return slice(d[0], d[0] + len(d))
 
 
 class _Group:
@@ -105,6 +115,8 @@ class Problem:
         n = prior.n_weights
         self.n = n
         self.tril = np.tril_indices(n, -1)
+        self._tril_flat = np.ravel_multi_index(self.tril, (n, n))
+        self._diag_flat = np.arange(n) * (n + 1)
         self.grid = np.linspace(0.0, 1.0, int(config.n_steps))
         self.mu0 = prior.mean_w.copy()
         C0 = prior.cov_w
@@ -160,9 +172,19 @@ class Problem:
             elif isinstance(c, Constraint):
                 pkey = (id(c.point), key)
                 if pkey not in where:
-                    pm = _PointMoments(c.point, groups[key], prior.n_dims, config.ut_alpha)
-                    points[pkey] = pm
-                    where[pkey] = (pm, None)
+                    sel = _contiguous_dofs(c.point)
+                    if sel is not None:
+                        # a selection of contiguous dimensions: a view of the group's marginals
+                        ikey = ('identity', key)
+                        if ikey not in points:
+                            points[ikey] = _PointMoments(DofPoint(range(prior.n_dims)),
+                                                         groups[key], prior.n_dims,
+                                                         config.ut_alpha)
+                        where[pkey] = (points[ikey], sel)
+                    else:
+                        pm = _PointMoments(c.point, groups[key], prior.n_dims, config.ut_alpha)
+                        points[pkey] = pm
+                        where[pkey] = (pm, None)
                 self.bound.append(where[pkey])
                 nv = groups[key].times.size if c.reduce == 'each' else 1
             else:
@@ -177,7 +199,42 @@ class Problem:
         self.alpha = np.concatenate([np.full(s.stop - s.start, c.alpha)
                                      for c, s in zip(self.constraints, self.slices)]) \
             if self.constraints else np.zeros(0)
+        self._build_batches()
+        self._glo, self._ghi = self.gamma_limits()
+        self._last = None
         self.n_evaluations = 0
+
+    def _build_batches(self):
+        """Constraints of one ``batch_kind`` and output size, evaluated in one call."""
+        batches = {}
+        self.single = []
+        for i, (c, b) in enumerate(zip(self.constraints, self.bound)):
+            if b is None:
+                continue
+            kind = getattr(c, 'batch_kind', None)
+            if kind is None or type(c).probability is not Constraint.probability:
+                self.single.append(i)
+                continue
+            k = c.point.n_out
+            batches.setdefault((kind, k), []).append(i)
+        self.batches = []
+        for members in batches.values():
+            rows, offsets, n = [], [], 0
+            for i in members:
+                r = self.constraints[i].rows(self.bound[i][0].group.times)
+                size = self.bound[i][0].group.times.size
+                rows.append(r)
+                offsets.append((n, n + size))
+                n += size
+            params = {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
+            fn = type(self.constraints[members[0]]).probability_rows
+            self.batches.append((fn, members, offsets, params))
+
+    def _moments_of(self, i):
+        pm, xs = self.bound[i]
+        if xs is None:
+            return pm.mx, pm.Sx
+        return pm.mx[:, xs], pm.Sx[:, xs, xs]
 
     # --------------------------------------------------------------- parameters
     def initial_theta(self) -> NDArray:
@@ -186,25 +243,33 @@ class Problem:
         L0 = self.L0
         return np.concatenate([self.mu0, L0[self.tril], np.log(np.diag(L0))])
 
+    def gamma_limits(self):
+        """Box on gamma: the diagonal of L stays within [e^-25, e^5] times the prior's, which
+        keeps exp(gamma) finite during line searches. Returns (lo, hi), each (n,)."""
+        base = 0.0 if self.config.whiten else np.log(np.diag(self.L0))
+        return (np.broadcast_to(base - 25.0, (self.n,)).copy(),
+                np.broadcast_to(base + 5.0, (self.n,)).copy())
+
     def bounds(self):
-        """L-BFGS-B box on gamma only: the diagonal of L stays within [e^-25, e^5] times the
-        prior's, which keeps exp(gamma) finite during line searches."""
+        """The box of :meth:`gamma_limits` on the whole theta as scipy Bounds (the optimiser
+        itself clips gamma inside the Lagrangian instead: scipy's L-BFGS-B converts bounds
+        with a Python loop over every parameter on each call)."""
+        from scipy.optimize import Bounds
         n, nt = self.n, self.tril[0].size
         lo = np.full(2 * n + nt, -np.inf)
         hi = np.full(2 * n + nt, np.inf)
-        base = 0.0 if self.config.whiten else np.log(np.diag(self.L0))
-        lo[n + nt:] = base - 25.0
-        hi[n + nt:] = base + 5.0
-        return list(zip(lo, hi))
+        lo[n + nt:], hi[n + nt:] = self.gamma_limits()
+        return Bounds(lo, hi)
 
     def _factors(self, theta):
-        """First block, lower-triangular matrix and gamma of theta (raw or whitened)."""
+        """First block, lower-triangular matrix and gamma of theta (raw or whitened); gamma
+        is clipped to :meth:`gamma_limits` (its gradient is zero outside)."""
         n = self.n
         first = theta[:n]
         T = np.zeros((n, n))
-        T[self.tril] = theta[n:n + self.tril[0].size]
-        gamma = theta[n + self.tril[0].size:]
-        T[np.diag_indices(n)] = np.exp(gamma)
+        T.flat[self._tril_flat] = theta[n:n + self.tril[0].size]
+        gamma = np.clip(theta[n + self.tril[0].size:], self._glo, self._ghi)
+        T.flat[self._diag_flat] = np.exp(gamma)
         return first, T, gamma
 
     def unpack(self, theta):
@@ -250,33 +315,53 @@ class Problem:
         for pm in self.points:
             pm.compute()
         F = np.empty(self.n_values)
-        parts = []
+        parts = [None] * len(self.constraints)
         Sigma = None
-        for c, b, sl in zip(self.constraints, self.bound, self.slices):
+        for i, (c, b, sl) in enumerate(zip(self.constraints, self.bound, self.slices)):
             if b is None:
                 if Sigma is None:
                     Sigma = L @ L.T
                 Fw, dmu, dS = c.probability_w(mu, Sigma)
                 F[sl] = Fw
-                parts.append((dmu, dS))
-                continue
-            pm, xs = b
-            if xs is None:
-                Ft, dm, dS = c.probability(pm.mx, pm.Sx, pm.group.times)
+                parts[i] = (dmu, dS)
+        for i in self.single:
+            m, S = self._moments_of(i)
+            self._store(i, *self.constraints[i].probability(m, S, self.bound[i][0].group.times),
+                        F, parts)
+        for fn, members, offsets, params in self.batches:
+            if len(members) == 1:
+                m, S = self._moments_of(members[0])
             else:
-                Ft, dm, dS = c.probability(pm.mx[:, xs], pm.Sx[:, xs, xs], pm.group.times)
-            if c.reduce == 'max':
-                i = int(np.argmax(Ft))
-                F[sl] = Ft[i]
-                mask = np.zeros(Ft.size)
-                mask[i] = 1.0
-                parts.append((mask, dm, dS))
-            else:
-                F[sl] = Ft
-                parts.append((None, dm, dS))
+                ms = [self._moments_of(i) for i in members]
+                m = np.concatenate([v[0] for v in ms])
+                S = np.concatenate([v[1] for v in ms])
+            Fr, dm, dS = fn(m, S, params)
+            for i, (a, b) in zip(members, offsets):
+                self._store(i, Fr[a:b], dm[a:b], dS[a:b], F, parts)
         if not grads:
             return F
         return F, parts
+
+    def cached_values(self, theta):
+        """F of the last Lagrangian evaluation if it was at ``theta``, else None."""
+        if not self.n_values:
+            return np.zeros(0)
+        last = self._last
+        if last is not None and np.array_equal(last[0], theta):
+            return last[1]
+        return None
+
+    def _store(self, i, Ft, dm, dS, F, parts):
+        sl = self.slices[i]
+        if self.constraints[i].reduce == 'max':
+            j = int(np.argmax(Ft))
+            F[sl] = Ft[j]
+            mask = np.zeros(Ft.size)
+            mask[j] = 1.0
+            parts[i] = (mask, dm, dS)
+        else:
+            F[sl] = Ft
+            parts[i] = (None, dm, dS)
 
     def lagrangian(self, theta, lam):
         """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta."""
@@ -303,6 +388,7 @@ class Problem:
             g_Sigma = kappa * self.Phi_R
         if self.n_values:
             F, parts = self.constraint_values(mu, L, grads=True)
+            self._last = (theta.copy(), F)
             value += np.sum(lam * (self.alpha - F))
             for c, b, sl, part in zip(self.constraints, self.bound, self.slices, parts):
                 w = -lam[sl]
@@ -337,5 +423,7 @@ class Problem:
                 g_T += T - np.diag(1.0 / np.diag(T))
         else:
             g_first, g_T = g_mu, g_L
-        g_theta = np.concatenate([g_first, g_T[self.tril], np.diag(g_T) * np.exp(gamma)])
+        g_gamma = np.diag(g_T) * np.exp(gamma)
+        g_gamma[theta[-self.n:] != gamma] = 0.0          # clipped: flat outside the box
+        g_theta = np.concatenate([g_first, g_T.flat[self._tril_flat], g_gamma])
         return value, g_theta

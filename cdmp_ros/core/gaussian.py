@@ -127,7 +127,8 @@ def cholesky_backward(A: NDArray, A_bar: NDArray) -> NDArray:
 
 class UnscentedTransform:
     """Sigma points z_m = m +- alpha sqrt(k) A e_i, weights 1 / (2 alpha^2 k) and
-    W_0 = 1 - 1 / alpha^2 for the centre (Section II-E, paper 003).
+    W_0 = 1 - 1 / alpha^2 for the centre (Section II-E, paper 003); the centre is omitted when
+    W_0 = 0 (alpha = 1).
 
     Parameters
     ----------
@@ -142,16 +143,23 @@ class UnscentedTransform:
         self.alpha = float(alpha)
         self.scale = self.alpha * np.sqrt(self.k)
         w = 1.0 / (2.0 * self.alpha ** 2 * self.k)
-        self.weights = np.concatenate([[1.0 - 1.0 / self.alpha ** 2], np.full(2 * self.k, w)])
-        # signs (2k+1, k): row 0 centre, rows 1..k plus, rows k+1..2k minus
-        self.offsets = np.concatenate([np.zeros((1, self.k)), np.eye(self.k), -np.eye(self.k)])
+        w0 = 1.0 - 1.0 / self.alpha ** 2
+        # the centre point is dropped when its weight is zero (alpha = 1): it changes neither
+        # moment, and the kinematics are then evaluated at 2k instead of 2k + 1 points
+        self.n_centre = 0 if w0 == 0.0 else 1
+        self.weights = np.concatenate([[w0] * self.n_centre, np.full(2 * self.k, w)])
+        # signs (n_centre + 2k, k): [centre,] plus rows, minus rows
+        self.offsets = np.concatenate([np.zeros((self.n_centre, self.k)), np.eye(self.k),
+                                       -np.eye(self.k)])
 
     def points(self, m: NDArray, S: NDArray) -> Tuple[NDArray, NDArray]:
-        """Sigma points Z (n, 2k+1, k) of N(m, S), and the Cholesky factors A (n, k, k)."""
+        """Sigma points Z (n, n_centre + 2k, k) of N(m, S), and the Cholesky factors
+        A (n, k, k)."""
         A = batched_cholesky(S)
         sAT = self.scale * np.swapaxes(A, 1, 2)          # row j = scale * A e_j
         mm = m[:, None, :]
-        Z = np.concatenate([mm, mm + sAT, mm - sAT], axis=1)
+        parts = [mm, mm + sAT, mm - sAT] if self.n_centre else [mm + sAT, mm - sAT]
+        Z = np.concatenate(parts, axis=1)
         return Z, A
 
     def moments(self, X: NDArray) -> Tuple[NDArray, NDArray]:
@@ -182,7 +190,7 @@ class UnscentedTransform:
         g_Z = np.matmul(g_X[:, :, None, :], J)[:, :, 0, :]
         g_m = g_Z.sum(axis=1)
         # Z_p = m +- scale * A e_j  ->  dA[:, i, j] = scale * (g_Z[+j, i] - g_Z[-j, i])
-        k = self.k
-        g_A = self.scale * np.swapaxes(g_Z[:, 1:k + 1, :] - g_Z[:, k + 1:, :], 1, 2)
+        k, c = self.k, self.n_centre
+        g_A = self.scale * np.swapaxes(g_Z[:, c:c + k, :] - g_Z[:, c + k:, :], 1, 2)
         g_S = cholesky_backward(A, g_A)
         return g_m, g_S

@@ -62,6 +62,10 @@ class Constraint:
                     ) -> Tuple[NDArray, NDArray, NDArray]:
         """Satisfaction probability per time and its gradients.
 
+        The default evaluates :meth:`probability_rows` on :meth:`rows`; subclasses either
+        implement those two (then the optimiser evaluates every constraint of the same
+        ``batch_kind`` in one vectorised call) or override this method.
+
         Parameters
         ----------
         m : (n, k) means of x_t; S : (n, k, k) covariances; times : (n,) phases.
@@ -70,6 +74,22 @@ class Constraint:
         -------
         F : (n,); dF_dm : (n, k); dF_dS : (n, k, k)
         """
+        if self.batch_kind is None:
+            raise NotImplementedError
+        return self.probability_rows(m, S, self.rows(times))
+
+    # Constraints sharing a ``batch_kind`` are evaluated together: their per-time parameters
+    # (rows) are stacked and one ``probability_rows`` call handles every row.
+    batch_kind: Optional[str] = None
+
+    def rows(self, times: NDArray) -> dict:
+        """Per-time parameters of :meth:`probability_rows`: arrays with leading size n."""
+        raise NotImplementedError
+
+    @staticmethod
+    def probability_rows(m: NDArray, S: NDArray, params: dict
+                         ) -> Tuple[NDArray, NDArray, NDArray]:
+        """F, dF_dm, dF_dS for rows (m (N, k), S (N, k, k)) with stacked ``rows`` params."""
         raise NotImplementedError
 
     def satisfied(self, X: NDArray, times: NDArray) -> NDArray:

@@ -11,15 +11,19 @@ from cdmp_ros.core.validation import as_array
 
 
 def _halfspace(m, S, n, b):
-    """P(n^T (x - b) >= 0) for x ~ N(m, S) per time, and its gradients."""
-    mu = (m - b) @ n
-    var = np.maximum(np.einsum('i,nij,j->n', n, S, n), 1e-300)
+    """P(n^T (x - b) >= 0) for x ~ N(m, S) per row, and its gradients.
+
+    m : (N, k); S : (N, k, k); n, b : (k,) or per row (N, k).
+    """
+    n = np.broadcast_to(n, m.shape)
+    mu = np.einsum('ni,ni->n', m - b, n)
+    var = np.maximum(np.einsum('ni,nij,nj->n', n, S, n), 1e-300)
     sd = np.sqrt(var)
     z = mu / sd
     P = normal_cdf(z)
     pdf = normal_pdf(z)
-    dP_dm = (pdf / sd)[:, None] * n[None, :]
-    dP_dS = (-pdf * mu / (2.0 * var * sd))[:, None, None] * np.outer(n, n)[None]
+    dP_dm = (pdf / sd)[:, None] * n
+    dP_dS = (-pdf * mu / (2.0 * var * sd))[:, None, None] * (n[:, :, None] * n[:, None, :])
     return P, dP_dm, dP_dS
 
 
@@ -43,8 +47,15 @@ class Hyperplane(Constraint):
             raise ValidationError('normal: expected a non-zero vector, got zeros')
         self.offset = as_array('offset', offset, (point.n_out,))
 
-    def probability(self, m, S, times):
-        P, dP_dm, dP_dS = _halfspace(m, S, self.normal, self.offset)
+    batch_kind = 'hyperplane'
+
+    def rows(self, times):
+        n = times.size
+        return {'n': np.tile(self.normal, (n, 1)), 'b': np.tile(self.offset, (n, 1))}
+
+    @staticmethod
+    def probability_rows(m, S, params):
+        P, dP_dm, dP_dS = _halfspace(m, S, params['n'], params['b'])
         return 1.0 - P, -dP_dm, -dP_dS
 
     def satisfied(self, X, times):
@@ -71,9 +82,17 @@ class NonConvexCorner(Constraint):
         self.n2 = as_array('normal2', normal2, (k,))
         self.b2 = as_array('offset2', offset2, (k,))
 
-    def probability(self, m, S, times):
-        P1, dm1, dS1 = _halfspace(m, S, self.n1, self.b1)
-        P2, dm2, dS2 = _halfspace(m, S, self.n2, self.b2)
+    batch_kind = 'corner'
+
+    def rows(self, times):
+        n = times.size
+        return {k: np.tile(getattr(self, k), (n, 1)) for k in ('n1', 'b1', 'n2', 'b2')}
+
+    @staticmethod
+    def probability_rows(m, S, params):
+        # product approximation of Eq. (21)
+        P1, dm1, dS1 = _halfspace(m, S, params['n1'], params['b1'])
+        P2, dm2, dS2 = _halfspace(m, S, params['n2'], params['b2'])
         F = 1.0 - P1 * P2
         dF_dm = -(P2[:, None] * dm1 + P1[:, None] * dm2)
         dF_dS = -(P2[:, None, None] * dS1 + P1[:, None, None] * dS2)

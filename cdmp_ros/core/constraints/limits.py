@@ -45,18 +45,24 @@ class JointLimit(Constraint):
         b = _bound(self.upper, times, np.inf)
         return a, b
 
-    def probability(self, m, S, times):
-        # Eq. (13), paper 003
+    batch_kind = 'limit'
+
+    def rows(self, times):
         a, b = self.bounds(times)
+        return {'a': np.asarray(a, float), 'b': np.asarray(b, float)}
+
+    @staticmethod
+    def probability_rows(m, S, params):
+        # Eq. (13), paper 003
+        a, b = params['a'], params['b']
         mu = m[:, 0]
         sd = np.sqrt(np.maximum(S[:, 0, 0], 1e-300))
-        zb = np.where(np.isfinite(b), (b - mu) / sd, np.inf)
-        za = np.where(np.isfinite(a), (a - mu) / sd, -np.inf)
-        F = normal_cdf(zb) - normal_cdf(za)
-        pb = np.where(np.isfinite(zb), normal_pdf(np.where(np.isfinite(zb), zb, 0.0)), 0.0)
-        pa = np.where(np.isfinite(za), normal_pdf(np.where(np.isfinite(za), za, 0.0)), 0.0)
-        zb0 = np.where(np.isfinite(zb), zb, 0.0)
-        za0 = np.where(np.isfinite(za), za, 0.0)
+        fb, fa = np.isfinite(b), np.isfinite(a)
+        zb0 = np.where(fb, (np.where(fb, b, 0.0) - mu) / sd, 0.0)
+        za0 = np.where(fa, (np.where(fa, a, 0.0) - mu) / sd, 0.0)
+        F = np.where(fb, normal_cdf(zb0), 1.0) - np.where(fa, normal_cdf(za0), 0.0)
+        pb = np.where(fb, normal_pdf(zb0), 0.0)
+        pa = np.where(fa, normal_pdf(za0), 0.0)
         dF_dmu = (-pb + pa) / sd
         dF_dvar = (-pb * zb0 + pa * za0) / (2.0 * sd * sd)
         return F, dF_dmu[:, None], dF_dvar[:, None, None]

@@ -13,6 +13,13 @@ from numpy.typing import NDArray
 from cdmp_ros.core.errors import ValidationError
 
 
+def _axes_index(axes: Tuple[int, ...]):
+    """A slice for contiguous increasing axes (a view, no gather), else the list."""
+    if list(axes) == list(range(axes[0], axes[0] + len(axes))):
+        return slice(axes[0], axes[0] + len(axes))
+    return list(axes)
+
+
 class Point:
     """Base class. ``dofs``: indices of z the point depends on; ``n_out``: output dimension."""
     linear = False
@@ -75,7 +82,9 @@ class ChainPoint(Point):
 
     def forward_and_jacobian(self, Z):
         X, J = self.chain.forward_and_jacobian(Z, [self.point])
-        ax = list(self.axes)
+        if self.axes == (0, 1, 2):
+            return X[..., 0, :], J[..., 0, :, :]
+        ax = _axes_index(self.axes)
         return X[..., 0, ax], J[..., 0, ax, :]
 
 
@@ -120,9 +129,10 @@ class StackedChainPoints(Point):
 
     def forward_and_jacobian(self, Z):
         X, J = self.chain.forward_and_jacobian(Z, [p.point for p in self.points])
-        ax = list(self.axes)
-        X = X[..., ax]
-        J = J[..., ax, :]
+        if self.axes != (0, 1, 2):
+            ax = _axes_index(self.axes)
+            X = X[..., ax]
+            J = J[..., ax, :]
         lead = Z.shape[:-1]
         return (X.reshape(lead + (self.n_out,)),
                 J.reshape(lead + (self.n_out, Z.shape[-1])))

@@ -31,13 +31,24 @@ class _Sphere(Constraint):
                                    (times.size, self.point.n_out))
         return np.broadcast_to(self.center, (times.size, self.point.n_out))
 
-    def probability(self, m, S, times):
-        E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, self.centers(times))
-        G, dG_dE, dG_dV = gamma_cdf(E, V, self.radius ** 2)
-        sign = 1.0 if self.inside else -1.0
-        F = G if self.inside else 1.0 - G
-        dF_dm = sign * (dG_dE[:, None] * dE_dm + dG_dV[:, None] * dV_dm)
-        dF_dS = sign * (dG_dE[:, None, None] * dE_dS + dG_dV[:, None, None] * dV_dS)
+    batch_kind = 'sphere'
+
+    def rows(self, times):
+        n = times.size
+        return {'center': np.asarray(self.centers(times), float),
+                'r2': np.full(n, self.radius ** 2), 'inside': np.full(n, bool(self.inside))}
+
+    @staticmethod
+    def probability_rows(m, S, params):
+        # Gamma approximation of |x - x_bar|^2 (Eq. 17-18 with Eq. 15's moment matching)
+        E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
+        G, dG_dE, dG_dV = gamma_cdf(E, V, params['r2'])
+        inside = params['inside']
+        sign = np.where(inside, 1.0, -1.0)
+        F = np.where(inside, G, 1.0 - G)
+        a, b = sign * dG_dE, sign * dG_dV
+        dF_dm = a[:, None] * dE_dm + b[:, None] * dV_dm
+        dF_dS = a[:, None, None] * dE_dS + b[:, None, None] * dV_dS
         return F, dF_dm, dF_dS
 
     def _dist2(self, X, times):
