@@ -316,3 +316,27 @@ def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
     C = J @ promp.cov(s) @ np.swapaxes(J, 1, 2)            # (n, 3, 3)
     lam = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, -1]
     return X[:, 0], n_sigma * np.sqrt(np.maximum(lam, 0.0))
+
+
+def rollout_path(prim, perm: Sequence[int], chain, start_y: Optional[ArrayLike] = None,
+                 n_points: int = 50, dt: float = 0.01) -> NDArray[np.float64]:
+    """End-effector path (n_points, 3) of a DMP / CDMP rollout over 1.2 durations.
+
+    Parameters
+    ----------
+    prim : DMP or CDMP
+        In its own joint order.
+    perm : sequence of int
+        ``perm[i]``: index in ``prim`` of the chain's joint i.
+    start_y : (n_dims,), optional
+        Start in the chain's joint order (default: the primitive's start).
+    """
+    perm = np.asarray(perm)
+    start = None
+    if start_y is not None:
+        start = np.empty(perm.size)
+        start[perm] = np.asarray(start_y, dtype=float)
+    tr = prim.rollout(dt=dt, start_y=start, duration=1.2 * prim.tau_)
+    Y = tr.Y[:, perm]
+    idx = np.linspace(0, len(Y) - 1, int(n_points)).round().astype(int)
+    return ee_path(chain, Y[idx])

@@ -25,7 +25,6 @@ streamer gets the latest adapted one); ``visualization`` transient-local (a late
 the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
 ``diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
 """
-import hashlib
 import json
 import math
 import os
@@ -41,19 +40,18 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, ee_path, permutation,
-                                          reorder_promp, retarget_primitive_dict,
-                                          solve_goal_point)
+from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_primitive_dict,
+                                          rollout_path, solve_goal_point)
 from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
-from cdmp_ros.core.constraints.parse import (RobotContext, parse_constraint_set,
-                                             validate_constraint_set)
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.kinematics import panda_chain
-from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
+from cdmp_ros.core.primitive_io import primitive_from_dict
 from cdmp_ros.core.streaming import RateLimiter
 from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros.adapter_inputs import goal_point_target, parse_constraints, parse_primitive
 from cdmp_ros.ros.adapter_viz import build_markers
-from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker, solve_job
+from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
+                                         violated)
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
@@ -192,17 +190,6 @@ class AdapterNode(Node):
         self.reporter.reject(topic, reason)
         self.reporter.publish_if_due(self.get_clock().now().to_msg())
 
-    def _json(self, topic: str, text: str):
-        """Size check and JSON decoding of a String payload (raises ValidationError)."""
-        size = len(text.encode('utf-8', 'surrogatepass'))
-        if size > self.config.max_json_bytes:
-            raise ValidationError(f'{topic}: payload of {size} bytes exceeds max_json_bytes '
-                                  f'= {self.config.max_json_bytes}')
-        try:
-            return json.loads(text)
-        except (json.JSONDecodeError, RecursionError) as exc:
-            raise ValidationError(f'{topic}: not valid JSON ({exc})') from None
-
     # -- subscriptions -----------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
         if not self._admit('joint_states', [('joint_states.header.stamp', msg.header.stamp)]):
@@ -226,41 +213,29 @@ class AdapterNode(Node):
         if not self._admit('primitive'):
             return
         try:
-            d = self._json('primitive', msg.data)
-            validate_primitive_dict(d)
-            perm = permutation(d['joint_names'], self.joint_names)
-            prim = primitive_from_dict(d)
-            if d['kind'] == 'promp':
-                prim = reorder_promp(prim, self.joint_names)
+            prim = parse_primitive(msg.data, self.joint_names, self.config.max_json_bytes)
         except CdmpError as exc:
             self._reject('primitive', str(exc))
             return
-        except (ValueError, TypeError, KeyError) as exc:
-            self._reject('primitive', f'primitive: cannot be used: {exc!r}')
-            return
         self.primitive_id += 1
-        self.primitive = {'kind': d['kind'], 'd': d, 'prim': prim, 'perm': perm,
-                          'sha1': hashlib.sha1(msg.data.encode('utf-8', 'surrogatepass'))
-                          .hexdigest()}
+        self.primitive = prim
         self.goal_y = self.goal_point = None
-        self.get_logger().info(f'new {d["kind"]} primitive ({len(msg.data)} bytes)')
+        self.get_logger().info(f'new {prim["kind"]} primitive ({len(msg.data)} bytes)')
         self._trigger('primitive', 0)
 
     def _on_constraints(self, msg: String) -> None:
         if not self._admit('constraints'):
             return
+        p = self.primitive
         try:
-            doc = self._json('constraints', msg.data)
-            validate_constraint_set(doc)
-            if self.primitive is not None and self.primitive['kind'] == 'promp':
-                n = self.chain.n_dofs
-                parse_constraint_set(doc, self.primitive['prim'],
-                                     RobotContext(n, [(self.chain, range(n))]))
+            doc = parse_constraints(msg.data, p['prim'] if p and p['kind'] == 'promp' else None,
+                                    self.chain, self.config.max_json_bytes)
         except CdmpError as exc:
             self._reject('constraints', str(exc))
             return
-        self.constraint_doc = doc if doc['constraints'] or doc.get('optimizer') else None
-        self.get_logger().info(f'constraint set with {len(doc["constraints"])} constraints')
+        self.constraint_doc = doc
+        self.get_logger().info(f'constraint set with '
+                               f'{len(doc["constraints"]) if doc else 0} constraints')
         self._trigger('constraints', 0)
 
     def _on_goal(self, msg: JointState) -> None:
@@ -277,17 +252,8 @@ class AdapterNode(Node):
         if not self._admit('goal_point', [('goal_point.header.stamp', msg.header.stamp)]):
             return
         cfg = self.config
-        frame = msg.header.frame_id
         try:
-            if frame and frame.lstrip('/') != cfg.base_frame:
-                raise ValidationError(f'goal_point.header.frame_id: expected the robot base '
-                                      f'frame {cfg.base_frame!r} (or empty), got {frame!r}')
-            p = msg.point
-            target = np.array([p.x, p.y, p.z])
-            for axis, v in zip('xyz', target):
-                if not math.isfinite(v):
-                    raise ValidationError(f'goal_point.point.{axis}: expected a finite value, '
-                                          f'got {v}')
+            target = goal_point_target(msg, cfg.base_frame)
             res = solve_goal_point(self.chain, target, self._ik_seeds(), cfg.ik_tolerance,
                                    cfg.ik_max_iter, margin=cfg.goal_margin)
         except ValidationError as exc:
@@ -406,15 +372,7 @@ class AdapterNode(Node):
         if p is not None and p['kind'] != 'promp':
             try:
                 prim = primitive_from_dict(d) if d is not None else p['prim']
-                perm = p['perm']
-                start = None
-                if self.q is not None:
-                    start = np.empty(len(perm))
-                    start[perm] = self.q
-                tr = prim.rollout(dt=0.01, start_y=start, duration=1.2 * prim.tau_)
-                Y = tr.Y[:, perm]
-                idx = np.linspace(0, len(Y) - 1, self.config.path_points).round().astype(int)
-                path = ee_path(self.chain, Y[idx])
+                path = rollout_path(prim, p['perm'], self.chain, self.q, self.config.path_points)
             except (CdmpError, ValueError) as exc:  # a primitive that cannot be rolled out
                 self.get_logger().warning(f'visualization: {exc}', throttle_duration_sec=5.0)
         self._publish_markers(path, None)
@@ -436,22 +394,15 @@ class AdapterNode(Node):
             return
         self.counts[f'outcome_{res.outcome}'] += 1
         self.reporter.timing('solve', res.solve_time)
-        values = {k: v for k, v in self.reporter.values.items() if not k.startswith('p.')}
-        self.reporter.values = values
-        kv = {'outcome': res.outcome, 'solve_time_ms': f'{res.solve_time * 1e3:.1f}',
-              'trigger': job.trigger, 'request_id': job.id, 'stale': res.stale}
+        self.reporter.values = {k: v for k, v in self.reporter.values.items()
+                                if not k.startswith('p.')}
+        kv = result_values(res)
         if res.outcome == 'rejected':
             self._reject(res.error_topic or job.trigger, res.error)
             self.reporter.set_state(ERROR, f'request {job.id} ({job.trigger}) rejected: '
                                            f'{res.error}', **kv)
             self._publish_now()
             return
-        rep = res.result.report
-        kv.update(kl=f'{rep.kl:.6g}', iterations=rep.n_inner, outer_iterations=rep.n_outer,
-                  obstacles_used=res.result.problem.obstacles_used,
-                  obstacles_ignored=res.result.problem.obstacles_ignored)
-        for c in rep.constraints:
-            kv[f'p.{c.name}'] = f'{c.probability:.6f} (alpha {c.alpha:g})'
         if res.outcome == 'converged':
             self.pub.publish(String(data=res.text))
             self._publish_markers(res.path, res.band)
@@ -463,14 +414,12 @@ class AdapterNode(Node):
                                     + (' (stale: a newer request is pending)'
                                        if res.stale else ''), **kv)
         else:
-            violated = [f'{c.name} P={c.probability:.4f} < {c.alpha:g}'
-                        for c in rep.constraints if not c.satisfied]
+            bad = ', '.join(violated(res)[:5])
             level = ERROR if res.outcome == 'infeasible' else WARN
             self.reporter.set_state(level, f'request {job.id} ({job.trigger}) {res.outcome}: '
-                                           f'{", ".join(violated[:5])}; last good primitive '
-                                           f'kept', **kv)
-            self.get_logger().warning(f'adaptation {res.outcome} ({rep.status}): '
-                                      f'{", ".join(violated[:5])}')
+                                           f'{bad}; last good primitive kept', **kv)
+            self.get_logger().warning(f'adaptation {res.outcome} '
+                                      f'({res.result.report.status}): {bad}')
         self._publish_now()
 
     # -- diagnostics -------------------------------------------------------------------------

@@ -158,3 +158,28 @@ class SolveWorker(threading.Thread):
     def summary(self) -> Dict[str, Any]:
         with self._cv:
             return dict(self.counts, solver_busy=self.busy)
+
+
+def result_values(res: JobResult) -> Dict[str, Any]:
+    """Diagnostics key/values of a solved job: outcome, solve_time_ms, kl, iterations and
+    ``p.<constraint>`` = satisfaction probability (with its alpha) of every constraint."""
+    job = res.job
+    kv: Dict[str, Any] = {'outcome': res.outcome, 'solve_time_ms': f'{res.solve_time * 1e3:.1f}',
+                          'trigger': job.trigger, 'request_id': job.id, 'stale': res.stale}
+    if res.result is None:
+        return kv
+    rep = res.result.report
+    kv.update(kl=f'{rep.kl:.6g}', iterations=rep.n_inner, outer_iterations=rep.n_outer,
+              obstacles_used=res.result.problem.obstacles_used,
+              obstacles_ignored=res.result.problem.obstacles_ignored)
+    for c in rep.constraints:
+        kv[f'p.{c.name}'] = f'{c.probability:.6f} (alpha {c.alpha:g})'
+    return kv
+
+
+def violated(res: JobResult) -> List[str]:
+    """``name P=... < alpha`` of every violated constraint of a solved job."""
+    if res.result is None:
+        return []
+    return [f'{c.name} P={c.probability:.4f} < {c.alpha:g}'
+            for c in res.result.report.constraints if not c.satisfied]
