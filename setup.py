@@ -11,6 +11,7 @@ CONSOLE_SCRIPTS = [
     'cdmp = cdmp_ros.cli.main:main',
     'streamer = cdmp_ros.nodes.streamer:main',
     'adapter = cdmp_ros.nodes.adapter:main',
+    'sim = cdmp_ros.nodes.sim:main',
     'recorder = cdmp_ros.nodes.recorder:main',
     'player = cdmp_ros.nodes.player:main',
     'learner = cdmp_ros.nodes.learner:main',

@@ -155,6 +155,20 @@ class Robot:
         states = pybullet.getJointStates(self.body_id, self._arm_idx, physicsClientId=self._cid)
         return (np.array([s[0] for s in states]), np.array([s[1] for s in states]))
 
+    def joint_state_effort(self) -> Tuple[NDArray[np.float64], NDArray[np.float64],
+                                          NDArray[np.float64]]:
+        """Measured positions, velocities and efforts, each ``(n_dofs,)``, in one query.
+
+        The effort is the torque of the last command of a torque controller, else the motor
+        torque pybullet applied in the last step (position motors) [N m or N].
+        """
+        states = pybullet.getJointStates(self.body_id, self._arm_idx, physicsClientId=self._cid)
+        q = np.array([s[0] for s in states])
+        qd = np.array([s[1] for s in states])
+        if self.last_command is not None:
+            return q, qd, np.array(self.last_command, dtype=np.float64)
+        return q, qd, np.array([s[3] for s in states])
+
     @property
     def q(self) -> NDArray[np.float64]:
         """Measured joint positions ``(n_dofs,)``."""

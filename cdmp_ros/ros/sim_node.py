@@ -1,0 +1,437 @@
+"""The sim node: ROS glue around :class:`cdmp_ros.sim.live.LiveSim` (pybullet, DIRECT mode).
+
+Topics (relative names, remappable):
+
+- subscribes ``joint_reference`` (sensor_msgs/JointState; QoS reliable, volatile, keep last
+  10 = :data:`~cdmp_ros.ros.qos_profiles.REFERENCE`, lossless from the streamer) and
+  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos_profiles.COMMAND`);
+- publishes ``joint_states`` (names, position, velocity, effort) and ``ee_pose``
+  (geometry_msgs/PoseStamped of the tool centre point, in ``base_frame``) at
+  ``publish_rate`` of simulated time (QoS :data:`STATE_QOS`: reliable, volatile, keep last
+  50, so the burst of one late tick (up to ``max_catch_up * publish_rate`` messages) reaches
+  a reliable subscriber whole; matches reliable and best-effort subscribers),
+  ``diagnostics`` (COMMAND) and, with ``publish_clock``,
+  ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects; reliable, keep
+  last 1).
+- services ``~/snapshot`` (std_srvs/Trigger: TinyRenderer PNG, the path in the message) and
+  ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest).
+
+Stepping: one steady-clock timer. With ``real_time`` it fires every publish period and steps
+the physics up to the wall clock (catch-up of at most ``max_catch_up`` s, beyond which the
+simulation slips and the slip is counted); without it, each tick steps for a slice of about
+1.5 ms of CPU, so subscriptions and services are served between slices. Each publish period
+of simulated time gets its own joint_states / ee_pose message, stamped with the wall time of
+its slot (simulated time with ``publish_clock``).
+
+Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
+each rejection or sanitisation is logged and counted per topic and per reason on
+``diagnostics``; the node keeps running.
+"""
+import math
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.streaming import RateLimiter
+from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp
+from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.sim.live import limit_clip, LiveSim
+from cdmp_ros.sim.node_config import SimConfig
+
+#: Timer period and stepping slice [s] when ``real_time`` is false.
+FAST_PERIOD, FAST_SLICE = 0.002, 0.0015
+STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+#: Reason categories counted on diagnostics as ``rejected_<category>``: first match wins.
+REASONS = (('flooding', ('flooding',)), ('stamp', ('in the future', 'in the past', 'unstamped')),
+           ('non_finite', ('finite value', 'finite values')),
+           ('joint_names', ('unknown joints', 'missing joints', 'duplicate joint')),
+           ('length', ('values (one per name)', 'expected 0 or')),
+           ('limits', ('outside the limits', 'velocity limit')),
+           ('frame', ('frame_id',)), ('marker_scale', ('scale.',)),
+           ('marker_type', ('.type:',)), ('marker_action', ('.action:', 'DELETE of unknown')),
+           ('too_many', ('obstacle limit',)), ('marker_pose', ('pose.',)))
+
+
+def reason_category(reason: str) -> str:
+    """The :data:`REASONS` category of a rejection message ('other' if none matches)."""
+    for cat, texts in REASONS:
+        if any(t in reason for t in texts):
+            return cat
+    return 'other'
+
+
+class SimNode(Node):
+    """See the module docstring; parameters mirror :class:`SimConfig`."""
+
+    def __init__(self, **kwargs):
+        super().__init__('sim', **kwargs)
+        self.params = ConfigParameters(self, [('', SimConfig)], on_change=self._on_params)
+        cfg: SimConfig = self.params['']
+        self.sim = LiveSim(cfg)
+        try:
+            self._declare_initial_positions()
+            self._setup(cfg)
+        except Exception:
+            self.sim.close()
+            raise
+
+    def _declare_initial_positions(self) -> None:
+        desc = ParameterDescriptor(
+            name='initial_positions', type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+            dynamic_typing=True,
+            description=('Initial joint positions [rad or m] in joint_states order (pose of '
+                         f'~/reset), inside the limits; {self.sim.n_dofs} values for '
+                         f'{self.sim.config.robot}. A change applies at the next ~/reset.'))
+        try:
+            p = self.declare_parameter('initial_positions', self.sim.initial_positions.tolist(),
+                                       desc)
+        except (ParameterException, TypeError, ValueError) as exc:
+            raise ValidationError(f'parameter initial_positions: {exc}') from None
+        self.sim.set_initial_positions(self._positions(p.value))
+        self.sim.reset()
+        self.add_on_set_parameters_callback(self._on_set_initial)
+        self.add_post_set_parameters_callback(self._post_set_initial)
+
+    def _positions(self, value) -> np.ndarray:
+        if isinstance(value, (str, bytes)) or not hasattr(value, '__len__') or any(
+                isinstance(v, (bool, str)) for v in value):
+            raise ValidationError(f'initial_positions: expected a list of numbers, got '
+                                  f'{value!r}')
+        return self.sim.check_positions('initial_positions',
+                                        np.asarray(value, dtype=np.float64))
+
+    def _on_set_initial(self, params) -> SetParametersResult:
+        for p in params:
+            if p.name == 'initial_positions':
+                try:
+                    self._positions(p.value)
+                except ValidationError as exc:
+                    self.get_logger().warning(f'parameter change refused: {exc}')
+                    return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _post_set_initial(self, params) -> None:
+        for p in params:
+            if p.name == 'initial_positions':
+                self.sim.set_initial_positions(self._positions(p.value))
+
+    def _setup(self, cfg: SimConfig) -> None:
+        sim = self.sim
+        self.mapper = JointStateMapper(sim.joint_names, allow_extra=False)
+        self.obstacles = ObstacleSet(sim.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
+                                     cfg.max_obstacle_distance)
+        self._limiters = {}
+        self._make_limiters(cfg)
+        self.js_pub = self.create_publisher(JointState, 'joint_states', STATE_QOS)
+        self.pose_pub = self.create_publisher(PoseStamped, 'ee_pose', STATE_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+                                              qos_profiles.COMMAND)
+        self.clock_pub = None
+        if cfg.publish_clock:
+            from rosgraph_msgs.msg import Clock as ClockMsg
+            self._clock_msg = ClockMsg()
+            self.clock_pub = self.create_publisher(ClockMsg, '/clock', CLOCK_QOS)
+        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
+        self.create_subscription(JointState, 'joint_reference', self._on_reference,
+                                 qos_profiles.REFERENCE)
+        self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
+                                 qos_profiles.COMMAND)
+        self.create_service(Trigger, '~/snapshot', self._on_snapshot)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+
+        self._js = JointState()
+        self._js.name = list(sim.joint_names)
+        self._pose = PoseStamped()
+        self._pose.header.frame_id = sim.base_frame
+        self.counts = {'references_received': 0, 'joint_states_published': 0,
+                       'slipped_steps': 0, 'snapshots': 0, 'resets': 0}
+        self.rejected_by_reason = {}
+        self._ref_time = None   # steady time of the last accepted reference
+        self._holding = False
+        self._n_published = 0
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._anchor()
+        self._rtf = (time.monotonic(), sim.t, float('nan'))
+        self.timer = None
+        self._make_timer(cfg)
+        self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
+                                            clock=self._steady)
+        self.get_logger().info(
+            f'simulating {cfg.robot} ({sim.n_dofs} joints, {cfg.control} control) at '
+            f'{cfg.physics_rate:g} Hz, {"real time" if cfg.real_time else "as fast as possible"}'
+            f'; joint_states at {cfg.publish_rate:g} Hz on '
+            f'{self.resolve_topic_name("joint_states")}; base frame {sim.base_frame}')
+
+    # -- configuration -----------------------------------------------------------------------
+    @property
+    def config(self) -> SimConfig:
+        return self.params['']
+
+    def _make_limiters(self, cfg: SimConfig) -> None:
+        self._limiters['joint_reference'] = RateLimiter(cfg.max_reference_rate)
+        self._limiters['obstacles'] = RateLimiter(cfg.max_input_rate)
+
+    def _make_timer(self, cfg: SimConfig) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.destroy_timer(self.timer)
+        period = (1.0 / cfg.publish_rate) if cfg.real_time else FAST_PERIOD
+        self.timer = self.create_timer(period, self._tick, clock=self._steady)
+
+    def _anchor(self) -> None:
+        """Tie the current simulated step to now (wall, steady and ROS clocks)."""
+        self._wall0 = time.monotonic()
+        self._k0 = self.sim.n_steps
+        self._ros0_ns = self.get_clock().now().nanoseconds
+
+    def _on_params(self, configs) -> None:
+        """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
+        old, cfg = self.config, configs['']
+        self.sim.set_control(cfg)  # raises on bad gains
+        self.obstacles.max_obstacles = cfg.max_obstacles
+        self.obstacles.max_size = cfg.max_obstacle_size
+        self.obstacles.max_distance = cfg.max_obstacle_distance
+        self._make_limiters(cfg)
+        if cfg.obstacles_collide != old.obstacles_collide:
+            self._sync_obstacles()
+        if cfg.real_time != old.real_time:
+            self._make_timer(cfg)
+            self._anchor()
+        if cfg.diagnostics_period != old.diagnostics_period:
+            self.diag_timer.cancel()
+            self.destroy_timer(self.diag_timer)
+            self.diag_timer = self.create_timer(cfg.diagnostics_period,
+                                                self._publish_diagnostics, clock=self._steady)
+
+    # -- inputs ------------------------------------------------------------------------------
+    def _now_ns(self) -> int:
+        """Now in the time base of stamps (simulated time with publish_clock)."""
+        if self.clock_pub is not None:
+            return int(round(self.sim.n_steps * 1e9 / self.config.physics_rate))
+        return self.get_clock().now().nanoseconds
+
+    def _reject(self, topic: str, reason: str) -> None:
+        cat = reason_category(reason)
+        self.rejected_by_reason[cat] = self.rejected_by_reason.get(cat, 0) + 1
+        self.reporter.reject(topic, reason)
+        self.reporter.publish_if_due(self.get_clock().now().to_msg())
+
+    def _admit(self, topic: str, now: float) -> bool:
+        lim = self._limiters[topic]
+        if lim.allow(now):
+            return True
+        if lim.dropped == 1 or lim.dropped % 100 == 0:
+            self._reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
+                                f'{lim.dropped} dropped so far')
+        else:
+            self.rejected_by_reason['flooding'] = self.rejected_by_reason.get('flooding', 0) + 1
+        return False
+
+    def _stamp_ok(self, topic: str, name: str, stamp) -> bool:
+        cfg = self.config
+        try:
+            check_stamp(name, stamp, self._now_ns(), cfg.max_stamp_age, cfg.max_stamp_lead,
+                        cfg.accept_unstamped)
+        except ValidationError as exc:
+            self._reject(topic, str(exc))
+            return False
+        return True
+
+    def _on_reference(self, msg: JointState) -> None:
+        topic = 'joint_reference'
+        now = time.monotonic()
+        if not self._admit(topic, now) or not self._stamp_ok(
+                topic, 'joint_reference.header.stamp', msg.header.stamp):
+            return
+        try:
+            q, qd = self.mapper.to_arrays(msg, topic)
+        except ValidationError as exc:
+            self._reject(topic, str(exc))
+            return
+        sim = self.sim
+        names = sim.joint_names
+        q, bad = limit_clip(q, sim.lower, sim.upper)
+        if bad:
+            j = bad[0]
+            self._reject(topic, f'joint_reference.position of {names[j]!r} is outside the '
+                                f'limits [{sim.lower[j]}, {sim.upper[j]}], clipped to {q[j]:.6g}'
+                                f' ({len(bad)} joint(s))')
+        if qd is not None:
+            vmax = sim.velocity_limits
+            qd, bad = limit_clip(qd, -vmax, vmax)
+            if bad:
+                j = bad[0]
+                self._reject(topic, f'joint_reference.velocity of {names[j]!r} exceeds the '
+                                    f'velocity limit {vmax[j]}, clipped ({len(bad)} joint(s))')
+        sim.set_reference(q, qd)
+        self.counts['references_received'] += 1
+        self._ref_time = now
+        self._holding = False
+
+    def _on_obstacles(self, msg: MarkerArray) -> None:
+        now = time.monotonic()
+        if not self._admit('obstacles', now):
+            return
+        good = [m for i, m in enumerate(msg.markers)
+                if m.action == 3 or self._stamp_ok(  # DELETEALL needs no stamp
+                    'obstacles', f'obstacles.markers[{i}].header.stamp', m.header.stamp)]
+        for exc in self.obstacles.apply(good, now):
+            self._reject('obstacles', str(exc))
+        self._sync_obstacles()
+
+    def _sync_obstacles(self) -> None:
+        snap = self.obstacles.snapshot
+        try:
+            self.sim.sync_obstacles({f'{ns}/{i}': item for (ns, i), item in
+                                     zip(snap.keys, snap.items)})
+        except CdmpError as exc:  # pybullet refused a shape: keep running, say so
+            self._reject('obstacles', f'cannot be simulated: {exc}')
+        self.sim.monitor()
+
+    # -- services ----------------------------------------------------------------------------
+    def _on_snapshot(self, request, response):
+        try:
+            response.message = self.sim.snapshot(self.config.snapshot_path)
+            response.success = True
+            self.counts['snapshots'] += 1
+            self.get_logger().info(f'snapshot written to {response.message}')
+        except (OSError, CdmpError, ValueError) as exc:
+            response.success = False
+            response.message = f'snapshot failed: {exc}'
+            self.get_logger().error(response.message)
+        return response
+
+    def _on_reset(self, request, response):
+        self.sim.reset()
+        self._ref_time = None
+        self._holding = False
+        self.counts['resets'] += 1
+        response.success = True
+        response.message = ('reset to initial_positions '
+                            f'{np.round(self.sim.initial_positions, 6).tolist()}')
+        self.get_logger().info(response.message)
+        return response
+
+    # -- stepping ----------------------------------------------------------------------------
+    def _tick(self) -> None:
+        t_start = time.perf_counter()
+        now = time.monotonic()
+        cfg = self.config
+        if (self._ref_time is not None and not self._holding and cfg.reference_timeout > 0
+                and now - self._ref_time > cfg.reference_timeout):
+            self.sim.hold()
+            self._holding = True
+            self.get_logger().warning(f'joint_reference stale (none for '
+                                      f'{cfg.reference_timeout:g} s): holding the last '
+                                      'position')
+        if cfg.real_time:
+            steps = int((now - self._wall0) * cfg.physics_rate) + self._k0 - self.sim.n_steps
+            cap = max(1, int(cfg.max_catch_up * cfg.physics_rate))
+            if steps > cap:  # too late: the simulation slips behind the wall clock
+                self.counts['slipped_steps'] += steps - cap
+                self._k0 -= steps - cap
+                steps = cap
+            self._advance(steps)
+        else:
+            end = t_start + FAST_SLICE
+            while time.perf_counter() < end:
+                self._advance(cfg.publish_decimation)
+        self.reporter.timing('tick', time.perf_counter() - t_start)
+
+    def _advance(self, steps: int) -> None:
+        """Step ``steps`` physics steps, publishing at every publish slot."""
+        sim = self.sim
+        dec = self.config.publish_decimation
+        while steps > 0:
+            n = min(steps, dec - sim.n_steps % dec)
+            sim.step(n)
+            steps -= n
+            if sim.n_steps % dec == 0:
+                self._publish_state()
+
+    def _publish_state(self) -> None:
+        sim, cfg = self.sim, self.config
+        if self.clock_pub is not None:
+            stamp_ns = self._now_ns()
+        elif cfg.real_time:
+            stamp_ns = self._ros0_ns + int((sim.n_steps - self._k0) * 1e9 / cfg.physics_rate)
+        else:
+            stamp_ns = self.get_clock().now().nanoseconds
+        sec, nsec = divmod(stamp_ns, 1_000_000_000)
+        q, qd, effort = sim.state()
+        js = self._js
+        js.header.stamp.sec, js.header.stamp.nanosec = sec, nsec
+        js.position, js.velocity, js.effort = q.tolist(), qd.tolist(), effort.tolist()
+        self.js_pub.publish(js)
+        pos, orn = sim.ee_pose()
+        ps = self._pose
+        ps.header.stamp.sec, ps.header.stamp.nanosec = sec, nsec
+        p, o = ps.pose.position, ps.pose.orientation
+        p.x, p.y, p.z = float(pos[0]), float(pos[1]), float(pos[2])
+        o.x, o.y, o.z, o.w = float(orn[0]), float(orn[1]), float(orn[2]), float(orn[3])
+        self.pose_pub.publish(ps)
+        if self.clock_pub is not None:
+            c = self._clock_msg.clock
+            c.sec, c.nanosec = sec, nsec
+            self.clock_pub.publish(self._clock_msg)
+        self._n_published += 1
+        self.counts['joint_states_published'] = self._n_published
+        if self._n_published % cfg.monitor_decimation == 0 and len(self.obstacles):
+            if self.obstacles.expire(time.monotonic()):
+                self._sync_obstacles()
+            else:
+                sim.monitor()
+
+    # -- diagnostics -------------------------------------------------------------------------
+    def _state(self):
+        cfg, st = self.config, self.sim.stats
+        if self._ref_time is None:
+            level, text, state = OK, 'waiting: holding initial_positions', 'waiting'
+        elif self._holding:
+            level, state = WARN, 'holding'
+            text = f'holding: joint_reference stale (none for {cfg.reference_timeout:g} s)'
+        else:
+            level, text, state = OK, 'tracking joint_reference', 'tracking'
+        if st.contacts:
+            level = WARN
+            text += '; contact ' + ', '.join(f'{link}-{obs}' for link, obs, _ in
+                                             st.contact_pairs[:3])
+        return level, text, state
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        sim = self.sim
+        t0, s0, rtf = self._rtf
+        if now - t0 > 0.0:
+            rtf = (sim.t - s0) / (now - t0)
+        self._rtf = (now, sim.t, rtf)
+        level, text, state = self._state()
+        rejected = {f'rejected_{k}': v for k, v in self.rejected_by_reason.items()}
+        rejected['rejected_total'] = sum(self.rejected_by_reason.values())
+        self.reporter.set_state(
+            level, text, state=state, robot=self.config.robot, control=self.config.control,
+            obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}',
+            real_time_factor=f'{rtf:.3f}' if math.isfinite(rtf) else 'nan',
+            **sim.stats.as_values(), **self.counts, **rejected)
+        self.reporter.publish(self.get_clock().now().to_msg())
+
+    def close(self) -> None:
+        self.sim.close()

@@ -1,0 +1,383 @@
+"""The simulated robot behind the ``sim`` node, without ROS: robots, reference, obstacles,
+monitoring.
+
+:class:`LiveSim` owns a :class:`~cdmp_ros.sim.world.World` (pybullet DIRECT, fixed step
+``1 / physics_rate``) with the robot(s) of a :class:`~cdmp_ros.sim.node_config.SimConfig`, and
+
+- tracks one joint reference ``(q_ref, qd_ref)`` of all controlled joints (``joint_names``
+  order; for ``dual_panda`` the joints of ``left`` then ``right``, prefixed ``left_`` /
+  ``right_``) with the configured control law, held between two :meth:`set_reference` calls;
+- keeps its obstacles (spheres, axis-aligned boxes of :mod:`cdmp_ros.core.kinematics.closest`)
+  in sync with a named set (:meth:`sync_obstacles`);
+- measures, after every physics step, limit violations, the largest limit usage
+  ``|q - centre| / half-range`` and the tracking error ``max |q_ref - q|``; and, when
+  :meth:`monitor` is called, the minimum link-obstacle distance and the contacts.
+
+Every figure of :class:`SimStats` is what the node reports on ``diagnostics`` (same key names).
+
+Typical use::
+
+    sim = LiveSim(SimConfig(robot='panda', control='computed_torque'))
+    sim.set_reference(q_ref, qd_ref)
+    sim.step(4)                        # 4 physics steps of 1 ms
+    q, qd, effort = sim.state()
+    sim.sync_obstacles({'ball': Sphere((0.5, 0.0, 0.5), 0.1)})
+    sim.monitor()
+    sim.close()
+"""
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Set, Tuple, Union
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+import pybullet
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.closest import Box, Sphere
+from cdmp_ros.core.validation import as_array
+from cdmp_ros.sim.camera import CameraConfig, snapshot
+from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
+                                  inertia_scaled_gains, JointLimitAvoidingController,
+                                  JointLimitAvoidingGains, PositionControlGains,
+                                  PositionController)
+from cdmp_ros.sim.node_config import SimConfig
+from cdmp_ros.sim.robots import add_dual_panda, panda_spec, planar_arm_spec
+from cdmp_ros.sim.world import World, WorldConfig
+
+Obstacle = Union[Sphere, Box]
+
+#: Camera of the snapshots per robot kind.
+CAMERAS = {
+    'panda': CameraConfig(),
+    'dual_panda': CameraConfig(target=(0.56, 0.0, 0.4), distance=2.4, yaw=20.0, pitch=-30.0),
+    'planar4': CameraConfig(target=(1.0, 0.0, 0.0), distance=6.0, yaw=0.0, pitch=-89.0),
+}
+
+
+def build_robots(world: World, robot: str) -> Tuple[list, Tuple[str, ...], str]:
+    """Load ``robot`` (a :data:`~cdmp_ros.sim.node_config.ROBOTS` name) into ``world``.
+
+    Returns
+    -------
+    robots : list of Robot
+    joint_names : tuple of str
+        All controlled joints, robot after robot (prefixed ``<robot>_`` for several robots).
+    base_frame : str
+        The frame of positions: the base link of a single robot, ``'world'`` for the cell.
+    """
+    if robot == 'panda':
+        r = world.add_robot(panda_spec())
+        return [r], tuple(r.joint_names), r.link_names[0]
+    if robot == 'planar4':
+        r = world.add_robot(planar_arm_spec())
+        return [r], tuple(r.joint_names), r.link_names[0]
+    if robot == 'dual_panda':
+        robots = list(add_dual_panda(world))
+        names = tuple(f'{r.name}_{j}' for r in robots for j in r.joint_names)
+        return robots, names, 'world'
+    raise ValidationError(f'robot: expected one of panda, dual_panda, planar4, got {robot!r}')
+
+
+@dataclass
+class SimStats:
+    """Figures since the start (or the current value), reported on ``diagnostics``.
+
+    Attributes
+    ----------
+    min_obstacle_distance_m : float
+        Current smallest link-obstacle distance [m] (inf: no obstacle within range).
+    min_obstacle_distance_since_start_m : float
+        Smallest value of the above over every :meth:`LiveSim.monitor` call [m].
+    contacts : int
+        Link-obstacle pairs in contact now (distance <= contact_threshold).
+    contacts_since_start : int
+        Contact onsets since the start: a pair in contact that was not at the previous
+        monitor call.
+    limit_violations : int
+        Physics steps in which a measured joint was more than ``limit_tolerance`` outside
+        its URDF limits.
+    max_limit_usage_since_start : float
+        Largest ``|q - centre| / half-range`` over joints and steps (1 = at a limit).
+    tracking_error_rad : float
+        ``max |q_ref - q|`` over joints after the last step [rad or m].
+    tracking_error_max_rad : float
+        Largest tracking error over every step since the start.
+    """
+
+    min_obstacle_distance_m: float = math.inf
+    min_obstacle_distance_since_start_m: float = math.inf
+    contacts: int = 0
+    contacts_since_start: int = 0
+    limit_violations: int = 0
+    max_limit_usage_since_start: float = 0.0
+    tracking_error_rad: float = 0.0
+    tracking_error_max_rad: float = 0.0
+    contact_pairs: List[Tuple[str, str, float]] = field(default_factory=list)
+
+    def as_values(self) -> Dict[str, str]:
+        """The figures as diagnostics key/values (strings)."""
+        return {
+            'min_obstacle_distance_m': f'{self.min_obstacle_distance_m:.5f}',
+            'min_obstacle_distance_since_start_m':
+                f'{self.min_obstacle_distance_since_start_m:.5f}',
+            'contacts': str(self.contacts),
+            'contacts_since_start': str(self.contacts_since_start),
+            'limit_violations': str(self.limit_violations),
+            'max_limit_usage_since_start': f'{self.max_limit_usage_since_start:.5f}',
+            'tracking_error_rad': f'{self.tracking_error_rad:.6f}',
+            'tracking_error_max_rad': f'{self.tracking_error_max_rad:.6f}',
+        }
+
+
+class LiveSim:
+    """The simulated robot(s) of a :class:`SimConfig` (see the module docstring).
+
+    Parameters
+    ----------
+    config : SimConfig
+        ``initial_positions`` (if given) must have one value per joint, inside the limits.
+
+    Attributes
+    ----------
+    joint_names : tuple of str
+    n_dofs : int
+    lower, upper, velocity_limits : (n_dofs,) ndarray
+        From the URDF(s).
+    base_frame : str
+        ``config.base_frame`` or the robot base (see :func:`build_robots`).
+    initial_positions : (n_dofs,) ndarray
+    n_steps : int
+        Physics steps since the start.
+    stats : SimStats
+    """
+
+    def __init__(self, config: SimConfig):
+        self.config = config
+        self.world = World(WorldConfig(time_step=config.physics_dt, real_time=False))
+        try:
+            self.robots, self.joint_names, base = build_robots(self.world, config.robot)
+            self.base_frame = config.base_frame or base
+            self.n_dofs = len(self.joint_names)
+            self.lower = np.concatenate([r.lower for r in self.robots])
+            self.upper = np.concatenate([r.upper for r in self.robots])
+            self.velocity_limits = np.concatenate([r.velocity_limits for r in self.robots])
+            self._centre = 0.5 * (self.upper + self.lower)
+            self._half = 0.5 * (self.upper - self.lower)
+            self._inv_half = 1.0 / self._half
+            self._slices = []
+            i = 0
+            for r in self.robots:
+                self._slices.append(slice(i, i + r.n_dofs))
+                i += r.n_dofs
+            home = np.concatenate([np.asarray(r.spec.home) for r in self.robots])
+            self.initial_positions = self.check_positions(
+                'initial_positions', home if config.initial_positions is None
+                else config.initial_positions)
+            self.n_steps = 0
+            self.stats = SimStats()
+            self._contact_keys: Set[Tuple[str, str, str]] = set()
+            self.reset()
+            self.set_control(config)
+        except Exception:
+            self.world.close()
+            raise
+
+    # -- configuration ---------------------------------------------------------------------
+    def check_positions(self, name: str, q: ArrayLike) -> NDArray[np.float64]:
+        """``q`` as ``(n_dofs,)``, finite and inside the limits (else ValidationError)."""
+        q = np.asarray(q, dtype=np.float64) if not isinstance(q, np.ndarray) else q
+        if q.shape != (self.n_dofs,):
+            raise ValidationError(f'{name}: expected {self.n_dofs} values (one per joint of '
+                                  f'{self.config.robot}: {list(self.joint_names)}), got '
+                                  f'{q.size}')
+        q = as_array(name, q, (self.n_dofs,))
+        bad = np.flatnonzero((q < self.lower) | (q > self.upper))
+        if bad.size:
+            j = int(bad[0])
+            raise ValidationError(f'{name}[{j}] ({self.joint_names[j]}): expected a value in '
+                                  f'[{self.lower[j]}, {self.upper[j]}], got {q[j]}')
+        return q.copy()
+
+    def set_control(self, config: SimConfig) -> None:
+        """Apply the control law and gains of ``config`` (raises ValidationError)."""
+        for r, sl in zip(self.robots, self._slices):
+            if config.control == 'position':
+                ctrl = PositionController(PositionControlGains(
+                    config.position_gain, config.velocity_gain))
+            elif config.control == 'computed_torque':
+                ctrl = ComputedTorqueController(ComputedTorqueGains(config.kp, config.kd))
+            elif config.control == 'exogenous':
+                kp, kd = inertia_scaled_gains(r, config.kp, config.kd,
+                                              self.initial_positions[sl])
+                ctrl = JointLimitAvoidingController(JointLimitAvoidingGains(
+                    kp, kd, config.exogenous_margin))
+            else:
+                raise ValidationError(f'control: expected position, computed_torque or '
+                                      f'exogenous, got {config.control!r}')
+            r.set_controller(ctrl)
+        self.config = config
+
+    def set_initial_positions(self, q: ArrayLike) -> None:
+        """The pose of the next :meth:`reset` (validated)."""
+        self.initial_positions = self.check_positions('initial_positions', q)
+
+    # -- reference and state ---------------------------------------------------------------
+    def reset(self) -> None:
+        """Teleport to ``initial_positions`` at rest; the reference becomes that pose."""
+        for r, sl in zip(self.robots, self._slices):
+            r.reset(self.initial_positions[sl])
+        self.q_ref = self.initial_positions.copy()
+        self.qd_ref = np.zeros(self.n_dofs)
+        self._q, self._qd, self._effort = self._read()
+
+    def set_reference(self, q: NDArray[np.float64], qd: Optional[NDArray[np.float64]] = None
+                      ) -> None:
+        """Track ``(q, qd)`` (``(n_dofs,)`` each, already validated) from the next step on."""
+        self.q_ref = q
+        self.qd_ref = np.zeros(self.n_dofs) if qd is None else qd
+        for r, sl in zip(self.robots, self._slices):
+            r.set_reference(q[sl], self.qd_ref[sl])
+
+    def hold(self) -> None:
+        """Keep the reference position with zero velocity (a stale reference)."""
+        self.set_reference(self.q_ref, None)
+
+    def _read(self):
+        if len(self.robots) == 1:
+            return self.robots[0].joint_state_effort()
+        parts = [r.joint_state_effort() for r in self.robots]
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
+
+    def state(self) -> Tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Measured ``(q, qd, effort)`` after the last step, ``(n_dofs,)`` each."""
+        return self._q, self._qd, self._effort
+
+    @property
+    def t(self) -> float:
+        """Simulated time [s]."""
+        return self.world.t
+
+    def step(self, n_steps: int = 1) -> None:
+        """``n_steps`` physics steps; after each, update the limit and tracking figures."""
+        st = self.stats
+        centre, inv_half = self._centre, self._inv_half
+        outside = self._half + self.config.limit_tolerance
+        step = self.world.step
+        for _ in range(int(n_steps)):
+            step(1)
+            self.n_steps += 1
+            q, qd, effort = self._read()
+            dev = np.abs(q - centre)
+            if (dev > outside).any():
+                st.limit_violations += 1
+            usage = float((dev * inv_half).max())
+            if usage > st.max_limit_usage_since_start:
+                st.max_limit_usage_since_start = usage
+            err = float(np.abs(self.q_ref - q).max())
+            st.tracking_error_rad = err
+            if err > st.tracking_error_max_rad:
+                st.tracking_error_max_rad = err
+        if n_steps > 0:
+            self._q, self._qd, self._effort = q, qd, effort
+
+    def ee_pose(self) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Position ``(3,)`` [m] and quaternion ``(4,)`` (x, y, z, w) of the end effector of
+        the first robot, in the base frame (its ``ee_link`` orientation at the tool point)."""
+        r = self.robots[0]
+        pos = r.ee_position()
+        _, orn = r.link_pose(r.ee_link)
+        if self.base_frame == 'world' or (np.allclose(r.base_position, 0.0)
+                                          and np.allclose(r.base_orientation, [0, 0, 0, 1])):
+            return pos, orn
+        inv_p, inv_q = pybullet.invertTransform(r.base_position.tolist(),
+                                                r.base_orientation.tolist())
+        p, q = pybullet.multiplyTransforms(inv_p, inv_q, pos.tolist(), orn.tolist())
+        return np.array(p), np.array(q)
+
+    # -- obstacles --------------------------------------------------------------------------
+    def sync_obstacles(self, obstacles: Dict[str, Obstacle]) -> None:
+        """Make the world's obstacles exactly ``obstacles`` (name -> Sphere or Box).
+
+        Unchanged ones are kept, moved ones moved, changed shapes replaced, the rest removed.
+        """
+        obs = self.world.obstacles
+        collide = self.config.obstacles_collide
+        for name in obs.names:
+            if name not in obstacles:
+                obs.remove(name)
+        for name, item in obstacles.items():
+            if isinstance(item, Sphere):
+                shape, size, pos = 'sphere', (float(item.radius),), item.center
+            else:
+                lo, hi = np.asarray(item.lower), np.asarray(item.upper)
+                shape, size, pos = 'box', tuple((0.5 * (hi - lo)).tolist()), 0.5 * (lo + hi)
+            pos = tuple(float(v) for v in pos)
+            if name in obs:
+                info = obs.get(name)
+                if (info.shape == shape and info.collide == collide
+                        and np.allclose(info.size, size, rtol=0.0, atol=1e-12)):
+                    if not np.allclose(info.position, pos, rtol=0.0, atol=1e-12):
+                        obs.move(name, pos)
+                    continue
+            if shape == 'sphere':
+                if size[0] > 0.0:
+                    obs.add_sphere(name, pos, size[0], collide=collide, replace=True)
+                elif name in obs:  # a zero-radius sphere is a point: no body to collide with
+                    obs.remove(name)
+            else:
+                obs.add_box(name, pos, size, collide=collide, replace=True)
+
+    def monitor(self) -> SimStats:
+        """Update the obstacle distance and contact figures from the current state."""
+        st = self.stats
+        cfg = self.config
+        if not len(self.world.obstacles):
+            st.min_obstacle_distance_m = math.inf
+            st.contacts = 0
+            st.contact_pairs = []
+            self._contact_keys = set()
+            return st
+        best = math.inf
+        keys = set()
+        pairs = []
+        for r in self.robots:
+            report = self.world.obstacles.distances(r, cfg.distance_range)
+            for (link, obstacle), p in report.pairs.items():
+                if p.distance < best:
+                    best = p.distance
+                if p.distance <= cfg.contact_threshold:
+                    keys.add((r.name, link, obstacle))
+                    pairs.append((link, obstacle, p.distance))
+        st.min_obstacle_distance_m = best
+        if best < st.min_obstacle_distance_since_start_m:
+            st.min_obstacle_distance_since_start_m = best
+        st.contacts = len(keys)
+        st.contacts_since_start += len(keys - self._contact_keys)
+        st.contact_pairs = sorted(pairs, key=lambda c: c[2])
+        self._contact_keys = keys
+        return st
+
+    # -- output ----------------------------------------------------------------------------
+    def snapshot(self, path: str = '') -> str:
+        """Render the world (TinyRenderer) to a PNG at ``path`` (empty: a new temporary file);
+        returns the path."""
+        if not path:
+            fd, path = tempfile.mkstemp(prefix='cdmp_sim_snapshot_', suffix='.png')
+            os.close(fd)
+        snapshot(self.world, path, CAMERAS[self.config.robot])
+        return os.path.abspath(path)
+
+    def close(self) -> None:
+        self.world.close()
+
+
+def limit_clip(q: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64]
+               ) -> Tuple[NDArray[np.float64], Sequence[int]]:
+    """``q`` clipped into ``[lower, upper]`` and the indices that were outside."""
+    bad = np.flatnonzero((q < lower) | (q > upper))
+    if bad.size:
+        return np.clip(q, lower, upper), bad.tolist()
+    return q, ()

@@ -1,0 +1,472 @@
+"""The sim node as a real process (``python -m cdmp_ros.nodes.sim``), driven over DDS.
+
+One sim process (Panda, position control, real time, started from config/sim.yaml) serves the
+module on domain 131 (localhost only); side processes (bad start-up parameters, the planar
+arm as fast as possible with /clock) use domain 132. Each bad-input case publishes its input,
+waits for the matching ``diagnostics`` entry and checks that the node keeps publishing. The
+module teardown stops the sim with SIGINT and requires exit code 0.
+"""
+import os
+import time
+
+import numpy as np
+import pytest
+
+from sim_harness import (LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, stop_process,
+                         UPPER)
+
+pytestmark = pytest.mark.ros
+DOMAIN, SIDE_DOMAIN = 131, 132
+STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
+RATE_TOL = 0.25  # relative tolerance of the joint_states rate (shared, loaded machine)
+TRACK_TOL = 0.005  # rad; settled position error after a reference ramp (position control)
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    log = tmp_path_factory.mktemp('sim') / 'sim.log'
+    proc = start_sim(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=50.0',
+                              'max_reference_rate:=200.0'],
+                     log_path=str(log), params_file='config/sim.yaml')
+    h = SimHarness(DOMAIN)
+    try:
+        ok = h.wait(lambda: h.n_states() > 10 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        yield h, proc, log
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, f'sim exit code {code}\n{log.read_text()}'
+
+
+def alive(h, proc, n=20):
+    """The node is alive and joint_states keep coming."""
+    n0 = h.n_states()
+    ok = h.wait(lambda: h.n_states() >= n0 + n, 5.0)
+    assert proc.poll() is None, 'sim died'
+    assert ok, 'joint_states stopped'
+
+
+def go_home(h):
+    q = h.q()
+    if np.abs(q - PANDA_HOME).max() > 1e-3:
+        h.ramp(q, PANDA_HOME, 0.5)
+    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 0.01, 5.0), h.q()
+
+
+def kv_float(kv, key):
+    return float(kv[key])
+
+
+# -- normal operation --------------------------------------------------------------------------
+def test_publishes_joint_states_and_ee_pose_at_the_rate(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    time.sleep(2.0)
+    states = [s for s in h.states_since(t0) if s[0] < t0 + 2.0]
+    rate = len(states) / 2.0
+    assert abs(rate - 250.0) < RATE_TOL * 250.0, rate
+    steps = np.diff([s[1] for s in states]) / 4e6  # in slots of simulated time (4 ms)
+    assert np.all(np.abs(steps - np.round(steps)) < 1e-3) and np.all(steps >= 1 - 1e-3)
+    assert np.mean(np.round(steps) == 1) > 0.9  # a gap only where the simulation slipped
+    names, q, qd, effort = states[-1][2:]
+    assert names == list(PANDA_JOINTS) and q.shape == qd.shape == effort.shape == (7,)
+    assert np.all(np.isfinite(effort)) and np.abs(effort).max() > 1.0  # holding against gravity
+    assert np.abs(q - PANDA_HOME).max() < 0.01  # config/sim.yaml initial_positions
+    # ee_pose: the tool centre point by an independent FK (core kinematics), same stamp
+    import pybullet_data
+    from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    by_stamp = {s[1]: s[3] for s in states}
+    with h.lock:
+        poses = [p for p in h.poses if p[1] in by_stamp]
+    assert len(poses) > 100
+    _, stamp, frame, pos, quat = poses[-1]
+    assert frame == 'panda_link0'
+    ee = chain.forward(by_stamp[stamp], [PointOfInterest('ee')])[0]
+    assert np.abs(pos - ee).max() < 1e-4
+    assert abs(np.linalg.norm(quat) - 1.0) < 1e-9
+
+
+def test_tracks_a_published_reference(graph):
+    h, proc, _ = graph
+    goal = np.array([0.4, -0.3, 0.2, -1.9, 0.1, 1.8, 0.5])
+    t0 = time.monotonic()
+    h.ramp(h.q(), goal, 1.0)
+    assert h.wait(lambda: np.abs(h.q() - goal).max() < TRACK_TOL, 3.0), h.q() - goal
+    assert h.wait_state(lambda m, kv: float(kv['tracking_error_rad']) < TRACK_TOL
+                        and int(kv['references_received']) >= 100)
+    m, kv = h.last_state()
+    assert kv['state'] == 'tracking' and 'tracking joint_reference' in m
+    assert float(kv['tracking_error_max_rad']) < 0.05  # during the 1 s ramp
+    assert kv['limit_violations'] == '0'
+    assert 0.5 <= float(kv['max_limit_usage_since_start']) < 1.0  # joint 4 at home: 0.5
+    assert abs(float(kv['real_time_factor']) - 1.0) < 0.1
+    # the reference goes stale: the last position is held
+    assert h.wait_diag('holding: joint_reference stale', t0, timeout=3.0, name='sim: state')
+    assert np.abs(h.q() - goal).max() < TRACK_TOL
+    go_home(h)
+
+
+def test_shuffled_joint_names_are_mapped(graph):
+    h, proc, _ = graph
+    perm = [6, 2, 0, 5, 1, 3, 4]
+    target = PANDA_HOME + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2])
+    t0 = time.monotonic()
+    for _ in range(20):
+        h.publish('joint_reference', h.reference(target[perm],
+                                                 names=[PANDA_JOINTS[i] for i in perm]))
+        time.sleep(0.02)
+    assert h.wait(lambda: np.abs(h.q() - target).max() < TRACK_TOL, 3.0), h.q() - target
+    assert not h.wait_diag('rejected', t0, timeout=0.3, name='input joint_reference')
+    go_home(h)
+
+
+def _marker(ns='obs', id=1, kind='sphere', position=(0.6, 0.0, 0.5), size=0.1, **kw):
+    from visualization_msgs.msg import Marker
+    m = Marker(ns=ns, id=id, type=Marker.SPHERE if kind == 'sphere' else Marker.CUBE,
+               action=Marker.ADD)
+    m.header.frame_id = 'panda_link0'
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, position)
+    m.pose.orientation.w = 1.0
+    m.scale.x = m.scale.y = m.scale.z = float(size)
+    for k, v in kw.items():
+        if k.startswith('scale_'):
+            setattr(m.scale, k[6:], v)
+        elif k == 'x':
+            m.pose.position.x = v
+        elif k == 'stamp':
+            m.header.stamp.sec = int(time.time() + v)
+        else:
+            setattr(m, k, v)
+    return m
+
+
+def _publish_markers(h, *markers):
+    from visualization_msgs.msg import MarkerArray
+    h.publish('obstacles', MarkerArray(markers=list(markers)))
+
+
+def test_obstacles_change_the_reported_distance(graph):
+    from visualization_msgs.msg import Marker
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    _publish_markers(h, _marker(position=(0.75, 0.0, 0.5), size=0.1))  # ~0.3 m from the hand
+    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
+                        and float(kv['min_obstacle_distance_m']) < 1.0)
+    d1 = float(h.last_state()[1]['min_obstacle_distance_m'])
+    assert 0.2 < d1 < 0.4, d1
+    _publish_markers(h, _marker(position=(0.65, 0.0, 0.5), size=0.1))  # MODIFY: 0.1 m closer
+    assert h.wait_state(lambda m, kv: float(kv['min_obstacle_distance_m']) < d1 - 0.05)
+    kv = h.last_state()[1]
+    d2 = float(kv['min_obstacle_distance_m'])
+    assert abs((d1 - d2) - 0.1) < 0.02, (d1, d2)
+    assert float(kv['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
+    _publish_markers(h, Marker(ns='obs', id=1, action=Marker.DELETE))
+    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '0'
+                        and kv['min_obstacle_distance_m'] == 'inf')
+    assert float(h.last_state()[1]['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
+    assert not h.wait_diag('rejected', t0, timeout=0.2, name='input obstacles')
+
+
+def test_contact_when_the_arm_is_driven_into_a_box(graph):
+    from visualization_msgs.msg import Marker
+    h, proc, _ = graph
+    go_home(h)
+    m0, kv0 = h.last_state()
+    n0 = int(kv0['contacts_since_start'])
+    # a 6 cm cube on the circle of the hand, 0.7 rad further around joint 1 (4-7 cm away)
+    a = 0.7
+    box = _marker(ns='box', id=3, kind='cube', size=0.06,
+                  position=(0.307 * np.cos(a), 0.307 * np.sin(a), 0.56))
+    t0 = time.monotonic()
+    _publish_markers(h, box)
+    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
+                        and 0.02 < float(kv['min_obstacle_distance_m']) < 0.1), h.last_state()
+    target = PANDA_HOME + np.array([1.1, 0, 0, 0, 0, 0, 0])
+    h.ramp(PANDA_HOME, target, 0.8)
+    assert h.wait_state(lambda m, kv: int(kv['contacts_since_start']) > n0
+                        and float(kv['min_obstacle_distance_since_start_m']) <= 0.0), \
+        h.last_state()
+    assert h.wait_diag('; contact panda_', t0, name='sim: state')
+    assert not h.wait_diag('rejected', t0, timeout=0.1, name='input obstacles')
+    _publish_markers(h, Marker(ns='box', action=Marker.DELETEALL))
+    assert h.wait_state(lambda m, kv: kv['contacts'] == '0' and kv.get('obstacles') == '0')
+    go_home(h)
+
+
+# -- bad input: one test per case --------------------------------------------------------------
+def _bad_reference(h, case):
+    q = PANDA_HOME
+    names = list(PANDA_JOINTS)
+    msg = h.reference(q)
+    if case == 'nan':
+        msg.position[2] = float('nan')
+    elif case == 'inf':
+        msg.position[4] = float('-inf')
+    elif case == 'nan_velocity':
+        msg.velocity = [0.0] * 6 + [float('nan')]
+    elif case == 'wrong_length':
+        msg.position = msg.position[:5]
+    elif case == 'velocity_length':
+        msg.velocity = [0.0, 0.0]
+    elif case == 'unknown_name':
+        msg.name = names[:6] + ['elbow_joint']
+    elif case == 'missing_name':
+        msg.name = names[:6]
+        msg.position = msg.position[:6]
+    elif case == 'duplicate_name':
+        msg.name = names[:6] + [names[0]]
+    elif case == 'future_stamp':
+        msg = h.reference(q, stamp_offset=60.0)
+    elif case == 'past_stamp':
+        msg = h.reference(q, stamp_offset=-3600.0)
+    return msg
+
+
+REFERENCE_CASES = {  # case -> (text in the diagnostics reason, rejected_<category>)
+    'nan': ('expected a finite value, got nan', 'non_finite'),
+    'inf': ('expected a finite value, got -inf', 'non_finite'),
+    'nan_velocity': ("velocity of 'panda_joint7': expected a finite value", 'non_finite'),
+    'wrong_length': ('position: expected 7 values', 'length'),
+    'velocity_length': ('velocity: expected 0 or 7 values', 'length'),
+    'unknown_name': ("unknown joints ['elbow_joint']", 'joint_names'),
+    'missing_name': ("missing joints ['panda_joint7']", 'joint_names'),
+    'duplicate_name': ('duplicate joint name', 'joint_names'),
+    'future_stamp': ('in the future', 'stamp'),
+    'past_stamp': ('in the past', 'stamp'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(REFERENCE_CASES))
+def test_bad_references_are_rejected(graph, case):
+    h, proc, _ = graph
+    text, category = REFERENCE_CASES[case]
+    before = int(h.last_state()[1].get(f'rejected_{category}', 0))
+    q_before = h.q()
+    t0 = time.monotonic()
+    h.publish('joint_reference', _bad_reference(h, case))
+    assert h.wait_diag(text, t0, name='sim: input joint_reference'), h.diag_messages[-3:]
+    assert h.wait_state(lambda m, kv: int(kv.get(f'rejected_{category}', 0)) > before)
+    alive(h, proc)
+    assert np.abs(h.q() - q_before).max() < 0.01  # nothing of it reached the robot
+
+
+def test_reference_outside_the_limits_is_clipped_and_reported(graph):
+    h, proc, _ = graph
+    near = PANDA_HOME.copy()
+    near[6] = 2.9  # joint 7, 0.067 rad below its upper limit 2.9671
+    h.ramp(h.q(), near, 0.5)
+    violations0 = int(h.last_state()[1]['limit_violations'])
+    t0 = time.monotonic()
+    target = near.copy()
+    target[6] = 3.5  # beyond the limit
+    h.publish('joint_reference', h.reference(target))
+    assert h.wait_diag("position of 'panda_joint7' is outside the limits [-2.9671, 2.9671], "
+                       'clipped to 2.9671', t0, name='sim: input joint_reference')
+    assert h.wait(lambda: h.q()[6] > 2.96, 5.0), h.q()
+    time.sleep(0.3)
+    with h.lock:
+        qs = np.array([s[3] for s in h.states if s[0] >= t0])
+    excess = max(float(np.max(qs - UPPER)), float(np.max(LOWER - qs)))
+    # the clipped reference is exactly at the limit: the position motors' step response
+    # overshoots it by a few mrad (measured 7 mrad), bounded by the URDF joint stop
+    assert excess < 0.02, excess
+    assert int(h.last_state()[1]['rejected_limits']) >= 1
+    # limit_violations counts measured excursions beyond limit_tolerance (1e-4 rad)
+    violations = int(h.last_state()[1]['limit_violations'])
+    assert (violations > violations0) == (excess > 1e-4) or 0.9e-4 < excess < 1.1e-4, \
+        (excess, violations0, violations)
+    go_home(h)
+
+
+def test_reference_velocity_above_the_limit_is_clipped(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    h.publish('joint_reference', h.reference(PANDA_HOME, [100.0] + [0.0] * 6))
+    assert h.wait_diag("velocity of 'panda_joint1' exceeds the velocity limit 2.175, clipped",
+                       t0, name='sim: input joint_reference')
+    alive(h, proc)
+    go_home(h)
+
+
+MARKER_CASES = {
+    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
+    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
+    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
+    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
+    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
+    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
+    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
+    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
+    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
+                                       'DELETEALL (3), got 5'),
+    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
+    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
+    'other_frame': (dict(), "expected the robot base frame 'panda_link0'"),
+    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
+    'future_stamp': (dict(stamp=3600), 'in the future'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(MARKER_CASES))
+def test_bad_markers_are_rejected(graph, case):
+    h, proc, _ = graph
+    kw, text = MARKER_CASES[case]
+    m = _marker(**dict(dict(ns='bad', id=7, position=(2.0, 0.0, 0.0)), **kw))
+    if case == 'other_frame':
+        m.header.frame_id = 'camera'
+    t0 = time.monotonic()
+    _publish_markers(h, m)
+    assert h.wait_diag(text, t0, name='sim: input obstacles'), h.diag_messages[-3:]
+    assert h.wait_state(lambda msg, kv: kv.get('obstacles') == '0'
+                        and int(kv.get('rejected_total', 0)) > 0)
+    alive(h, proc)
+
+
+def test_flooding_is_dropped_and_reported(graph):
+    h, proc, _ = graph
+    t0 = time.monotonic()
+    msg = h.reference(h.q(), zero=True)
+    end = time.monotonic() + 1.0
+    sent = 0
+    while time.monotonic() < end:
+        h.publish('joint_reference', msg)
+        sent += 1
+    assert sent > 1000
+    assert h.wait_diag('flooding: more than 200 messages/s', t0,
+                       name='sim: input joint_reference'), [
+        d[1:3] for d in h.diag_messages if d[0] > t0][-6:]
+    assert h.wait_state(lambda m, kv: int(kv.get('rejected_flooding', 0)) > 0)
+    markers = [_marker(ns='flood', id=1, position=(2.0, 0.0, 0.0))]
+    from visualization_msgs.msg import MarkerArray
+    msg = MarkerArray(markers=markers)
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        h.publish('obstacles', msg)
+        time.sleep(0.001)
+    assert h.wait_diag('flooding: more than 50 messages/s', t0, name='sim: input obstacles')
+    alive(h, proc)
+    _publish_markers(h, _marker(ns='flood', action=3))
+
+
+# -- services and parameters -------------------------------------------------------------------
+def test_snapshot_and_reset_services(graph, tmp_path):
+    h, proc, _ = graph
+    res = h.call('snapshot')
+    assert res.success, res.message
+    with open(res.message, 'rb') as f:
+        assert f.read(8) == b'\x89PNG\r\n\x1a\n'
+    os.remove(res.message)
+    path = str(tmp_path / 'snap.png')
+    assert h.set_parameter('snapshot_path', path).successful
+    res = h.call('snapshot')
+    assert res.success and res.message == path and os.path.getsize(path) > 1000
+    # reset: the robot is back at initial_positions at once
+    h.ramp(h.q(), PANDA_HOME + 0.2 * np.array([1, 1, 1, 1, 1, 0, 0]), 0.4)
+    assert np.abs(h.q() - PANDA_HOME).max() > 0.1
+    t0 = time.monotonic()
+    res = h.call('reset')
+    assert res.success and 'reset to initial_positions' in res.message
+    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 1e-3, 2.0)
+    assert h.wait_diag('waiting: holding initial_positions', t0, name='sim: state')
+    alive(h, proc)
+
+
+def test_runtime_parameter_changes_are_validated(graph):
+    h, proc, _ = graph
+    r = h.set_parameter('kp', -1.0)
+    assert not r.successful and 'kp' in r.reason
+    r = h.set_parameter('control', 'velocity')
+    assert not r.successful and "control: expected one of ['position'" in r.reason
+    r = h.set_parameter('physics_rate', 500.0)
+    assert not r.successful and 'read-only' in r.reason.lower()
+    r = h.set_parameter('initial_positions', [0.0, 1.0])
+    assert not r.successful and 'expected 7 values' in r.reason
+    r = h.set_parameter('initial_positions', [0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0])
+    assert not r.successful and 'initial_positions[3] (panda_joint4)' in r.reason
+    for mode in ('computed_torque', 'exogenous', 'position'):
+        r = h.set_parameter('control', mode)
+        assert r.successful, r.reason
+        assert h.wait_state(lambda m, kv: kv['control'] == mode)
+        goal = PANDA_HOME + np.array([0.2, 0.1, 0, 0.1, 0, 0, 0])
+        h.ramp(h.q(), goal, 0.5)
+        assert h.wait(lambda: np.abs(h.q() - goal).max() < 0.01, 5.0), (mode, h.q() - goal)
+        go_home(h)
+    alive(h, proc)
+
+
+# -- start-up and other configurations ----------------------------------------------------------
+STARTUP_CASES = [('control:=velocity', 'control: expected one of'),
+                 ('robot:=ur5', 'robot: expected one of'),
+                 ('publish_rate:=300.0', 'publish_rate: expected physics_rate (1000)'),
+                 ('physics_rate:=50.0', 'physics_rate'),
+                 ('initial_positions:=[0.0,0.0,0.0,1.0,0.0,1.0,0.0]', 'initial_positions[3]'),
+                 ("initial_positions:=['a','b']", 'initial_positions')]
+
+
+def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
+    bad_file = tmp_path / 'bad.yaml'
+    bad_file.write_text('/**:\n  ros__parameters:\n    reference_timeout: -3.0\n')
+    cases = STARTUP_CASES + [(None, 'reference_timeout')]
+    procs = []
+    for i, (param, text) in enumerate(cases):  # in parallel: start-up is slow
+        log = str(tmp_path / f'{i}.log')
+        proc = (start_sim(SIDE_DOMAIN, [param], log_path=log) if param else
+                start_sim(SIDE_DOMAIN, log_path=log, params_file=str(bad_file)))
+        procs.append((proc, text, i))
+    try:
+        for proc, text, i in procs:
+            code = proc.wait(STARTUP)
+            log = (tmp_path / f'{i}.log').read_text()
+            assert code == 2 and text in log, log
+    finally:
+        for proc, _, _ in procs:
+            stop_process(proc)
+
+
+def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
+    log = tmp_path / 'planar.log'
+    proc = start_sim(SIDE_DOMAIN, ['robot:=planar4', 'real_time:=false', 'publish_clock:=true',
+                                   'control:=computed_torque', 'diagnostics_period:=0.2'],
+                     log_path=str(log))
+    h = SimHarness(SIDE_DOMAIN, clock=True)
+    try:
+        ok = h.wait(lambda: len(h.clocks) > 50 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        assert h.wait_state(lambda m, kv: kv.get('robot') == 'planar4'
+                            and float(kv.get('real_time_factor', 'nan')) > 1.2, 10.0), \
+            h.last_state()
+        with h.lock:
+            clocks = list(h.clocks)
+            states = list(h.states)
+        (w0, c0), (w1, c1) = clocks[0], clocks[-1]
+        assert (c1 - c0) * 1e-9 > 1.2 * (w1 - w0)  # simulated time runs faster than the wall
+        assert np.all(np.diff([c for _, c in clocks]) > 0)
+        assert states[-1][2] == ['joint1', 'joint2', 'joint3', 'joint4']
+        stamps = {s[1] for s in states}  # the stamps are simulated time, as /clock
+        common = [c for _, c in clocks if min(stamps) <= c <= max(stamps)]
+        assert len(common) > 10 and sum(c in stamps for c in common) > 0.9 * len(common)
+        # a reference stamped in simulated time is accepted and tracked
+        goal = np.array([0.5, -0.4, 0.3, 0.2])
+        ref = h.reference(goal, names=['joint1', 'joint2', 'joint3', 'joint4'], zero=True)
+        c = h.clocks[-1][1]
+        ref.header.stamp.sec, ref.header.stamp.nanosec = divmod(c, 1_000_000_000)
+        h.publish('joint_reference', ref)
+        assert h.wait(lambda: np.abs(h.q() - goal).max() < 1e-3, 5.0), h.q()
+        _, kv = h.last_state()
+        assert kv.get('rejected_total', '0') == '0'
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, log.read_text()
+
+
+def test_reason_categories():
+    from cdmp_ros.ros.sim_node import reason_category
+    assert reason_category("joint_reference.position of 'a': expected a finite value, got nan"
+                           ) == 'non_finite'
+    assert reason_category('x.header.stamp: stamp 3.0 s in the future') == 'stamp'
+    assert reason_category('obstacles.markers[0].scale.x: expected at most 10 m') == \
+        'marker_scale'
+    assert reason_category('something new') == 'other'
