@@ -13,9 +13,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import (Box, Sphere, closest_distances,
-                                              link_closest_point,
-                                              segment_box, segment_sphere)
+from cdmp_ros.core.kinematics.closest import (Box, Sphere, box_signed_distance,
+                                              closest_distances, link_closest_point,
+                                              point_box, segment_box, segment_sphere)
 from cdmp_ros.core.kinematics import (PANDA_EE_OFFSET, PointOfInterest, chain_from_urdf,
                                       dual_panda_chains, panda_chain, planar_chain, pose)
 from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string
@@ -406,6 +406,52 @@ def test_segment_box_matches_brute_force(rng):
     np.testing.assert_allclose(X[out], surface[out] + (dist[out, None] + 0.01) * normal[out],
                                atol=1e-12)
     assert np.all(_box_sd_reference(surface + 1e-6 * normal, lo, hi) > 0)
+
+
+def test_single_segment_box_matches_batched_candidates(rng):
+    """The scalar path of segment_box (one segment: slab clipping, then the max of lines
+    inside or the piecewise quadratic outside) against the batched candidate enumeration and
+    a 4001-sample brute force, with axis-parallel and degenerate segments and segments
+    crossing the board's mid-plane."""
+    lo, hi = np.array([-0.3, -0.1, 0.2]), np.array([0.4, 0.05, 0.25])
+    A, B = _random_segments(rng, 400, (lo + hi) / 2, 0.3)
+    A[:100], B[:100] = A[:100] * 0.05 + (lo + hi) / 2, B[:100] * 0.1
+    A[100:120] = B[100:120]                                         # degenerate
+    for k in range(3):                                              # axis-parallel pieces
+        B[120 + 20 * k:140 + 20 * k, k] = A[120 + 20 * k:140 + 20 * k, k]
+    t_b, d_b, s_b, n_b = segment_box(A, B, lo, hi, link_radius=0.01)
+    ts = np.linspace(0.0, 1.0, 4001)
+    inside = 0
+    for i in range(len(A)):
+        t, d, surface, normal = segment_box(A[i], B[i], lo, hi, link_radius=0.01)
+        assert np.shape(t) == () and surface.shape == (3,) and normal.shape == (3,)
+        assert 0.0 <= t <= 1.0
+        # same minimum distance as the batched path (t may differ on a flat minimum)
+        assert d == pytest.approx(d_b[i], abs=1e-12)
+        P = A[i] + ts[:, None] * (B[i] - A[i])
+        assert d <= _box_sd_reference(P, lo, hi).min() - 0.01 + 1e-12
+        X = A[i] + t * (B[i] - A[i])
+        assert _box_sd_reference(X, lo, hi) - 0.01 == pytest.approx(d, abs=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(normal), 1.0)
+        if d + 0.01 > 1e-9:
+            np.testing.assert_allclose(X, surface + (d + 0.01) * normal, atol=1e-12)
+        else:
+            inside += 1
+            assert _box_sd_reference(surface + 1e-6 * normal, lo, hi) > 0
+    assert inside > 30
+
+
+def test_point_box_matches_box_signed_distance(rng):
+    lo, hi = np.array([-0.3, -0.1, 0.2]), np.array([0.4, 0.05, 0.25])
+    X = (lo + hi) / 2 + rng.normal(0.0, 0.3, (2000, 3))
+    X[:300] = (lo + hi) / 2 + rng.uniform(-0.5, 0.5, (300, 3)) * (hi - lo)   # inside
+    X[300:310] = lo                                                          # on a corner
+    D, S, N = box_signed_distance(X, lo, hi)
+    for i in range(len(X)):
+        d, surface, normal = point_box(X[i].tolist(), lo.tolist(), hi.tolist())
+        assert d == pytest.approx(D[i], abs=1e-15)
+        np.testing.assert_allclose(surface, S[i], atol=1e-15)
+        np.testing.assert_allclose(normal, N[i], atol=1e-15)
 
 
 def test_segment_sphere_matches_brute_force(rng):

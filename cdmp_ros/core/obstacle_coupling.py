@@ -26,7 +26,7 @@ from cdmp_ros.core.coupling_kernel import compile_coupling
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ZERO, BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
-from cdmp_ros.core.kinematics.closest import Box, Sphere, segment_box
+from cdmp_ros.core.kinematics.closest import Box, Sphere, point_box, segment_box_scalar
 from cdmp_ros.core.validation import check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
@@ -56,23 +56,6 @@ class CouplingConfig:
             raise ValidationError(f'CouplingConfig.damping: expected DampingConfig, got '
                                   f'{type(self.damping).__name__}')
         check_positive('CouplingConfig.link_radius', self.link_radius, allow_zero=True)
-
-
-def _point_box(x, lo, hi):
-    """Signed distance and outward normal of a point to an axis-aligned box (floats)."""
-    g = [max(lo[i] - x[i], 0.0, x[i] - hi[i]) for i in range(3)]
-    out = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
-    if out > 0.0:
-        return out, tuple((x[i] - min(max(x[i], lo[i]), hi[i])) / out for i in range(3))
-    # inside: nearest face
-    best, axis, sign = -math.inf, 0, 1.0
-    for i in range(3):
-        for s, depth in ((1.0, x[i] - hi[i]), (-1.0, lo[i] - x[i])):
-            if depth > best:
-                best, axis, sign = depth, i, s
-    n = [0.0, 0.0, 0.0]
-    n[axis] = sign
-    return best, tuple(n)
 
 
 class ObstacleCoupling:
@@ -124,6 +107,10 @@ class ObstacleCoupling:
         # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
         # generic path below handles the rest and serves as its reference in the tests.
         self._coupled = None
+        self._repeller = None
+        if type(sphere_field) is RepellerField and not sphere_field.damping:
+            self._repeller = (sphere_field.gain, sphere_field.influence_distance,
+                              sphere_field.min_distance, 1.0 / sphere_field.influence_distance)
         if self._axes == (0, 1, 2) and not self._needs_velocity:
             self._coupled = compile_coupling(
                 chain.B, chain.base_transform, chain.prismatic,
@@ -174,36 +161,55 @@ class ObstacleCoupling:
         """Closest points and fields for the generated path (see ``compile_coupling``).
 
         ``x``: end effector, then start and end of every segment (world). Returns None when
-        no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``.
+        no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``. A
+        :class:`RepellerField` without damping on spheres is inlined (the same arithmetic as
+        its ``acceleration``); other fields are called.
         """
         radius = self.config.link_radius
         sphere_field, box_field = self.sphere_field, self.box_field
+        rep = self._repeller
+        if rep is not None:
+            gain, d0, d_floor, inv_d0 = rep
         use_ee = self.config.end_effector
         e0, e1, e2 = ee = x[0], x[1], x[2]
         ax = ay = az = 0.0
         dmin = math.inf
+        sqrt = math.sqrt
         for obs in obstacles:
             if type(obs) is Sphere:
-                c = obs.center
-                v0, v1, v2 = e0 - c[0], e1 - c[1], e2 - c[2]
-                r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                c0, c1, c2 = obs.center
+                v0, v1, v2 = e0 - c0, e1 - c1, e2 - c2
+                r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
                 if r > 1e-12:
-                    d, normal = r - obs.radius, (v0 / r, v1 / r, v2 / r)
+                    d = r - obs.radius
+                    n0, n1, n2 = v0 / r, v1 / r, v2 / r
                 else:
-                    d, normal = -obs.radius, (0.0, 0.0, 1.0)
-                f = sphere_field
+                    d, n0, n1, n2 = -obs.radius, 0.0, 0.0, 1.0
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                if rep is not None:                 # RepellerField.acceleration, inlined
+                    if d < d0:
+                        dd = d if d > d_floor else d_floor
+                        g = gain * (1.0 / dd - inv_d0) / (dd * dd)
+                        ax += g * n0
+                        ay += g * n1
+                        az += g * n2
+                    continue
+                a = sphere_field.acceleration(ee, ZERO, obs, d, (n0, n1, n2))
             elif type(obs) is Box:
-                d, normal = _point_box(ee, obs.lower, obs.upper)
-                f = box_field
+                d, _, normal = point_box(ee, obs.lower, obs.upper)
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                a = box_field.acceleration(ee, ZERO, obs, d, normal)
             else:
                 self._field(obs)                                # raises ValidationError
-            if d < dmin:
-                dmin = d
-            if use_ee:
-                a = f.acceleration(ee, ZERO, obs, d, normal)
-                ax += a[0]
-                ay += a[1]
-                az += a[2]
+            ax += a[0]
+            ay += a[1]
+            az += a[2]
         dists = [dmin]
         out = [ax, ay, az]
         active = ax != 0.0 or ay != 0.0 or az != 0.0
@@ -212,32 +218,52 @@ class ObstacleCoupling:
             a0, a1, a2, b0, b1, b2 = x[j:j + 6]
             u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
             uu = u0 * u0 + u1 * u1 + u2 * u2
-            best_d, best = math.inf, None
+            best_d = math.inf
+            best = None
             for obs in obstacles:
                 if type(obs) is Sphere:
                     c0, c1, c2 = obs.center
-                    t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu \
-                        if uu > 0.0 else 0.0
-                    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                    if uu > 0.0:
+                        t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu
+                        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                    else:
+                        t = 0.0
                     v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
-                    r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
                     d = r - obs.radius - radius
                     if d < best_d:
-                        normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
-                        best_d, best = d, (obs, t, normal, sphere_field)
+                        best_d, best, bt, bv, br = d, obs, t, (v0, v1, v2), r
                 else:
-                    tt, dd, _, nn = segment_box((a0, a1, a2), (b0, b1, b2),
-                                                obs.lower, obs.upper)
-                    d = float(dd) - radius
+                    lo, hi = obs.lower, obs.upper
+                    t = segment_box_scalar((a0, a1, a2), (b0, b1, b2), lo, hi)
+                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    d -= radius
                     if d < best_d:
-                        best_d, best = d, (obs, float(tt), tuple(nn.tolist()), box_field)
+                        best_d, best, bt, bv, br = d, obs, t, normal, None
             dists.append(best_d)
             if best is not None:
-                obs, t, normal, f = best
-                p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
-                a = f.acceleration(p, ZERO, obs, best_d, normal)
+                t = bt
+                p0, p1, p2 = a0 + t * u0, a1 + t * u1, a2 + t * u2
+                if br is None:                                  # box: bv is the normal
+                    a = box_field.acceleration((p0, p1, p2), ZERO, best, best_d, bv)
+                else:
+                    r = br
+                    if r > 1e-12:
+                        n0, n1, n2 = bv[0] / r, bv[1] / r, bv[2] / r
+                    else:
+                        n0, n1, n2 = 0.0, 0.0, 1.0
+                    if rep is not None:                 # RepellerField.acceleration, inlined
+                        if best_d < d0:
+                            dd = best_d if best_d > d_floor else d_floor
+                            g = gain * (1.0 / dd - inv_d0) / (dd * dd)
+                            a = (g * n0, g * n1, g * n2)
+                        else:
+                            a = ZERO
+                    else:
+                        a = sphere_field.acceleration((p0, p1, p2), ZERO, best, best_d,
+                                                      (n0, n1, n2))
                 if a[0] or a[1] or a[2]:
-                    out += (True, p[0], p[1], p[2], a[0], a[1], a[2])
+                    out += (True, p0, p1, p2, a[0], a[1], a[2])
                     active = True
                     continue
             out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -274,7 +300,7 @@ class ObstacleCoupling:
                     d, normal = -obs.radius, (0.0, 0.0, 1.0)
                 f = sphere_field
             elif type(obs) is Box:
-                d, normal = _point_box(ee, obs.lower, obs.upper)
+                d, _, normal = point_box(ee, obs.lower, obs.upper)
                 f = box_field
             else:
                 self._field(obs)                                # raises ValidationError
@@ -305,11 +331,12 @@ class ObstacleCoupling:
                         normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
                         best_d, best = d, (obs, t, normal, sphere_field)
                 else:
-                    tt, dd, _, nn = segment_box((a0, a1, a2), (a0 + u0, a1 + u1, a2 + u2),
-                                                obs.lower, obs.upper)
-                    d = float(dd) - radius
+                    lo, hi = obs.lower, obs.upper
+                    t = segment_box_scalar((a0, a1, a2), (a0 + u0, a1 + u1, a2 + u2), lo, hi)
+                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    d -= radius
                     if d < best_d:
-                        best_d, best = d, (obs, float(tt), tuple(nn.tolist()), box_field)
+                        best_d, best = d, (obs, t, normal, box_field)
             dists.append(best_d)
             if best is None:
                 continue
