@@ -277,6 +277,121 @@ def test_obstacle_coupling_matches_reference_panda(panda, rng):
     assert coupling.joint_acceleration(q, None, [Sphere((5.0, 5.0, 5.0), 0.1)]) == [0.0] * 7
 
 
+def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, link_radius,
+                       damping, end_effector=True):
+    """Numpy reference of the whole coupling through the batched paths only: closest points
+    by segment_sphere / segment_box on a batch of one (the candidate enumeration), Jacobians
+    of the closest points from the batched kinematics, Eq. 7 / Eq. 12 by SVD
+    (damped_pinv). Returns (dq, distances)."""
+    from cdmp_ros.core.kinematics.closest import box_signed_distance, segment_obstacle
+    Q = np.array([q])
+    x, J = chain.forward_and_jacobian(Q, [PointOfInterest('ee')])
+    x, J_e = x[0, 0], J[0, 0]
+    dx_e, d_ee = np.zeros(3), np.inf
+    for obs in obstacles:
+        if isinstance(obs, Sphere):
+            v = x - np.array(obs.center)
+            d, n, f = np.linalg.norm(v) - obs.radius, v / np.linalg.norm(v), sphere_field
+        else:
+            d, _, n = box_signed_distance(x, obs.lower, obs.upper)
+            d, f = float(d), box_field
+        d_ee = min(d_ee, d)
+        if end_effector:
+            dx_e += f.acceleration(x, (0, 0, 0), obs, d, n)
+    dq = end_effector_term(J_e, dx_e, damping)
+    dists = [d_ee]
+    for link, start, end in segments:
+        ends = chain.forward(Q, [PointOfInterest(link, start), PointOfInterest(link, end)])[0]
+        best = None
+        for obs in obstacles:
+            t, d, _, n = segment_obstacle(ends[:1], ends[1:], obs, link_radius)
+            if best is None or d[0] < best[1]:
+                best = (float(t[0]), float(d[0]), n[0], obs)
+        t, d, n, obs = best
+        dists.append(d)
+        f = sphere_field if isinstance(obs, Sphere) else box_field
+        point = ends[0] + t * (ends[1] - ends[0])
+        dx = np.array(f.acceleration(point, (0, 0, 0), obs, d, n))
+        local = tuple(np.asarray(start) + t * (np.asarray(end) - np.asarray(start)))
+        _, J_o = chain.forward_and_jacobian(Q, [PointOfInterest(link, local)])
+        dq = dq + link_term(J_e, J_o[0, 0], dx, damping)
+    return dq, dists
+
+
+@pytest.mark.parametrize('epsilon', [0.02, 0.3])
+def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon):
+    """The generated single-configuration path (kinematics, gate, unrolled Eq. 7/12) against
+    the batched numpy reference and against the generic scalar path, with spheres and boxes,
+    a non-degenerate explicit segment and, at epsilon = 0.3, damping active on the end
+    effector and on the links."""
+    damping = DampingConfig(epsilon=epsilon, lambda_max=0.05)
+    sphere_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
+    box_field = ConstantField(magnitude=2.0, influence_distance=0.3)
+    config = CouplingConfig(damping=damping, link_radius=0.04)
+    links = ['panda_link3', 'panda_link5', ('panda_link6', (0.0, 0.0, -0.05), (0.08, 0.0, 0.0))]
+    coupling = ObstacleCoupling(panda, links, sphere_field, box_field, config)
+    assert coupling._coupled is not None
+    segments = coupling.segments
+    ends = [PointOfInterest(s[0], s[2]) for s in segments]
+    n_active = n_ee_damped = n_box = 0
+    for trial in range(40):
+        q = rng.uniform(panda.lower, panda.upper)
+        X = panda.forward(q, [PointOfInterest('ee')] + ends)
+        obstacles = [Sphere(tuple(p + rng.normal(size=3) * 0.12), 0.05) for p in X]
+        if trial % 2:
+            obstacles.append(Box.from_center(X[int(rng.integers(4))] + rng.normal(size=3) * 0.15,
+                                             (0.05, 0.4, 0.3)))
+        got = coupling.joint_acceleration(q, None, obstacles)
+        dists = list(coupling.last_distances)
+        generic = coupling.joint_acceleration_generic(q, None, obstacles)
+        assert coupling.last_distances == pytest.approx(dists, abs=1e-12)
+        ref, ref_dists = _batched_reference(panda, q, obstacles, segments, sphere_field,
+                                            box_field, 0.04, damping)
+        scale = max(1.0, np.abs(ref).max())
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(generic, got, rtol=0, atol=1e-11 * scale)
+        np.testing.assert_allclose(dists, ref_dists, rtol=0, atol=1e-12)
+        n_active += np.abs(ref).max() > 0
+        _, J = panda.forward_and_jacobian(q, [PointOfInterest('ee')])
+        n_ee_damped += np.linalg.svd(J[0], compute_uv=False).min() < epsilon
+        n_box += len(obstacles) > 4 and min(dists) < 0.3
+    assert n_active >= 30 and n_box >= 5
+    if epsilon > 0.1:
+        assert n_ee_damped >= 5
+    # no field within reach: exact zeros, and the generated function stops before any
+    # Jacobian (the gate returns None)
+    far = [Sphere((5.0, 5.0, 5.0), 0.1), Box((4.0, 4.0, 4.0), (4.5, 4.5, 4.5))]
+    assert coupling.joint_acceleration(q, None, far) == [0.0] * 7
+    assert coupling._coupled(q.tolist(), coupling._gate, far, 1.0, 1.0) is None
+    assert len(coupling.last_distances) == 4 and min(coupling.last_distances) > 3.0
+
+
+def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda, rng):
+    """end_effector=False (links only) on the generated path, and a velocity-dependent
+    repeller, which takes the generic path."""
+    field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
+    config = CouplingConfig(damping=DAMP, end_effector=False)
+    coupling = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], field, config=config)
+    damped_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01,
+                                 damping=2.0)
+    slow = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], damped_field)
+    assert coupling._coupled is not None and slow._coupled is None
+    for _ in range(10):
+        q = _well_conditioned_q(panda, rng)
+        X = panda.forward(q, [PointOfInterest('ee'), PointOfInterest('panda_link5')])
+        obstacles = [Sphere(tuple(p + rng.normal(size=3) * 0.1), 0.05) for p in X]
+        got = coupling.joint_acceleration(q, None, obstacles)
+        ref, _ = _batched_reference(panda, q, obstacles, coupling.segments, field, None, 0.0,
+                                    DAMP, end_effector=False)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * max(1.0, np.abs(ref).max()))
+        # at rest the damping term vanishes: the generic path gives the same field
+        np.testing.assert_allclose(slow.joint_acceleration(q, np.zeros(7), obstacles),
+                                   ObstacleCoupling(panda, ['panda_link3', 'panda_link5'],
+                                                    field).joint_acceleration(q, None,
+                                                                              obstacles),
+                                   rtol=0, atol=1e-9)
+
+
 def test_obstacle_coupling_planar_chain(rng):
     chain = planar_chain([1.0, 1.0, 1.0, 1.0])
     field = RepellerField(gain=0.5, influence_distance=1.0, min_distance=0.01)
@@ -305,6 +420,53 @@ def test_to_internal_matches_tanh_transform(panda, rng):
         transform.acceleration(xi, xid, xidd + np.array(P) / tau ** 2)
         - transform.acceleration(xi, xid, xidd), dq, atol=1e-9)
     assert ObstacleCoupling.to_internal([1.0, 2.0], None, 2.0) == [4.0, 8.0]
+
+
+def test_to_internal_caps_the_coupling_near_saturation(panda):
+    """Near the saturation bound the map divides by 1 - tanh(xi)^2 ~ 2e-9. A joint pushed
+    into its upper limit (xi saturated) whose coupling then turns away from the limit: the
+    uncapped map (floor 0) makes it jump to the other limit in one tick; with the default
+    floor the term is bounded by tau^2 |dq| / (y_delta floor) and the joint leaves the limit
+    continuously. Inside 1 - tanh^2 >= floor the map is unchanged."""
+    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.obstacle_coupling import SATURATION_FLOOR
+    from cdmp_ros.core.transform import XI_SAT
+    transform = TanhTransform(panda.lower, panda.upper)
+    y_delta = transform.y_delta.tolist()
+    tau = 1.3
+    xi = [XI_SAT, 0.0, 1.0, -2.0, 2.5, -XI_SAT, 0.3]
+    dq = [-10.0, 1.0, 1.0, 1.0, 1.0, 10.0, 1.0]
+    P = ObstacleCoupling.to_internal(dq, xi, tau, y_delta)
+    bound = [tau ** 2 * abs(a) / (yd * SATURATION_FLOOR) for a, yd in zip(dq, y_delta)]
+    assert all(abs(p) <= b * (1 + 1e-12) for p, b in zip(P, bound))
+    assert P[0] == pytest.approx(-bound[0], rel=1e-12) and P[5] == pytest.approx(bound[5])
+    exact = tau ** 2 * transform.joint_accel_to_exogenous(np.array(xi), np.zeros(7), dq)
+    np.testing.assert_allclose(P[1:5] + P[6:], np.r_[exact[1:5], exact[6:]], rtol=1e-12)
+    assert abs(exact[0]) > 1e6 * abs(P[0])                   # what the cap removes
+    np.testing.assert_allclose(ObstacleCoupling.to_internal(dq, xi, tau, y_delta, floor=0.0),
+                               exact, rtol=1e-12)
+
+    T = np.linspace(0.0, 1.0, 201)
+    prim = CDMP(panda.lower, panda.upper).fit(T, np.tile((panda.lower + panda.upper) / 2,
+                                                         (201, 1)))
+
+    def run(floor):
+        stepper = prim.stepper(0.001)
+        inp, out = stepper.input, stepper.output
+        y0, xi0 = [], []
+        for k in range(1000):
+            push = 1e5 if k < 500 else -10.0           # into the upper limit, then away
+            inp.coupling[:] = ObstacleCoupling.to_internal([push] + [0.0] * 6, out.xi,
+                                                           stepper.tau, y_delta, floor)
+            stepper.update(inp)
+            y0.append(out.y[0])
+            xi0.append(out.xi[0])
+        assert xi0[499] == pytest.approx(XI_SAT)               # saturated at the limit
+        return np.abs(np.diff(y0[499:])).max()
+
+    half_range = y_delta[0]
+    assert run(0.0) > 1.9 * half_range                           # limit-to-limit jump
+    assert run(SATURATION_FLOOR) < 0.01 * half_range
 
 
 def _run_coupled(prim, coupling, obstacles, y_delta, steps=600, dt=0.002):

@@ -10,9 +10,15 @@ tick on plain floats::
 
 End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
 Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
-over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field; its
-Jacobian is ``J_o = (1 - t) J_a + t J_b`` (exact: point Jacobians of one rigid link are affine
-in the point). Spheres use ``sphere_field``, boxes ``box_field``.
+over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
+the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``.
+
+With three task rows and velocity-independent fields the whole evaluation runs in one
+generated function (:mod:`cdmp_ros.core.coupling_kernel`; no Jacobian at all when no field is
+active); otherwise :meth:`ObstacleCoupling.joint_acceleration_generic` (kernel of both segment
+ends, ``J_o = (1 - t) J_a + t J_b``, exact because point Jacobians of one rigid link are affine
+in the point). :meth:`ObstacleCoupling.to_internal` maps the result to the stepper's exogenous
+coupling term, capped near saturation.
 """
 import math
 from dataclasses import dataclass, field
@@ -22,14 +28,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.coupling import DampingConfig, coupling_3d, scalar_coupling
-from cdmp_ros.core.coupling_kernel import compile_coupling
+from cdmp_ros.core.coupling_kernel import ClosestPointGate, compile_coupling
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import ZERO, BoardField, ConstantField, RepellerField
+from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import Box, Sphere, point_box, segment_box_scalar
 from cdmp_ros.core.validation import check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
+
+#: Default floor of ``1 - tanh(xi)^2`` in :meth:`ObstacleCoupling.to_internal` (the cap of the
+#: coupling term near saturation).
+SATURATION_FLOOR = 1e-2
 
 
 @dataclass(frozen=True)
@@ -106,12 +116,9 @@ class ObstacleCoupling:
         self._lam2 = config.damping.lambda_max ** 2
         # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
         # generic path below handles the rest and serves as its reference in the tests.
-        self._coupled = None
-        self._repeller = None
-        if type(sphere_field) is RepellerField and not sphere_field.damping:
-            self._repeller = (sphere_field.gain, sphere_field.influence_distance,
-                              sphere_field.min_distance, 1.0 / sphere_field.influence_distance)
+        self._coupled = self._gate = None
         if self._axes == (0, 1, 2) and not self._needs_velocity:
+            self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
             self._coupled = compile_coupling(
                 chain.B, chain.base_transform, chain.prismatic,
                 (int(frames[0]), coords[0]),
@@ -152,123 +159,12 @@ class ObstacleCoupling:
         """
         coupled = self._coupled
         if coupled is not None:
-            dq = coupled(q.tolist() if isinstance(q, np.ndarray) else q, self._gate, obstacles,
+            gate = self._gate
+            dq = coupled(q.tolist() if isinstance(q, np.ndarray) else q, gate, obstacles,
                          self._eps2, self._lam2)
+            self.last_distances = gate.distances
             return [0.0] * self.chain.n_dofs if dq is None else dq
         return self.joint_acceleration_generic(q, qd, obstacles)
-
-    def _gate(self, x: List[float], obstacles) -> Optional[list]:
-        """Closest points and fields for the generated path (see ``compile_coupling``).
-
-        ``x``: end effector, then start and end of every segment (world). Returns None when
-        no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``. A
-        :class:`RepellerField` without damping on spheres is inlined (the same arithmetic as
-        its ``acceleration``); other fields are called.
-        """
-        radius = self.config.link_radius
-        sphere_field, box_field = self.sphere_field, self.box_field
-        rep = self._repeller
-        if rep is not None:
-            gain, d0, d_floor, inv_d0 = rep
-        use_ee = self.config.end_effector
-        e0, e1, e2 = ee = x[0], x[1], x[2]
-        ax = ay = az = 0.0
-        dmin = math.inf
-        sqrt = math.sqrt
-        for obs in obstacles:
-            if type(obs) is Sphere:
-                c0, c1, c2 = obs.center
-                v0, v1, v2 = e0 - c0, e1 - c1, e2 - c2
-                r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if r > 1e-12:
-                    d = r - obs.radius
-                    n0, n1, n2 = v0 / r, v1 / r, v2 / r
-                else:
-                    d, n0, n1, n2 = -obs.radius, 0.0, 0.0, 1.0
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                if rep is not None:                 # RepellerField.acceleration, inlined
-                    if d < d0:
-                        dd = d if d > d_floor else d_floor
-                        g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                        ax += g * n0
-                        ay += g * n1
-                        az += g * n2
-                    continue
-                a = sphere_field.acceleration(ee, ZERO, obs, d, (n0, n1, n2))
-            elif type(obs) is Box:
-                d, _, normal = point_box(ee, obs.lower, obs.upper)
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                a = box_field.acceleration(ee, ZERO, obs, d, normal)
-            else:
-                self._field(obs)                                # raises ValidationError
-            ax += a[0]
-            ay += a[1]
-            az += a[2]
-        dists = [dmin]
-        out = [ax, ay, az]
-        active = ax != 0.0 or ay != 0.0 or az != 0.0
-        for i in range(len(self.segments)):
-            j = 3 + 6 * i
-            a0, a1, a2, b0, b1, b2 = x[j:j + 6]
-            u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
-            uu = u0 * u0 + u1 * u1 + u2 * u2
-            best_d = math.inf
-            best = None
-            for obs in obstacles:
-                if type(obs) is Sphere:
-                    c0, c1, c2 = obs.center
-                    if uu > 0.0:
-                        t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu
-                        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-                    else:
-                        t = 0.0
-                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
-                    r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                    d = r - obs.radius - radius
-                    if d < best_d:
-                        best_d, best, bt, bv, br = d, obs, t, (v0, v1, v2), r
-                else:
-                    lo, hi = obs.lower, obs.upper
-                    t = segment_box_scalar((a0, a1, a2), (b0, b1, b2), lo, hi)
-                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
-                    d -= radius
-                    if d < best_d:
-                        best_d, best, bt, bv, br = d, obs, t, normal, None
-            dists.append(best_d)
-            if best is not None:
-                t = bt
-                p0, p1, p2 = a0 + t * u0, a1 + t * u1, a2 + t * u2
-                if br is None:                                  # box: bv is the normal
-                    a = box_field.acceleration((p0, p1, p2), ZERO, best, best_d, bv)
-                else:
-                    r = br
-                    if r > 1e-12:
-                        n0, n1, n2 = bv[0] / r, bv[1] / r, bv[2] / r
-                    else:
-                        n0, n1, n2 = 0.0, 0.0, 1.0
-                    if rep is not None:                 # RepellerField.acceleration, inlined
-                        if best_d < d0:
-                            dd = best_d if best_d > d_floor else d_floor
-                            g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                            a = (g * n0, g * n1, g * n2)
-                        else:
-                            a = ZERO
-                    else:
-                        a = sphere_field.acceleration((p0, p1, p2), ZERO, best, best_d,
-                                                      (n0, n1, n2))
-                if a[0] or a[1] or a[2]:
-                    out += (True, p0, p1, p2, a[0], a[1], a[2])
-                    active = True
-                    continue
-            out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        self.last_distances = dists
-        return out if active else None
 
     def joint_acceleration_generic(self, q: Sequence[float], qd: Optional[Sequence[float]],
                                    obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
@@ -364,21 +260,36 @@ class ObstacleCoupling:
 
     @staticmethod
     def to_internal(dq_dd: Sequence[float], xi: Optional[Sequence[float]], tau: float,
-                    y_delta: Optional[Sequence[float]] = None) -> List[float]:
+                    y_delta: Optional[Sequence[float]] = None,
+                    floor: float = SATURATION_FLOOR) -> List[float]:
         """The coupling term ``P`` of the stepper (``stepper.input.coupling``).
 
         CDMP (``y_delta`` given): Eq. (29) at fixed ``(xi, xid)`` gives
         ``dxi_dd = dq_dd / (y_delta (1 - tanh(xi)^2))`` and Eq. (21) takes
-        ``P = tau^2 dxi_dd``; DMP (``y_delta`` None): ``P = tau^2 dq_dd``. The same map as
-        ``TanhTransform.joint_accel_to_exogenous`` (floored at 1e-300), on plain floats.
+        ``P = tau^2 dxi_dd``; DMP (``y_delta`` None): ``P = tau^2 dq_dd``. Where
+        ``1 - tanh(xi)^2 >= floor`` this is ``TanhTransform.joint_accel_to_exogenous`` on plain
+        floats.
+
+        Cap near saturation: ``1 - tanh(xi)^2`` is floored at ``floor``, so
+        ``|P| <= tau^2 |dq_dd| / (y_delta floor)``. Without it the divisor falls to ~2e-9 at the
+        saturation bound ``XI_SAT``: a coupling that turns away from a limit the state was
+        pushed into asks for an exogenous acceleration so large that ``xi`` crosses the whole
+        range in one tick (a jump from one joint limit to the other; test_core_coupling.py).
+        With the floor the coupling only acts attenuated, by ``(1 - tanh(xi)^2) / floor``,
+        within ``1 - sqrt(1 - floor)`` (0.5 % for the default) of the half-range from a limit.
+        ``floor = 0`` gives the uncapped map (divisor floored at 1e-300).
         """
         tau2 = tau * tau
         if y_delta is None:
             return [tau2 * a for a in dq_dd]
+        tanh = math.tanh
         out = []
         for a, x, yd in zip(dq_dd, xi, y_delta):
-            t = math.tanh(x)
-            out.append(tau2 * a / max(yd * (1.0 - t * t), 1e-300))
+            t = tanh(x)
+            s = 1.0 - t * t
+            if s < floor:
+                s = floor
+            out.append(tau2 * a / max(yd * s, 1e-300))
         return out
 
 
