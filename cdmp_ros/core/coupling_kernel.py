@@ -74,8 +74,7 @@ if damped:
             - (w00 * {k02} + w10 * {k12} + w20 * {k22}))
     s12 += (w01 * y02 + w11 * y12 + w21 * y22
             - (w01 * {k02} + w11 * {k12} + w21 * {k22}))
-(g00, g01, g02, _, g11, g12, _, _, g22), _ = inverse_h3(
-    s00, s01, s02, s11, s12, s22, eps2, lam2)
+{inverse_s}
 u0 = g00 * {d0} + g01 * {d1} + g02 * {d2}
 u1 = g01 * {d0} + g11 * {d1} + g12 * {d2}
 u2 = g02 * {d0} + g12 * {d1} + g22 * {d2}
@@ -84,9 +83,27 @@ c1 -= w10 * u0 + w11 * u1 + w12 * u2
 c2 -= w20 * u0 + w21 * u1 + w22 * u2
 '''
 
-_EE_TEMPLATE = '''\
-(h00, h01, h02, _, h11, h12, _, _, h22), damped = inverse_h3(
-    a00, a01, a02, a11, a12, a22, eps2, lam2)
+# _inverse_h3 with its undamped branch inlined (the same operations)
+_INVERSE_TEMPLATE = '''\
+i00 = {a}11 * {a}22 - {a}12 * {a}12
+i01 = {a}02 * {a}12 - {a}01 * {a}22
+i02 = {a}01 * {a}12 - {a}02 * {a}11
+det = {a}00 * i00 + {a}01 * i01 + {a}02 * i02
+tr = {a}00 + {a}11 + {a}22
+if det > 0.0 and 4.0 * det >= eps2 * tr * tr:
+    inv = 1.0 / det
+    {h}00 = i00 * inv
+    {h}01 = i01 * inv
+    {h}02 = i02 * inv
+    {h}11 = ({a}00 * {a}22 - {a}02 * {a}02) * inv
+    {h}12 = ({a}01 * {a}02 - {a}00 * {a}12) * inv
+    {h}22 = ({a}00 * {a}11 - {a}01 * {a}01) * inv
+    {damped} = False
+else:
+    ({h}00, {h}01, {h}02, _, {h}11, {h}12, _, _, {h}22), {damped} = inverse_h3(
+        {a}00, {a}01, {a}02, {a}11, {a}12, {a}22, eps2, lam2)'''
+
+_EE_TEMPLATE = _INVERSE_TEMPLATE.format(a='a', h='h', damped='damped') + '''
 c0 = h00 * e0 + h01 * e1 + h02 * e2
 c1 = h01 * e0 + h11 * e1 + h12 * e2
 c2 = h02 * e0 + h12 * e1 + h22 * e2
@@ -174,6 +191,7 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         for r in range(3):
             for s in range(r, 3):
                 fmt[f'g{r}{s}'] = _dot(em, Jo[r], Jo[s])
+        fmt['inverse_s'] = _INVERSE_TEMPLATE.format(a='s', h='g', damped='_')
         em.lines += _indented(_LINK_TEMPLATE.format(**fmt), '        ')
         for c in range(len(ocols)):
             term = em.sum([(1.0, f'u{r}', Jo[r][c]) for r in range(3)])
