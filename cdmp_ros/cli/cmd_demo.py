@@ -1,19 +1,39 @@
-"""``cdmp demo``: the project's main demonstration.
+"""``cdmp demo``: the project's main demonstration (the node graph end to end).
 
-Today it runs the toy reproduction of paper 000 (section IV-A) and prints its table; the full
-node-graph demo (learn, stream to the simulated robot, obstacle and goal changes, bag) replaces
-it when the ROS node graph lands.
+Learns a reach from ``bags/panda_reach``, streams it to the simulated Panda at 500 Hz, drops a
+sphere into the path mid-motion, changes the goal, records every topic to an MCAP bag, and
+prints a summary (see :mod:`cdmp_ros.cli.demo_run`). The paper-000 toy reproduction that this
+command ran before the node graph existed is ``cdmp reproduce toy``.
 """
-import argparse
-
 NAME = 'demo'
-HELP = 'run the demo (today: the DMP vs CDMP toy reproduction of paper 000 IV-A)'
+HELP = ('learn a reach from bags/, stream it to the simulated Panda, drop an obstacle into the '
+        'path, change the goal, record a bag, and summarise (summary.json, plots, snapshot)')
 
 
 def add_arguments(parser):
     parser.add_argument('--out', default='out/demo', help='output directory (default out/demo)')
+    parser.add_argument('--timeout', type=float, default=45.0,
+                        help='seconds allowed for the scripted run (default 45)')
+    parser.add_argument('--graph', default=None,
+                        help='graph file to start instead of config/graphs/demo.yaml')
 
 
 def run(args):
-    from cdmp_ros.experiments import exp_toy
-    return exp_toy.run(argparse.Namespace(out=args.out, no_plot=False))
+    import json
+    import math
+    from cdmp_ros.cli.demo_run import markdown, run_demo
+    s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph)
+    print()
+    print(markdown(s))
+    print(f'wall time {s["wall_time_s"]:.1f} s; summary: {args.out}/summary.json, plots: '
+          f'{", ".join(s["plots"])}' + (f', snapshot: {s["snapshot"]}' if s['snapshot'] else ''))
+    bad = []
+    if not s['max_limit_usage'] < 1.0 or not s['reference_limit_usage'] < 1.0:
+        bad.append('a joint left its limits')
+    if math.isnan(s['min_obstacle_distance_m']) or s['min_obstacle_distance_m'] <= 0.0:
+        bad.append('the robot touched the obstacle (or the distance is unknown)')
+    if bad:
+        print('demo: FAILED: ' + '; '.join(bad))
+        print(json.dumps({k: s[k] for k in ('min_obstacle_distance_m', 'max_limit_usage')}))
+        return 1
+    return 0

@@ -1,0 +1,252 @@
+"""``cdmp demo``: the node graph end to end, and its summary read back from the recorded bag.
+
+1. start ``config/graphs/demo.yaml`` (sim, streamer at 500 Hz, adapter, learner fitting a CDMP
+   from ``bags/panda_reach``, recorder) as processes;
+2. run the scripted user :mod:`cdmp_ros.ros.demo_driver` (an obstacle dropped into the path
+   mid-motion, then a goal change, then a sim snapshot);
+3. stop the graph, read the bag, and write ``summary.json``, ``summary.md``, ``joints.png``,
+   ``ee_path.png`` (and the snapshot PNG) to ``--out``.
+
+Figures and where they come from:
+
+- ``min_obstacle_distance_m``: the sim's ``min_obstacle_distance_since_start_m`` (pybullet
+  closest points between every robot link and the obstacle), from its last diagnostics;
+- ``max_limit_usage``: max over joints and samples of ``|q - centre| / half_range`` of the
+  measured ``joint_states`` in the bag (``reference_limit_usage``: same for
+  ``joint_reference``); above 1 is a violation;
+- ``latency_ms_p50/p99``: the streamer's obstacle-message-stamp to first-reference latency over
+  the dropped obstacle's messages (its diagnostics);
+- ``tracking_error_rad``: largest |reference - measured| joint error at the ``joint_states``
+  samples (reference = the latest one before each sample), from the bag;
+- ``messages_recorded``: messages in the bag (verified, every CRC).
+"""
+import json
+import os
+import subprocess
+import sys
+import time
+from typing import Dict, List
+
+import numpy as np
+
+from cdmp_ros.bag import BagReader, bag_info
+from cdmp_ros.bag.cdr import decode_joint_state
+from cdmp_ros.cli.bringup import Bringup, load_graph, package_config_dir
+from cdmp_ros.core.errors import CdmpError
+from cdmp_ros.core.run_metrics import tracking_error
+from cdmp_ros.core.dmp import limit_usage
+
+#: Topics the demo records.
+RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primitive',
+            '/adapted_primitive', '/ee_pose', '/diagnostics', '/visualization']
+
+
+def _joint_arrays(bag: str, topic: str):
+    T, Q, names = [], [], None
+    for m in BagReader(bag).messages([topic]):
+        js = decode_joint_state(m.data)
+        if js.position.size == 0:
+            continue
+        if names is None:
+            names = js.name
+        if js.name != names:  # reorder by name (a recorded robot need not use our order)
+            idx = [js.name.index(n) for n in names]
+            pos = js.position[idx]
+        else:
+            pos = js.position
+        T.append(m.log_time * 1e-9)
+        Q.append(pos)
+    if not T:
+        raise CdmpError(f'{bag}: no {topic} messages were recorded')
+    order = np.argsort(np.asarray(T), kind='stable')
+    return np.asarray(T)[order], np.asarray(Q)[order], list(names)
+
+
+def _float(values: Dict[str, str], key: str) -> float:
+    try:
+        return float(values[key])
+    except (KeyError, ValueError):
+        return float('nan')
+
+
+def _status(diag: Dict, prefix: str) -> Dict[str, str]:
+    for name, st in diag.items():
+        if name.split(':')[0].strip().lstrip('/').startswith(prefix):
+            return st['values']
+    return {}
+
+
+def summarise(out: str, bag: str, driver: Dict, lower, upper) -> Dict:
+    """The summary dict (see the module docstring)."""
+    info = bag_info(bag)
+    T_ref, Q_ref, _ = _joint_arrays(bag, '/joint_reference')
+    T, Q, names = _joint_arrays(bag, '/joint_states')
+    track = tracking_error(T_ref, Q_ref, T, Q)
+    sim = _status(driver.get('diagnostics', {}), 'sim')
+    streamer = _status(driver.get('diagnostics', {}), 'streamer')
+    counts = {t['name']: t['count'] for t in info['topics']}
+    return {
+        'min_obstacle_distance_m': _float(sim, 'min_obstacle_distance_since_start_m'),
+        'contacts': _float(sim, 'contacts_since_start'),
+        'max_limit_usage': limit_usage(Q, lower, upper),
+        'reference_limit_usage': limit_usage(Q_ref, lower, upper),
+        'latency_ms_p50': _float(streamer, 'obstacle_latency_ms_p50'),
+        'latency_ms_p99': _float(streamer, 'obstacle_latency_ms_p99'),
+        'latency_samples': _float(streamer, 'obstacle_latency_n'),
+        'tracking_error_rad': track['max_rad'],
+        'tracking_error_rms_rad': track['rms_rad'],
+        'messages_recorded': info['message_count'],
+        'messages_by_topic': counts,
+        'reference_rate_hz': (len(T_ref) - 1) / (T_ref[-1] - T_ref[0]) if len(T_ref) > 1
+        else 0.0,
+        'bag': os.path.abspath(bag),
+        'snapshot': driver.get('snapshot'),
+        'events_s': {k: (v - info['starting_time_ns']) * 1e-9
+                     for k, v in driver.get('events_ns', {}).items() if isinstance(v, int)},
+        'joint_names': names,
+        'plots': [os.path.join(out, 'joints.png'), os.path.join(out, 'ee_path.png')],
+    }
+
+
+def plot(out: str, bag: str, driver: Dict, lower, upper, chain) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from cdmp_ros.core.kinematics import PointOfInterest
+
+    T_ref, Q_ref, _ = _joint_arrays(bag, '/joint_reference')
+    T, Q, names = _joint_arrays(bag, '/joint_states')
+    t0 = min(T_ref[0], T[0])
+    fig, axes = plt.subplots(len(names), 1, figsize=(8, 1.6 * len(names)), sharex=True)
+    for j, ax in enumerate(axes):
+        ax.plot(T_ref - t0, Q_ref[:, j], label='joint_reference')
+        ax.plot(T - t0, Q[:, j], '--', label='joint_states')
+        for lim in (lower[j], upper[j]):
+            ax.axhline(lim, color='r', lw=0.8)
+        ax.set_ylabel(names[j].replace('panda_', ''), fontsize=8)
+        for k, v in driver.get('events_ns', {}).items():
+            if isinstance(v, int) and k in ('drop_start', 'goal_change'):
+                ax.axvline(v * 1e-9 - t0, color='k', ls=':', lw=0.8)
+    axes[0].legend(fontsize=7, loc='upper right')
+    axes[-1].set_xlabel('time [s] (dotted: obstacle drop, goal change; red: limits)')
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, 'joints.png'), dpi=90)
+    plt.close(fig)
+
+    X = chain.forward(Q, [PointOfInterest('ee')])[:, 0, :]
+    fig = plt.figure(figsize=(6, 5))
+    ax = fig.add_subplot(projection='3d')
+    ax.plot(*X.T, label='end effector (measured)')
+    planned = driver.get('planned_path')
+    if planned:
+        ax.plot(*np.asarray(planned).T, ':', label='planned (no obstacle)')
+    obs = driver.get('obstacle', {})
+    if obs.get('center'):
+        c, r = np.asarray(obs['center']), obs['radius']
+        u, v = np.mgrid[0:2 * np.pi:16j, 0:np.pi:8j]
+        ax.plot_wireframe(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v),
+                          c[2] + r * np.cos(v), color='r', lw=0.5)
+    ax.set_xlabel('x [m]')
+    ax.set_ylabel('y [m]')
+    ax.set_zlabel('z [m]')
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, 'ee_path.png'), dpi=90)
+    plt.close(fig)
+
+
+def markdown(s: Dict) -> str:
+    rows = [('minimum robot-obstacle distance', f'{s["min_obstacle_distance_m"] * 100:.2f} cm'),
+            ('contacts', f'{s["contacts"]:.0f}'),
+            ('largest joint-limit usage (measured)', f'{s["max_limit_usage"]:.3f}'),
+            ('largest joint-limit usage (reference)', f'{s["reference_limit_usage"]:.3f}'),
+            ('obstacle -> reference latency p50 / p99',
+             f'{s["latency_ms_p50"]:.2f} / {s["latency_ms_p99"]:.2f} ms '
+             f'({s["latency_samples"]:.0f} messages)'),
+            ('tracking error max / rms', f'{s["tracking_error_rad"]:.4f} / '
+                                         f'{s["tracking_error_rms_rad"]:.4f} rad'),
+            ('reference rate', f'{s["reference_rate_hz"]:.1f} Hz'),
+            ('messages recorded', f'{s["messages_recorded"]}'),
+            ('bag', s['bag'])]
+    lines = ['| quantity | value |', '|---|---|'] + [f'| {a} | {b} |' for a, b in rows]
+    return '\n'.join(lines) + '\n'
+
+
+def demo_environment() -> Dict[str, str]:
+    """Localhost discovery and a private domain unless the caller chose them."""
+    env = {}
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                                          'LOCALHOST')
+    env['ROS_DOMAIN_ID'] = os.environ.get('ROS_DOMAIN_ID', '73')
+    env['AMENT_PREFIX_PATH'] = os.environ.get('AMENT_PREFIX_PATH', sys.prefix)
+    return env
+
+
+def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
+             driver_args: List[str] = (), log=None) -> Dict:
+    """Run the demo; return the summary (also written to ``out``)."""
+    from cdmp_ros.core.kinematics import panda_chain
+    import pybullet_data
+
+    log = log if log is not None else sys.stdout
+    out = os.path.abspath(out)
+    os.makedirs(out, exist_ok=True)
+    bag = os.path.join(out, 'bag')
+    if os.path.exists(bag):
+        import shutil
+        shutil.rmtree(bag)
+    graph = load_graph(graph_file or os.path.join(package_config_dir(), 'graphs', 'demo.yaml'))
+    overrides = {'recorder': {'output': bag, 'topics': RECORDED},
+                 'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')}}
+    nodes = []
+    for spec in graph.nodes:
+        extra = overrides.get(spec.executable)
+        if extra:
+            from dataclasses import replace
+            spec = replace(spec, parameters={**spec.parameters, **extra})
+        nodes.append(spec)
+    from dataclasses import replace
+    graph = replace(graph, nodes=nodes)
+    env = demo_environment()
+    t_start = time.monotonic()
+    log.write(f'demo: starting the graph (ROS_DOMAIN_ID={env["ROS_DOMAIN_ID"]}, discovery '
+              f'{env["ROS_AUTOMATIC_DISCOVERY_RANGE"]}); output in {out}\n')
+    b = Bringup(graph, log=log, extra_env=env)
+    driver = None
+    try:
+        b.start()
+        driver = subprocess.Popen(
+            [sys.executable, '-m', 'cdmp_ros.ros.demo_driver', '--out', out,
+             '--timeout', str(timeout), *driver_args], env=b.env, stdout=log
+            if hasattr(log, 'fileno') else None, stderr=subprocess.STDOUT)
+        end = time.monotonic() + timeout + 30.0
+        while driver.poll() is None and time.monotonic() < end:
+            dead = b.exited()
+            if dead:
+                raise CdmpError(f'demo: node(s) exited early: {dead}')
+            time.sleep(0.1)
+        if driver.poll() is None:
+            raise CdmpError(f'demo: the driver did not finish within {timeout + 30:.0f} s')
+    finally:
+        if driver is not None and driver.poll() is None:
+            driver.terminate()
+            driver.wait(timeout=10)
+        codes = b.stop()
+    log.write(f'demo: graph stopped ({codes}); {time.monotonic() - t_start:.1f} s\n')
+    if driver.returncode != 0:
+        raise CdmpError(f'demo: the scripted run failed (exit code {driver.returncode}); see '
+                        'the log above')
+    with open(os.path.join(out, 'driver.json')) as f:
+        drv = json.load(f)
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
+    summary = summarise(out, bag, drv, chain.lower, chain.upper)
+    summary['wall_time_s'] = time.monotonic() - t_start
+    summary['node_exit_codes'] = codes
+    plot(out, bag, drv, chain.lower, chain.upper, chain)
+    with open(os.path.join(out, 'summary.json'), 'w') as f:
+        json.dump(summary, f, indent=1, default=float)
+    with open(os.path.join(out, 'summary.md'), 'w') as f:
+        f.write('# cdmp demo\n\n' + markdown(summary) + '\n![joints](joints.png) '
+                '![end effector](ee_path.png)' + (' ![snapshot](snapshot.png)\n' if
+                                                  summary['snapshot'] else '\n'))
+    return summary

@@ -1,0 +1,262 @@
+"""The scripted user of ``cdmp demo``: drops an obstacle into the moving robot's path, changes
+the goal, asks the sim for a snapshot, and writes what it saw to ``driver.json``.
+
+Run by ``cdmp demo`` as ``python -m cdmp_ros.ros.demo_driver --out DIR`` next to the node
+graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
+
+1. wait until every node of the graph is up and connected (the recorder too), call
+   ``/learner/refit``, wait for the latched ``primitive``; plan the end-effector path of the
+   primitive from the current reference (core kinematics) and pick the point at
+   ``--obstacle-at`` of its arc length;
+2. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point
+   (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
+   ``DROP_PERIOD``);
+3. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``);
+4. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
+   with the event times, the obstacle, and the last ``diagnostics`` status of every node.
+"""
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
+from cdmp_ros.core.stream_primitives import prepare_primitive
+from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros.streamer_node import default_urdf_path
+
+#: A reference whose velocity stays below this for REST_TIME is at rest (rad/s).
+REST_SPEED = 0.01
+REST_TIME = 0.3
+#: Period of the falling obstacle's messages (s): below the adapter's input rate limit.
+DROP_PERIOD = 0.06
+
+
+def parse_args(argv):
+    ap = argparse.ArgumentParser(prog='python -m cdmp_ros.ros.demo_driver',
+                                 description=__doc__.split('\n\n')[0])
+    ap.add_argument('--out', required=True, help='directory for driver.json and the snapshot')
+    ap.add_argument('--obstacle-at', type=float, default=0.65,
+                    help='fraction of the planned path where the sphere lands (default 0.65)')
+    ap.add_argument('--drop-at', type=float, default=0.1,
+                    help='fraction of the path covered when the drop starts (default 0.1)')
+    ap.add_argument('--drop-height', type=float, default=0.15, help='m (default 0.15)')
+    ap.add_argument('--drop-messages', type=int, default=8,
+                    help='obstacle messages of the fall, one per DROP_PERIOD (default 8)')
+    ap.add_argument('--radius', type=float, default=0.04, help='sphere radius, m (default 0.04)')
+    ap.add_argument('--lateral', type=float, default=0.07,
+                    help='horizontal offset of the landing point from the path, across the '
+                         'path, m (default 0.07: the planned hand would touch the sphere)')
+    ap.add_argument('--vertical', type=float, default=0.0,
+                    help='vertical offset of the landing point from the path, m (default 0)')
+    ap.add_argument('--goal-offset', type=float, nargs='+',
+                    default=[-0.5, 0.15, 0.2, 0.25, 0.0, -0.2, 0.0],
+                    help='rad added to the primitive goal for the goal change')
+    ap.add_argument('--frame', default='panda_link0')
+    ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
+    return ap.parse_args(argv)
+
+
+class DemoDriver(Node):
+    def __init__(self, args):
+        super().__init__('demo_driver')
+        self.args = args
+        self.chain = panda_chain(default_urdf_path())
+        self.ee = [PointOfInterest('ee')]
+        self.events = {}
+        self.diagnostics = {}
+        self.prim = None
+        self.path = None
+        self.obstacle = None
+        self.ref = None
+        self.ref_times = []
+        self.still_since = None
+        self.phase = 'wait_graph'
+        self.drop = []
+        self.snapshot = None
+        self.done = False
+        self.obs_pub = self.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
+        self.goal_pub = self.create_publisher(JointState, 'goal', qos_profiles.COMMAND)
+        self.create_subscription(String, 'primitive', self._on_primitive, qos_profiles.LATCHED)
+        self.create_subscription(JointState, 'joint_reference', self._on_ref,
+                                 qos_profiles.REFERENCE)
+        self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag,
+                                 qos_profiles.COMMAND)
+        self.snap = self.create_client(Trigger, '/sim/snapshot')
+        self.refit = self.create_client(Trigger, '/learner/refit')
+        self.refit_future = None
+        self.t0 = time.monotonic()
+        self.create_timer(0.02, self._step)
+
+    def _event(self, name):
+        self.events[name] = self.get_clock().now().nanoseconds
+        self.get_logger().info(f'{name} at {time.monotonic() - self.t0:.2f} s')
+
+    def _on_primitive(self, msg):
+        if self.prim is not None:
+            return
+        c = self.chain
+        try:
+            prepared = prepare_primitive(msg.data, c.joint_names, 0.01, c.lower, c.upper)
+        except Exception as exc:  # noqa: BLE001 -- the demo reports any failure
+            self.get_logger().error(f'cannot use the primitive: {exc}')
+            return
+        self.prim = prepared.prim
+        self._event('primitive')
+
+    def _plan(self, start_y):
+        traj = self.prim.rollout(0.01, start_y=start_y)
+        self.path = self.chain.forward(traj.Y, self.ee)[:, 0, :]
+        a = self.args
+        p = point_at_progress(self.path, a.obstacle_at)
+        p2 = point_at_progress(self.path, min(1.0, a.obstacle_at + 0.05))
+        across = np.cross(p2 - p, [0.0, 0.0, 1.0])
+        across /= max(np.linalg.norm(across), 1e-9)
+        self.obstacle = p + a.lateral * across + [0.0, 0.0, a.vertical]
+        self.drop = list(drop_positions(self.obstacle, a.drop_height, a.drop_messages))
+
+    def _on_ref(self, msg):
+        q = np.array(msg.position)
+        qd = np.array(msg.velocity)
+        if q.shape != (7,):
+            return
+        self.ref = (q, qd)
+        now = time.monotonic()
+        moving = qd.shape == (7,) and np.abs(qd).max() > REST_SPEED
+        if moving:
+            self.still_since = None
+        elif self.still_since is None:
+            self.still_since = now
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            self.diagnostics[st.name] = {'level': int.from_bytes(st.level, 'little')
+                                         if isinstance(st.level, bytes) else int(st.level),
+                                         'message': st.message,
+                                         'values': {kv.key: kv.value for kv in st.values}}
+
+    def _rested(self):
+        return self.still_since is not None and time.monotonic() - self.still_since > REST_TIME
+
+    def _publish_sphere(self, p, i):
+        m = Marker(ns='demo', id=0, type=Marker.SPHERE, action=Marker.ADD)
+        m.header.frame_id = self.args.frame
+        m.header.stamp = self.get_clock().now().to_msg()
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in p)
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = 2.0 * self.args.radius
+        m.color.r, m.color.a = 1.0, 1.0
+        self.obs_pub.publish(MarkerArray(markers=[m]))
+
+    def _step(self):
+        a = self.args
+        if time.monotonic() - self.t0 > a.timeout and self.phase != 'finish':
+            self.get_logger().error(f'timeout in phase {self.phase}')
+            self.events['timeout_phase'] = self.phase
+            self.phase = 'finish'
+        if self.phase == 'wait_graph':
+            # every node is up and connected (the recorder too) before the motion starts
+            ready = (self.refit.service_is_ready() and self.snap.service_is_ready()
+                     and self.count_subscribers('joint_reference') >= 2
+                     and self.count_publishers('joint_states') >= 1
+                     and self.count_subscribers('obstacles') >= 4
+                     and self.count_subscribers('primitive') >= 3 and self.ref is not None)
+            if ready:
+                self._event('graph_ready')
+                self.refit_future = self.refit.call_async(Trigger.Request())
+                self.phase = 'wait_primitive'
+        elif self.phase == 'wait_primitive':
+            if self.prim is not None and self.ref is not None:
+                self._plan(self.ref[0])
+                self.phase = 'wait_motion'
+        elif self.phase == 'wait_motion':
+            ee = self.chain.forward(self.ref[0], self.ee)[0]
+            if path_progress(self.path, ee) >= a.drop_at:
+                self._event('drop_start')
+                self.phase = 'drop'
+        elif self.phase == 'drop':
+            if time.monotonic() < getattr(self, 'next_drop', 0.0):
+                return
+            self.next_drop = time.monotonic() + DROP_PERIOD
+            self._publish_sphere(self.drop.pop(0), len(self.drop))
+            if not self.drop:
+                self._event('drop_end')
+                self.phase = 'wait_rest_1'
+        elif self.phase == 'wait_rest_1':
+            if self._rested():
+                self._event('first_motion_rest')
+                goal = np.asarray(self.prim.goal_y_) + np.asarray(a.goal_offset)
+                msg = JointState(name=list(self.chain.joint_names),
+                                 position=[float(v) for v in goal])
+                msg.header.stamp = self.get_clock().now().to_msg()
+                self.goal_pub.publish(msg)
+                self.events['goal'] = [float(v) for v in goal]
+                self._event('goal_change')
+                self.still_since = None
+                self.phase = 'wait_rest_2'
+        elif self.phase == 'wait_rest_2':
+            if self._rested() and time.monotonic() - self.t0 > 1.0:
+                self._event('second_motion_rest')
+                self.phase = 'finish'
+        elif self.phase == 'finish':
+            self.phase = 'snapshot'
+            if self.snap.service_is_ready():
+                self.future = self.snap.call_async(Trigger.Request())
+                self.snap_deadline = time.monotonic() + 10.0
+            else:
+                self.get_logger().warning('/sim/snapshot is not available')
+                self.future = None
+        elif self.phase == 'snapshot':
+            if self.future is None or self.future.done() or \
+                    time.monotonic() > self.snap_deadline:
+                if self.future is not None and self.future.done():
+                    res = self.future.result()
+                    self.snapshot = res.message if res.success else None
+                self.phase = 'diagnostics'
+                self.diag_until = time.monotonic() + 1.2  # two more reports of every node
+        elif self.phase == 'diagnostics':
+            if time.monotonic() > self.diag_until:
+                self._write()
+                self.done = True
+
+    def _write(self):
+        out = {'events_ns': self.events,
+               'obstacle': {'center': None if self.obstacle is None else
+                            [float(v) for v in self.obstacle], 'radius': self.args.radius,
+                            'frame': self.args.frame},
+               'planned_path': None if self.path is None else self.path[::5].tolist(),
+               'snapshot': self.snapshot, 'diagnostics': self.diagnostics}
+        with open(os.path.join(self.args.out, 'driver.json'), 'w') as f:
+            json.dump(out, f, indent=1)
+
+
+def main(argv=None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    os.makedirs(args.out, exist_ok=True)
+    rclpy.init()
+    node = DemoDriver(args)
+    try:
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        timed_out = 'timeout_phase' in node.events
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 1 if timed_out or not node.done else 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
