@@ -3,7 +3,9 @@
 Targets: forward kinematics + Jacobians of 3 points of the Panda for 1,500 configurations
 <= 2 ms and for one configuration <= 30 us; one coupled CDMP step of the Panda with 3 sphere
 obstacles (end effector + 2 link points: kinematics, closest points, fields, Eq. 7 + Eq. 12,
-map to the exogenous space, stepper.update) median <= 60 us.
+map to the exogenous space, stepper.update) median <= 60 us; closest point of one link
+segment to a box <= 50 us. The coupled-step rows run the CDMP along its trajectory (the
+configuration changes every step), 1,000 steps per restart.
 
 Run: .venv/bin/python benchmarks/bench_kinematics.py
 """
@@ -17,7 +19,7 @@ import pybullet_data
 
 from cdmp_ros.core.fields import RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
-from cdmp_ros.core.kinematics.closest import Sphere
+from cdmp_ros.core.kinematics.closest import Box, Sphere, segment_box, segment_box_scalar
 from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
 
 POINTS = (PointOfInterest('ee'), PointOfInterest('panda_link3', (0.0, 0.0, -0.1)),
@@ -123,6 +125,31 @@ def main():
     rows.append(('coupled CDMP step: coupling + exogenous map + stepper.update (us)', coupled,
                  'median <= 60'))
     rows.append(('(reference) stepper.update alone, same CDMP (us)', alone, ''))
+    # boxes: a board next to the link3 segment (closest point on the segment's interior)
+    ends = chain.forward(qc, [PointOfInterest(s[0], s[i]) for s in coupling.segments[:1]
+                              for i in (1, 2)])
+    mid = (ends[0] + ends[1]) / 2
+    box = Box.from_center(mid + [0.0, 0.12, 0.0], (0.4, 0.05, 0.4))
+    A, B, lo, hi = ends[0], ends[1], np.array(box.lower), np.array(box.upper)
+    al, bl = A.tolist(), B.tolist()
+    assert segment_box(A, B, lo, hi)[1] > 0.0
+    rows.append(('closest point link segment - box, 1 segment, numpy API (us)',
+                 timed(lambda: segment_box(A, B, lo, hi), args.reps), '<= 50'))
+    rows.append(('closest point link segment - box, 1 segment, plain floats (us)',
+                 timed(lambda: segment_box_scalar(al, bl, box.lower, box.upper), args.reps), ''))
+    rows.append(('(before) candidate enumeration, batch of 1 segment (us)',
+                 timed(lambda: segment_box(A[None], B[None], lo, hi), max(50, args.reps // 25)),
+                 ''))
+    mixed = obstacles[:2] + [box]
+    coupling.joint_acceleration(qcl, qd, mixed)
+    assert any(coupling.joint_acceleration(qcl, qd, mixed))
+    rows.append(('joint coupling, 2 spheres + 1 box, EE + 2 links (us)',
+                 timed(lambda: coupling.joint_acceleration(qcl, qd, mixed), args.reps), ''))
+    far = [Sphere((3.0, 3.0, 3.0), 0.1), Sphere((-3.0, 3.0, 3.0), 0.1), box]
+    far[2] = Box((3.0, 3.0, 3.0), (3.5, 3.5, 3.5))
+    assert not any(coupling.joint_acceleration(qcl, qd, far))
+    rows.append(('joint coupling, 3 obstacles, none within reach (us)',
+                 timed(lambda: coupling.joint_acceleration(qcl, qd, far), args.reps), ''))
     load = os.getloadavg()[0]
     print(f'Python {platform.python_version()}, numpy {np.__version__}, '
           f'load average {load:.2f}\n')
