@@ -46,7 +46,7 @@ def test_colcon_build_installs_package(tmp_path):
     src = tmp_path / 'src' / 'cdmp_ros'
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
         '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
-        '.pytest_cache', '.hypothesis', 'bags'))
+        '.pytest_cache', '.hypothesis'))
     env = dict(os.environ)
     env['PATH'] = os.path.dirname(sys.executable) + os.pathsep + env.get('PATH', '')
     proc = subprocess.run(
@@ -66,3 +66,10 @@ def test_colcon_build_installs_package(tmp_path):
         assert os.access(exe, os.X_OK)
     schemas = list((prefix / 'share' / 'cdmp_ros' / 'msg_schemas').glob('*.json'))
     assert schemas, 'msg_schemas/*.json not installed under share/cdmp_ros'
+    share = prefix / 'share' / 'cdmp_ros'
+    for f in ['config/streamer.yaml', 'config/sim.yaml', 'config/graphs/demo.yaml',
+              'bags/panda_reach/demo_00/metadata.yaml']:
+        assert (share / f).is_file(), f'{f} not installed under share/cdmp_ros'
+    # every design executable is a console script
+    assert set(console_scripts()) >= {'cdmp', 'learner', 'adapter', 'streamer', 'sim',
+                                      'recorder', 'player'}
