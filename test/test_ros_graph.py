@@ -1,0 +1,158 @@
+"""Integration: the node graph (sim, streamer, adapter, learner) as real processes over DDS.
+
+One graph serves the module (localhost discovery, a private domain id), started with
+:class:`cdmp_ros.cli.bringup.Bringup` like ``cdmp bringup``. The test process is the user: it
+publishes obstacles and goals, listens to ``joint_reference`` (every message checked: names,
+size, finite, inside the limits) and to every node's ``diagnostics``. Every wait is bounded.
+"""
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from cdmp_ros.cli.bringup import Bringup, parse_graph
+from conftest import ros_env
+from streamer_harness import Harness, max_acceleration
+from streamer_util import LOWER, PANDA_JOINTS, UPPER
+
+pytestmark = pytest.mark.ros
+DOMAIN = 171
+STARTUP = 60.0   # s; five interpreters with rclpy and pybullet on a loaded 2-core machine
+MAX_ACC = 100.0  # rad/s^2 between consecutive references at 500 Hz: no jump
+
+
+def _graph():
+    return parse_graph({'stop_timeout': 10.0, 'nodes': [
+        {'name': 'sim', 'executable': 'sim', 'params_file': 'sim.yaml',
+         'parameters': {'control': 'position', 'diagnostics_period': 0.25}},
+        {'name': 'streamer', 'executable': 'streamer', 'params_file': 'streamer.yaml',
+         'parameters': {'rate': 500.0, 'diagnostics_period': 0.25,
+                        'coupling_links': ['panda_link4', 'panda_link6', 'panda_link7'],
+                        'coupling.link_radius': 0.06}},
+        {'name': 'adapter', 'executable': 'adapter', 'params_file': 'adapter.yaml',
+         'parameters': {'diagnostics_period': 0.25}},
+        {'name': 'learner', 'executable': 'learner', 'params_file': 'learner.yaml'},
+    ]})
+
+
+def status(h, prefix, key=None):
+    """The newest diagnostics values of the status named ``prefix``... (a node's state)."""
+    with h.lock:
+        for t, name, msg, kv in reversed(h.diag_messages):
+            if name.startswith(prefix) and name.endswith(': state'):
+                return kv if key is None else kv.get(key)
+    return {} if key is None else None
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    log_path = tmp_path_factory.mktemp('graph') / 'graph.log'
+    log = open(log_path, 'w')
+    b = Bringup(_graph(), log=log, extra_env=ros_env(DOMAIN))
+    b.start()
+    h = Harness(DOMAIN)
+    h.robot_on = False  # the sim is the robot
+    try:
+        ok = h.wait(lambda: status(h, 'sim', 'state') is not None and h.n_refs() > 100
+                    and 'cdmp' in (status(h, 'streamer', 'primitive') or '')
+                    or b.exited(), STARTUP)
+        assert ok and not b.exited(), log_path.read_text()[-3000:]
+        yield h, b, log_path
+    finally:
+        h.close()
+        codes = b.stop()
+        log.close()
+    assert all(c in (0, -signal.SIGINT) for c in codes.values()), \
+        f'{codes}\n{log_path.read_text()[-3000:]}'
+    assert not h.violations, h.violations[:5]
+
+
+def _rest(h, timeout=15.0):
+    """Wait until the reference rests (every joint velocity < 1e-3 rad/s)."""
+    return h.wait(lambda: np.abs(h.last_ref()[3]).max() < 1e-3, timeout)
+
+
+def test_the_learned_primitive_is_streamed_to_the_sim(graph):
+    h, b, _ = graph
+    assert _rest(h, 20.0)
+    q_ref = h.last_ref()[2]
+    assert np.all(q_ref > LOWER) and np.all(q_ref < UPPER)
+    # the sim follows the reference (position control)
+    assert h.wait(lambda: float(status(h, 'sim', 'tracking_error_rad') or 1.0) < 0.02, 10.0), \
+        status(h, 'sim')
+    assert status(h, 'learner', 'kind') == 'cdmp'
+
+
+def test_an_obstacle_changes_the_reference_and_the_sim_reports_no_contact(graph):
+    from visualization_msgs.msg import Marker, MarkerArray
+    import pybullet_data
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    h, b, _ = graph
+    assert _rest(h)
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    q0 = h.last_ref()[2]
+    ee = chain.forward(q0, [PointOfInterest('ee')])[0]
+    m = Marker(ns='test', id=1, type=Marker.SPHERE, action=Marker.ADD)
+    m.header.frame_id = 'panda_link0'
+    m.header.stamp = h.node.get_clock().now().to_msg()
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = (
+        float(ee[0]), float(ee[1]) + 0.2, float(ee[2]))  # 20 cm beside the hand
+    m.pose.orientation.w = 1.0
+    m.scale.x = m.scale.y = m.scale.z = 0.08
+    contacts0 = int(status(h, 'sim', 'contacts_since_start') or 0)
+    h.publish('obstacles', MarkerArray(markers=[m]))
+    # the reference moves away from the sphere
+    assert h.wait(lambda: np.linalg.norm(chain.forward(h.last_ref()[2], [PointOfInterest(
+        'ee')])[0] - ee) > 0.01, 5.0)
+    assert h.wait(lambda: status(h, 'sim', 'obstacles') == '1', 5.0)
+    time.sleep(1.0)
+    sim = status(h, 'sim')
+    assert int(sim['contacts_since_start']) == contacts0, sim
+    assert float(sim['min_obstacle_distance_m']) > 0.0, sim
+    x = chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0]
+    assert np.linalg.norm(x - [m.pose.position.x, m.pose.position.y, m.pose.position.z]) > \
+        np.linalg.norm(ee - [m.pose.position.x, m.pose.position.y, m.pose.position.z])
+    h.publish('obstacles', MarkerArray(markers=[Marker(ns='test', action=Marker.DELETEALL)]))
+    assert h.wait(lambda: status(h, 'sim', 'obstacles') == '0', 5.0)
+
+
+def test_a_goal_change_is_followed_without_a_jump(graph):
+    h, b, _ = graph
+    assert _rest(h)
+    goal = h.last_ref()[2] + np.array([0.3, -0.2, 0.2, 0.2, 0.0, -0.2, 0.3])
+    i0 = h.n_refs()
+    h.publish('goal', h.make_joint_state(goal))
+    assert h.wait(lambda: np.abs(h.last_ref()[2] - goal).max() < 0.02, 15.0)
+    refs = h.refs_since(i0)
+    assert max_acceleration(refs) < MAX_ACC
+    # the adapter retargeted the primitive too (the streamer switched to it without a jump)
+    assert h.wait(lambda: status(h, 'adapter', 'outcome') == 'retargeted', 5.0), \
+        status(h, 'adapter')
+
+
+def test_a_killed_adapter_does_not_interrupt_the_stream_and_recovers_the_primitive(graph):
+    import subprocess
+    h, b, log_path = graph
+    proc = b.procs['adapter']
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    n0, t0 = h.n_refs(), time.monotonic()
+    time.sleep(1.0)
+    n1, t1 = h.n_refs(), time.monotonic()
+    assert (n1 - n0) / (t1 - t0) > 400.0  # still streaming at ~500 Hz
+    # restart it (as a supervisor would); it gets the learner's latched primitive again
+    spec = next(s for s in b.graph.nodes if s.name == 'adapter')
+    since = time.monotonic()
+    new = subprocess.Popen(spec.command(), env=b.env, stdout=open(log_path, 'a'),
+                           stderr=subprocess.STDOUT, start_new_session=True)
+    b.procs['adapter'] = new
+
+    def recovered():
+        with h.lock:
+            return any(t >= since and name.startswith('adapter') and kv.get('primitive') ==
+                       'cdmp' for t, name, _, kv in h.diag_messages)
+    assert h.wait(recovered, STARTUP), log_path.read_text()[-2000:]
+    assert new.poll() is None
+    assert h.last_ref()[2].shape == (len(PANDA_JOINTS),)
