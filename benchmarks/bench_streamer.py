@@ -12,6 +12,12 @@ time, in % of one core).
 Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 Bounded: about (start-up + seconds + 2) s per configuration.
 
+Options: ``--param name:=value`` (repeatable) is passed to the streamer (e.g.
+``realtime_priority:=50``, ``tick_thread:=false``); ``--listener-priority P`` runs the
+measuring subscriber under SCHED_FIFO priority P (set before ``rclpy.init`` so the DDS threads
+inherit it, as a controller's would); ``--configs 1000,1000o`` selects configurations (``o`` =
+with a sphere obstacle).
+
     .venv/bin/python benchmarks/bench_streamer.py [--seconds 8] [--domain 165]
 """
 import argparse
@@ -50,9 +56,21 @@ def panda_primitive_json():
     return dumps_primitive(CDMP(lower, upper, joint_names=names).fit(T, Y))
 
 
-def listen(seconds, rate, obstacle, warmup):
+def realtime_listener(priority):
+    """SCHED_FIFO for the listener's main thread (before rclpy.init: DDS threads inherit)."""
+    if priority:
+        from cdmp_ros.ros.realtime import configure_thread
+        st = configure_thread(priority)
+        if not st.ok:
+            print(f'listener: {st.message}', file=sys.stderr)
+
+
+def listen(seconds, rate, obstacle, warmup, priority=0):
     """Listener process: publish the inputs, record joint_reference, print JSON stats."""
+    realtime_listener(priority)
+    import gc
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
@@ -73,6 +91,14 @@ def listen(seconds, rate, obstacle, warmup):
 
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(JointState, 'joint_reference', on_ref, qos)
+    timing = {}
+
+    def on_diag(msg):  # the streamer's own tick figures (wake-up lateness, tick duration)
+        for st in msg.status:
+            if st.name.endswith(': timing'):
+                timing.update({v.key: v.value for v in st.values})
+
+    node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
     try:  # the listener must not be the bottleneck at 1 kHz
         from rclpy.experimental import EventsExecutor
         ex = EventsExecutor()
@@ -91,13 +117,18 @@ def listen(seconds, rate, obstacle, warmup):
         if obstacle and obs_pub.get_subscription_count():
             obs_pub.publish(MarkerArray(markers=[m]))
     print(json.dumps({'event': 'streaming'}), flush=True)
+    # the instrument must not pause: no garbage collection during the measured window
+    gc.collect()
+    gc.freeze()
     t_end = time.monotonic() + warmup
     while time.monotonic() < t_end:
         ex.spin_once(timeout_sec=0.01)
     rec.clear()
+    gc.disable()
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
         ex.spin_once(timeout_sec=0.01)
+    gc.enable()
     period_ns = 1e9 / rate
     arrivals = [a for a, _ in rec]
     stamps = sorted(s for _, s in rec)
@@ -110,13 +141,14 @@ def listen(seconds, rate, obstacle, warmup):
            'delay_ms_p50': lat[len(lat) // 2] / 1e6 if lat else None,
            'delay_ms_p99': lat[int(0.99 * (len(lat) - 1))] / 1e6 if lat else None,
            'rate_hz': (len(rec) - 1) / ((arrivals[-1] - arrivals[0]) * 1e-9)
-           if len(rec) > 1 else 0.0}
+           if len(rec) > 1 else 0.0,
+           'streamer_timing': timing}
     print(json.dumps(out), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 
 
-def listen_latency(reps):
+def listen_latency(reps, priority=0):
     """Listener: obstacle message -> first joint_reference that reflects it.
 
     The open-loop reference converges to the goal and rests; a sphere is then published
@@ -124,9 +156,11 @@ def listen_latency(reps):
     whose position leaves the rest position by more than 1e-6 rad reflects it. The sphere is
     deleted and the reference converges again before the next repetition.
     """
+    realtime_listener(priority)
     import numpy as np
     import pybullet_data
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
@@ -154,6 +188,15 @@ def listen_latency(reps):
 
     node.create_subscription(JointState, 'joint_reference', on_ref,
                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    inside = {}
+
+    def on_diag(msg):  # the streamer's own figures: marker stamp -> first reference published
+        for st in msg.status:
+            kv = {v.key: v.value for v in st.values}
+            if 'obstacle_latency_n' in kv:
+                inside.update(kv)
+
+    node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
     ex = EventsExecutor()
     ex.add_node(node)
     prim_pub.publish(String(data=panda_primitive_json()))
@@ -182,26 +225,37 @@ def listen_latency(reps):
         last.pop('hit', None)
         last['watch'] = y0
         t_pub = clock.now().nanoseconds
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_pub, 1_000_000_000)
         obs_pub.publish(MarkerArray(markers=[m]))
         if spin_until(lambda: 'hit' in last, 2.0):
             lat.append((last['hit'] - t_pub) * 1e-6)
         last['watch'] = None
         obs_pub.publish(MarkerArray(markers=[Marker(ns='bench', action=Marker.DELETEALL)]))
+    spin_until(lambda: False, 1.2)  # one more diagnostics message of the streamer
     lat.sort()
     print(json.dumps({'n': len(lat), 'p50_ms': lat[len(lat) // 2] if lat else None,
                       'p99_ms': lat[int(0.99 * (len(lat) - 1))] if lat else None,
-                      'max_ms': lat[-1] if lat else None}), flush=True)
+                      'max_ms': lat[-1] if lat else None,
+                      'inside': {k: v for k, v in inside.items()
+                                 if k.startswith('obstacle_latency')}}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
 
 
-def run_latency(rate, reps, domain):
-    streamer = subprocess.Popen(
-        [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
-         '-p', 'joint_states_timeout:=0.0'],
-        env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def start_streamer(rate, domain, params):
+    cmd = [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
+           '-p', 'joint_states_timeout:=0.0']
+    for p in params:
+        cmd += ['-p', p]
+    return subprocess.Popen(cmd, env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def run_latency(rate, reps, domain, params=(), priority=0):
+    streamer = start_streamer(rate, domain, params)
     listener = subprocess.Popen(
-        [sys.executable, __file__, '--listen-latency', str(reps)],
+        [sys.executable, __file__, '--listen-latency', str(reps),
+         '--listener-priority', str(priority)],
         env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
     try:
         first = listener.stdout.readline()
@@ -220,14 +274,12 @@ def run_latency(rate, reps, domain):
                     p.wait()
 
 
-def run_config(rate, obstacle, seconds, domain, measure_cpu):
+def run_config(rate, obstacle, seconds, domain, measure_cpu, params=(), priority=0):
     import psutil
-    streamer = subprocess.Popen(
-        [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
-         '-p', 'joint_states_timeout:=0.0'],
-        env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    streamer = start_streamer(rate, domain, params)
     listener = subprocess.Popen(
-        [sys.executable, __file__, '--listen', '--rate', str(rate), '--seconds', str(seconds)]
+        [sys.executable, __file__, '--listen', '--rate', str(rate), '--seconds', str(seconds),
+         '--listener-priority', str(priority)]
         + (['--obstacle'] if obstacle else []),
         env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
     try:
@@ -264,35 +316,57 @@ def main():
     ap.add_argument('--latency-reps', type=int, default=15,
                     help='repetitions of the obstacle -> reference latency measurement')
     ap.add_argument('--listen-latency', type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument('--param', action='append', default=[],
+                    help='streamer parameter name:=value (repeatable)')
+    ap.add_argument('--listener-priority', type=int, default=0,
+                    help='SCHED_FIFO priority of the measuring subscriber (0 = normal)')
+    ap.add_argument('--configs', default='1000,1000o,500,500o',
+                    help='rates to measure, comma-separated; suffix o = with a sphere obstacle')
+    ap.add_argument('--latency-rate', type=float, default=500.0)
     args = ap.parse_args()
     if args.listen:
-        return listen(args.seconds, args.rate, args.obstacle, warmup=1.0)
+        return listen(args.seconds, args.rate, args.obstacle, warmup=1.0,
+                      priority=args.listener_priority)
     if args.listen_latency:
-        return listen_latency(args.listen_latency)
+        return listen_latency(args.listen_latency, args.listener_priority)
     rows = []
-    for rate, obstacle in ((1000.0, False), (1000.0, True), (500.0, False), (500.0, True)):
-        s = run_config(rate, obstacle, args.seconds, args.domain, measure_cpu=True)
+    load0 = os.getloadavg()[0]
+    for c in filter(None, args.configs.split(',')):
+        rate, obstacle = float(c.rstrip('o')), c.endswith('o')
+        s = run_config(rate, obstacle, args.seconds, args.domain, measure_cpu=True,
+                       params=args.param, priority=args.listener_priority)
         rows.append((rate, obstacle, s))
     print(f'Streamer timing, {args.seconds:g} s per configuration, separate subscriber '
-          f'process, load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n')
+          f'process, load average {load0:.2f} -> {os.getloadavg()[0]:.2f} on '
+          f'{os.cpu_count()} cores; streamer parameters {args.param or "defaults"}; '
+          f'listener SCHED_FIFO {args.listener_priority or "off"}\n')
     print('| rate [Hz] | obstacle (coupling every tick) | received | missing | on time (<= 1 '
           'period) | delay p50 [ms] | delay p99 [ms] | measured rate [Hz] | streamer CPU '
-          '[% of one core] |')
-    print('|---|---|---|---|---|---|---|---|---|')
+          '[% of one core] | streamer wake-up late p99 / max [ms] | tick p99 / max [ms] |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for rate, obstacle, s in rows:
+        t = s.get('streamer_timing', {})
+        wake = ' / '.join(t.get(f'tick_wake_late_{k}_ms', 'n/a') for k in ('p99', 'max'))
+        tick = ' / '.join(t.get(f'tick_{k}_ms', 'n/a') for k in ('p99', 'max'))
         print(f'| {rate:g} | {"1 sphere" if obstacle else "none"} | {s["received"]} | '
               f'{s["missing"]} | {100 * s["on_time_fraction"]:.2f} % | '
               f'{s["delay_ms_p50"]:.3f} | {s["delay_ms_p99"]:.3f} | {s["rate_hz"]:.1f} | '
-              f'{s["cpu_percent"]:.1f} |')
+              f'{s["cpu_percent"]:.1f} | {wake} | {tick} |')
     if args.latency_reps:
-        print('\nObstacle message published -> first joint_reference that reflects it (across '
-              'processes, 500 Hz, reference at rest, sphere 0.1 m from the end effector)\n')
-        print('| repetitions | p50 [ms] | p99 [ms] | max [ms] |')
-        print('|---|---|---|---|')
-        lat = run_latency(500.0, args.latency_reps, args.domain)
+        print(f'\nObstacle message published -> first joint_reference that reflects it (across '
+              f'processes, {args.latency_rate:g} Hz, reference at rest, sphere 0.1 m from the '
+              f'end effector); inside = the streamer diagnostics (marker stamp -> first '
+              f'reference published after it)\n')
+        print('| repetitions | p50 [ms] | p99 [ms] | max [ms] | inside p50 / p99 / max [ms] |')
+        print('|---|---|---|---|---|')
+        lat = run_latency(args.latency_rate, args.latency_reps, args.domain, args.param,
+                          args.listener_priority)
         fmt = (lambda v: 'n/a' if v is None else f'{v:.2f}')
+        ins = lat.get('inside', {})
+        inside = ' / '.join(ins.get(f'obstacle_latency_ms_{k}', 'n/a')
+                            for k in ('p50', 'p99', 'max'))
         print(f'| {lat["n"]} | {fmt(lat["p50_ms"])} | {fmt(lat["p99_ms"])} | '
-              f'{fmt(lat["max_ms"])} |')
+              f'{fmt(lat["max_ms"])} | {inside} |')
     return 0
 
 

@@ -65,6 +65,29 @@ def test_fifo_applies_to_the_calling_thread_only():
     assert thread_policy() == main_before  # the main thread is untouched
 
 
+@pytest.mark.skipif(not fifo_permitted(), reason='SCHED_FIFO not permitted here')
+def test_other_threads_are_lifted_by_native_id():
+    started, release = threading.Event(), threading.Event()
+    seen = {}
+
+    def idle():
+        seen['tid'] = threading.get_native_id()
+        started.set()
+        release.wait(10)
+        seen['policy'] = thread_policy()
+    t = threading.Thread(target=idle)
+    t.start()
+    started.wait(10)
+    assert seen['tid'] in realtime.process_thread_ids()
+    done, problems = realtime.set_threads_fifo(3, [seen['tid'], 2 ** 22 + 12345])
+    release.set()
+    t.join(10)
+    assert (done, problems) == (1, '')  # the id of no thread is skipped
+    assert seen['policy'] == (os.SCHED_FIFO, 3)
+    assert thread_policy()[0] == os.SCHED_OTHER
+    assert realtime.set_threads_fifo(0, [threading.get_native_id()]) == (0, '')
+
+
 def test_refused_fifo_is_reported_and_scheduling_stays_normal(monkeypatch):
     def refuse(*_):
         raise PermissionError(1, 'Operation not permitted')

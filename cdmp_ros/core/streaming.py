@@ -100,6 +100,29 @@ class StreamerConfig:
     coupling_decimation: int = _param(
         1, 'Evaluate the coupling every N ticks and hold it in between (box obstacles with '
         'link terms cost milliseconds per evaluation).', 1, 1000)
+    tick_thread: bool = _param(
+        True, 'Publish from a dedicated tick thread that sleeps to absolute deadlines of the '
+        'steady clock (False: an executor timer, sharing the executor thread with the '
+        'subscriptions).', read_only=True)
+    realtime_priority: int = _param(
+        0, 'SCHED_FIFO priority of the tick thread (1-99; 0 = normal scheduling). Refused '
+        'without CAP_SYS_NICE / an rtprio limit: logged, normal scheduling.', 0, 99,
+        read_only=True)
+    realtime_threads: str = _param(
+        'all', "With realtime_priority > 0: 'all' also puts the node's other threads under "
+        'SCHED_FIFO (executor and middleware threads at realtime_priority - 1, the primitive '
+        'worker at 1), so no thread the tick waits for (GIL, DDS) is preempted by normal '
+        "processes; 'tick' lifts the tick thread only.", read_only=True)
+    tick_cpu: int = _param(-1, 'CPU the tick thread is pinned to (-1 = no pinning).',
+                           -1, 1023, read_only=True)
+    tick_spin: float = _param(
+        0.0, 'Seconds before each deadline at which the tick thread stops sleeping and '
+        'yields until the deadline (normal scheduling only, never under SCHED_FIFO; costs '
+        'CPU).', 0.0, 0.01, read_only=True)
+    obstacle_wakeup: bool = _param(
+        True, 'An obstacle message wakes the tick thread: the next slot is integrated with '
+        'the new obstacles and published at once with its own scheduled stamp (at most one '
+        'period early); the schedule is unchanged.')
     coupling_links: Tuple[str, ...] = _param(
         ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
@@ -120,6 +143,9 @@ class StreamerConfig:
                 raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
             if not (math.isfinite(v) and lo <= v <= hi):
                 raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+        if self.realtime_threads not in ('all', 'tick'):
+            raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
+                                  f'{self.realtime_threads!r}')
         names = self.joint_names
         if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
                 or not all(isinstance(n, str) and n for n in names)):

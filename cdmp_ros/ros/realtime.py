@@ -145,9 +145,42 @@ def configure_thread(priority: int = 0, cpus: Sequence[int] = (),
     return RealtimeStatus(priority, realtime, current, slack, '; '.join(problems))
 
 
-def thread_policy() -> Tuple[int, int]:
-    """``(policy, priority)`` of the calling thread (``os.SCHED_*`` constants)."""
-    return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+def thread_policy(tid: int = 0) -> Tuple[int, int]:
+    """``(policy, priority)`` of a thread (native id; 0 = the calling thread)."""
+    return os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+
+
+def process_thread_ids() -> Tuple[int, ...]:
+    """Native ids of every thread of this process (Linux ``/proc/self/task``; () elsewhere)."""
+    try:
+        return tuple(sorted(int(t) for t in os.listdir('/proc/self/task')))
+    except OSError:
+        return ()
+
+
+def set_threads_fifo(priority: int, tids: Sequence[int]) -> Tuple[int, str]:
+    """SCHED_FIFO ``priority`` for the given threads of this process (native ids).
+
+    Used to lift the threads a real-time loop depends on (the executor thread that holds the
+    GIL in callbacks, the middleware's receive/event threads) above the normal processes, so
+    none of them is preempted while the loop waits for it (priority inversion through the
+    GIL). Threads that ended meanwhile are skipped. Returns ``(number set, problems)``;
+    never raises on a refusal.
+    """
+    priority = check_priority('priority', priority)
+    if priority == 0:
+        return 0, ''
+    done, problems = 0, []
+    for tid in tids:
+        try:
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+            done += 1
+        except ProcessLookupError:
+            continue
+        except (OSError, AttributeError) as exc:
+            problems.append(f'thread {tid}: SCHED_FIFO {priority} refused ({exc})')
+            break
+    return done, '; '.join(problems)
 
 
 def reset_thread() -> None:
