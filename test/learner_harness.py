@@ -24,6 +24,7 @@ def start_learner(domain_id, params=(), log_path=None, params_file=None, cwd=REP
         cmd += ['-p', p]
     out = open(log_path, 'w') if log_path else subprocess.DEVNULL
     env = ros_env(domain_id)
+    env['RCUTILS_LOGGING_BUFFERED_STREAM'] = '0'  # log lines reach the file at once
     env['PYTHONPATH'] = REPO_ROOT + os.pathsep + env.get('PYTHONPATH', '')
     return subprocess.Popen(cmd, env=env, cwd=cwd, stdout=out, stderr=subprocess.STDOUT,
                             start_new_session=True)

@@ -45,7 +45,7 @@ def graph(tmp_path_factory):
     lo, hi = narrow_limits()
     t_start = time.monotonic()
     proc = start_learner(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=1000.0',
-                                  'demonstration_gap:=0.3', f'limits.lower:={_list(lo)}',
+                                  'demonstration_gap:=1.0', f'limits.lower:={_list(lo)}',
                                   f'limits.upper:={_list(hi)}', 'improve.shape_std:=100.0',
                                   'improve.updates:=30', 'improve.rollouts_per_update:=8'],
                          log_path=str(log), params_file='config/learner.yaml')
@@ -81,7 +81,8 @@ def test_publishes_the_bag_primitive_at_start(graph):
     prim = primitive_from_dict(d)
     Y = prim.rollout(dt=0.01).Y
     assert np.abs(Y[-1] - goals.mean(axis=0)).max() < 0.02
-    assert 'cdmp from 5 demonstration(s) (5 from bags, 0 from the topic)' in log.read_text()
+    text = 'cdmp from 5 demonstration(s) (5 from bags, 0 from the topic)'
+    assert h.wait(lambda: text in log.read_text(), 10), log.read_text()
 
 
 def test_topic_demonstration_with_shuffled_names_is_mapped_and_refitted(graph):
