@@ -54,13 +54,17 @@ def reach_cdmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
     return CDMP(chain.lower, chain.upper, joint_names=PANDA_JOINTS).fit(T, Y)
 
 
-def start_adapter(domain_id, params=(), log_path=None, params_file='config/adapter.yaml'):
-    """Start ``python -m cdmp_ros.nodes.adapter`` with ``-p`` parameters (name:=value)."""
+def start_adapter(domain_id, params=(), log_path=None, params_file='config/adapter.yaml',
+                  remaps=()):
+    """Start ``python -m cdmp_ros.nodes.adapter`` with ``-p`` parameters (name:=value) and
+    ``-r`` remappings (from:=to)."""
     cmd = [sys.executable, '-m', 'cdmp_ros.nodes.adapter', '--ros-args']
     if params_file:
         cmd += ['--params-file', params_file]
     for p in params:
         cmd += ['-p', p]
+    for r in remaps:
+        cmd += ['-r', r]
     out = open(log_path, 'w') if log_path else subprocess.DEVNULL
     return subprocess.Popen(cmd, env=ros_env(domain_id), cwd=REPO_ROOT, stdout=out,
                             stderr=subprocess.STDOUT, start_new_session=True)
@@ -170,9 +174,10 @@ class Harness:
             time.sleep(0.02)
         return pred()
 
-    def wait_adapted(self, n0, timeout=20.0, trigger=None, source=None):
-        """Wait for an adapted primitive after the first ``n0`` (caused by ``trigger``, and
-        adapted from the primitive JSON text ``source``, if given); returns its dict or None."""
+    def wait_adapted(self, n0, timeout=20.0, trigger=None, source=None, pred=None):
+        """Wait for an adapted primitive after the first ``n0`` (caused by ``trigger``,
+        adapted from the primitive JSON text ``source``, with ``pred(dict)`` true, if given);
+        returns its dict or None."""
         sha = None if source is None else hashlib.sha1(source.encode()).hexdigest()
 
         def match():
@@ -180,7 +185,8 @@ class Harness:
                 for _, d in self.adapted[n0:]:
                     meta = d.get('metadata', {}).get('adapter', {})
                     if ((trigger is None or meta.get('trigger') == trigger)
-                            and (sha is None or meta.get('source_sha1') == sha)):
+                            and (sha is None or meta.get('source_sha1') == sha)
+                            and (pred is None or pred(d))):
                         return d
             return None
         if self.wait(lambda: match() is not None, timeout):

@@ -172,8 +172,8 @@ class AdapterNode(Node):
         lim = self._limiters[topic]
         if not lim.allow(time.monotonic()):
             if lim.dropped == 1 or lim.dropped % 100 == 0:
-                self.reporter.reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
-                                            f'{lim.dropped} dropped so far')
+                self._reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
+                                    f'{lim.dropped} dropped so far')
             return False
         cfg = self.config
         now_ns = self.get_clock().now().nanoseconds
@@ -331,7 +331,11 @@ class AdapterNode(Node):
             self._publish_dmp_visualization()
             return
         if p['kind'] != 'promp':
-            self._retarget_dmp(topic)
+            if topic == 'constraints':
+                self.reporter.set_state(OK, f'constraint set stored: it applies to ProMPs, the '
+                                            f'primitive is a {p["kind"]}')
+            else:
+                self._retarget_dmp(topic)
             return
         cfg = self.config
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
