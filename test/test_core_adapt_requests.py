@@ -190,3 +190,19 @@ def test_ee_band_matches_monte_carlo(chain, prior, rng):
 def test_configs_refuse_bad_values(cls, kw, text):
     with pytest.raises(ValidationError, match=text):
         cls(**kw)
+
+
+def test_config_file_mirrors_every_parameter_with_its_default(repo_root):
+    """config/adapter.yaml lists every parameter of the adapter node, with the defaults."""
+    import dataclasses
+    import os
+    import yaml
+    with open(os.path.join(repo_root, 'config', 'adapter.yaml')) as f:
+        params = yaml.safe_load(f)['/**']['ros__parameters']
+    sections = {AdapterConfig: params, AdaptRequestConfig: params.pop('adaptation')}
+    for cls, values in sections.items():
+        assert set(values) == {f.name for f in dataclasses.fields(cls)}, cls.__name__
+        default = cls()
+        for name, v in values.items():
+            expected = getattr(default, name)
+            assert (tuple(v) if isinstance(v, list) else v) == expected, name

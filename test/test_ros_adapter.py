@@ -461,6 +461,24 @@ def test_bad_constraint_sets_are_rejected(graph, prims, case):
     alive(h, proc)
 
 
+def test_parameters_have_descriptors_with_ranges(graph):
+    from rcl_interfaces.srv import DescribeParameters
+    h, proc, _ = graph
+    client = h.node.create_client(DescribeParameters, '/adapter/describe_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        fut = client.call_async(DescribeParameters.Request(
+            names=['adaptation.alpha', 'path_points', 'joint_names']))
+        assert h.wait(fut.done, 10.0)
+        alpha, points, names = fut.result().descriptors
+    finally:
+        h.node.destroy_client(client)
+    assert alpha.floating_point_range[0].from_value == 0.5
+    assert 'Confidence' in alpha.description
+    assert (points.integer_range[0].from_value, points.integer_range[0].to_value) == (2, 1000)
+    assert names.read_only
+
+
 def test_runtime_parameter_changes_are_validated(graph):
     from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
