@@ -9,6 +9,9 @@
    ``improve.*`` / ``cost.*`` parameters): cost of the noiseless rollout before and after,
    updates, rollouts, rollouts outside the limits, wall time; scripted and sim cost.
 
+OpenBLAS is single-threaded as in the learner process (``OPENBLAS_NUM_THREADS=1`` unless set;
+see cdmp_ros/nodes/learner.py).
+
 Every ROS process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 
     .venv/bin/python benchmarks/bench_learner.py [--repeat 5] [--domain 179]
@@ -23,6 +26,7 @@ import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # as the learner node (before numpy)
 
 
 def fit_figures(repeat):
@@ -111,6 +115,8 @@ def main():
     ap.add_argument('--repeat', type=int, default=5)
     ap.add_argument('--domain', type=int, default=179)
     args = ap.parse_args()
+    print(f'OPENBLAS_NUM_THREADS={os.environ["OPENBLAS_NUM_THREADS"]}, load average '
+          f'{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores')
     chain, fits = fit_figures(args.repeat)
     print('| kind | read 5 bags [ms] | read + fit + JSON [ms] | fit rms error [rad] |')
     print('|---|---|---|---|')
