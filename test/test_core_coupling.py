@@ -12,7 +12,7 @@ from cdmp_ros.core.coupling import (DampingConfig, coupling_3d, damped_pinv,
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain, planar_chain
-from cdmp_ros.core.kinematics.closest import Box, Sphere, link_closest_point
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere, link_closest_point
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling, joint_coupling
 from cdmp_ros.core.transform import TanhTransform
 
@@ -292,8 +292,11 @@ def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, l
         if isinstance(obs, Sphere):
             v = x - np.array(obs.center)
             d, n, f = np.linalg.norm(v) - obs.radius, v / np.linalg.norm(v), sphere_field
-        else:
+        elif isinstance(obs, Box):
             d, _, n = box_signed_distance(x, obs.lower, obs.upper)
+            d, f = float(d), box_field
+        else:
+            d, _, n = obs.signed_distance(x)
             d, f = float(d), box_field
         d_ee = min(d_ee, d)
         if end_effector:
@@ -322,8 +325,8 @@ def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, l
 def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon):
     """The generated single-configuration path (kinematics, gate, unrolled Eq. 7/12) against
     the batched numpy reference and against the generic scalar path, with spheres and boxes,
-    a non-degenerate explicit segment and, at epsilon = 0.3, damping active on the end
-    effector and on the links."""
+    oriented boxes, a non-degenerate explicit segment and, at epsilon = 0.3, damping active on
+    the end effector and on the links."""
     damping = DampingConfig(epsilon=epsilon, lambda_max=0.05)
     sphere_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
     box_field = ConstantField(magnitude=2.0, influence_distance=0.3)
@@ -333,7 +336,7 @@ def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon
     assert coupling._coupled is not None
     segments = coupling.segments
     ends = [PointOfInterest(s[0], s[2]) for s in segments]
-    n_active = n_ee_damped = n_box = 0
+    n_active = n_ee_damped = n_box = n_oriented = 0
     for trial in range(40):
         q = rng.uniform(panda.lower, panda.upper)
         X = panda.forward(q, [PointOfInterest('ee')] + ends)
@@ -341,6 +344,10 @@ def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon
         if trial % 2:
             obstacles.append(Box.from_center(X[int(rng.integers(4))] + rng.normal(size=3) * 0.15,
                                              (0.05, 0.4, 0.3)))
+        if trial % 3 == 1:
+            obstacles.append(OrientedBox.from_quaternion(
+                X[int(rng.integers(4))] + rng.normal(size=3) * 0.15, (0.3, 0.05, 0.2),
+                rng.normal(size=4)))
         got = coupling.joint_acceleration(q, None, obstacles)
         dists = list(coupling.last_distances)
         generic = coupling.joint_acceleration_generic(q, None, obstacles)
@@ -355,7 +362,8 @@ def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon
         _, J = panda.forward_and_jacobian(q, [PointOfInterest('ee')])
         n_ee_damped += np.linalg.svd(J[0], compute_uv=False).min() < epsilon
         n_box += len(obstacles) > 4 and min(dists) < 0.3
-    assert n_active >= 30 and n_box >= 5
+        n_oriented += isinstance(obstacles[-1], OrientedBox) and min(dists) < 0.3
+    assert n_active >= 30 and n_box >= 5 and n_oriented >= 5
     if epsilon > 0.1:
         assert n_ee_damped >= 5
     # no field within reach: exact zeros, and the generated function stops before any

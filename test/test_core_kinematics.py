@@ -454,6 +454,58 @@ def test_point_box_matches_box_signed_distance(rng):
         np.testing.assert_allclose(normal, N[i], atol=1e-15)
 
 
+def test_oriented_box_closest_points(rng):
+    """OrientedBox: with the identity it is the axis-aligned Box; rotated, the batched path
+    (segment_obstacle) and the plain-float methods agree with a brute force on a signed
+    distance written in the box frame from scipy's rotation."""
+    from cdmp_ros.core.kinematics import OrientedBox
+    from cdmp_ros.core.kinematics.closest import segment_obstacle
+    center, size = np.array([0.3, -0.1, 0.5]), np.array([0.4, 0.05, 0.3])
+    A, B = _random_segments(rng, 150, center, 0.25)
+    A[:40], B[:40] = center + 0.05 * A[:40], center + 0.2 * (B[:40] - A[:40])
+    same = OrientedBox(center, size)
+    ref = segment_box(A, B, center - size / 2, center + size / 2, 0.01)
+    got = segment_obstacle(A, B, same, 0.01)
+    out = ref[1] + 0.01 > 1e-9          # inside, the deepest point of a board is on a tie
+    for k in range(4):                  # between two faces: compare surface/normal outside
+        np.testing.assert_allclose(got[k][out] if k > 1 else got[k],
+                                   ref[k][out] if k > 1 else ref[k], atol=1e-12)
+    quat = Rotation.random(random_state=3).as_quat()                  # (x, y, z, w)
+    box = OrientedBox.from_quaternion(center, size, quat)
+    R = Rotation.from_quat(quat).as_matrix()
+    np.testing.assert_allclose(box.rotation, R, atol=1e-12)
+
+    def sd_reference(X):
+        return _box_sd_reference((X - center) @ R, -size / 2, size / 2)
+
+    t, dist, surface, normal = segment_obstacle(A, B, box, 0.01)
+    ts = np.linspace(0.0, 1.0, 4001)
+    P = A[:, None] + ts[None, :, None] * (B - A)[:, None]
+    brute = sd_reference(P).min(-1) - 0.01
+    assert np.all(dist <= brute + 1e-12)
+    assert np.all(dist >= brute - np.linalg.norm(B - A, axis=-1) / 4000 - 1e-12)
+    assert (brute < 0).sum() > 10 and (brute > 0).sum() > 50
+    X = A + t[:, None] * (B - A)
+    np.testing.assert_allclose(sd_reference(X) - 0.01, dist, atol=1e-12)
+    np.testing.assert_allclose(sd_reference(surface), 0.0, atol=1e-12)
+    out = dist + 0.01 > 1e-9
+    np.testing.assert_allclose(X[out], surface[out] + (dist[out, None] + 0.01) * normal[out],
+                               atol=1e-12)
+    d_pts, _, n_pts = box.signed_distance(X)
+    for i in range(len(A)):
+        ti = box.segment(A[i].tolist(), B[i].tolist())
+        di = sd_reference(A[i] + ti * (B[i] - A[i])) - 0.01
+        assert di == pytest.approx(dist[i], abs=1e-12)
+        d, n = box.point(X[i].tolist())
+        assert d == pytest.approx(d_pts[i], abs=1e-12)
+        if out[i]:                                   # (inside: a tie between two faces)
+            np.testing.assert_allclose(n, n_pts[i], atol=1e-12)
+    with pytest.raises(ValidationError, match='OrientedBox.rotation'):
+        OrientedBox(center, size, np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValidationError, match='OrientedBox.size'):
+        OrientedBox(center, (0.1, 0.0, 0.1))
+
+
 def test_segment_sphere_matches_brute_force(rng):
     center, radius = np.array([0.3, 0.1, 0.5]), 0.08
     A, B = _random_segments(rng, 300, center, 0.2)

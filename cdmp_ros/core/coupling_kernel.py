@@ -28,7 +28,8 @@ from typing import Callable, List, Optional, Sequence, Tuple
 from cdmp_ros.core.coupling import _inverse_h3
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ZERO, RepellerField
-from cdmp_ros.core.kinematics.closest import Box, Sphere, point_box, segment_box_scalar
+from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
+                                              segment_box_scalar)
 from cdmp_ros.core.kinematics.fast import (_Emitter, build, emit_frames, emit_jacobian,
                                            emit_point, literal, prune)
 
@@ -277,8 +278,15 @@ class ClosestPointGate:
                 if not use_ee:
                     continue
                 a = box_field.acceleration(ee, ZERO, obs, d, normal)
+            elif type(obs) is OrientedBox:
+                d, normal = obs.point(ee)
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                a = box_field.acceleration(ee, ZERO, obs, d, normal)
             else:
-                raise ValidationError(f'obstacles: expected Sphere or Box, got '
+                raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
                                       f'{type(obs).__name__}')
             ax += a[0]
             ay += a[1]
@@ -306,10 +314,16 @@ class ClosestPointGate:
                     d = r - obs.radius - radius
                     if d < best_d:
                         best_d, best, bt, bv, br = d, obs, t, (v0, v1, v2), r
-                else:
+                elif type(obs) is Box:
                     lo, hi = obs.lower, obs.upper
                     t = segment_box_scalar((a0, a1, a2), (b0, b1, b2), lo, hi)
                     d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    d -= radius
+                    if d < best_d:
+                        best_d, best, bt, bv, br = d, obs, t, normal, None
+                else:                                           # OrientedBox
+                    t = obs.segment((a0, a1, a2), (b0, b1, b2))
+                    d, normal = obs.point((a0 + t * u0, a1 + t * u1, a2 + t * u2))
                     d -= radius
                     if d < best_d:
                         best_d, best, bt, bv, br = d, obs, t, normal, None

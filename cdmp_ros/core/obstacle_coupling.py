@@ -32,7 +32,8 @@ from cdmp_ros.core.coupling_kernel import ClosestPointGate, compile_coupling
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
-from cdmp_ros.core.kinematics.closest import Box, Sphere, point_box, segment_box_scalar
+from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
+                                              segment_box_scalar)
 from cdmp_ros.core.validation import check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
@@ -128,9 +129,9 @@ class ObstacleCoupling:
     def _field(self, obstacle) -> Field:
         if isinstance(obstacle, Sphere):
             return self.sphere_field
-        if isinstance(obstacle, Box):
+        if isinstance(obstacle, (Box, OrientedBox)):
             return self.box_field
-        raise ValidationError(f'obstacles: expected Sphere or Box, got '
+        raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
                               f'{type(obstacle).__name__}')
 
     @staticmethod
@@ -198,6 +199,9 @@ class ObstacleCoupling:
             elif type(obs) is Box:
                 d, _, normal = point_box(ee, obs.lower, obs.upper)
                 f = box_field
+            elif type(obs) is OrientedBox:
+                d, normal = obs.point(ee)
+                f = box_field
             else:
                 self._field(obs)                                # raises ValidationError
             if d < dists[0]:
@@ -227,9 +231,14 @@ class ObstacleCoupling:
                         normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
                         best_d, best = d, (obs, t, normal, sphere_field)
                 else:
-                    lo, hi = obs.lower, obs.upper
-                    t = segment_box_scalar((a0, a1, a2), (a0 + u0, a1 + u1, a2 + u2), lo, hi)
-                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    b = (a0 + u0, a1 + u1, a2 + u2)
+                    if type(obs) is Box:
+                        lo, hi = obs.lower, obs.upper
+                        t = segment_box_scalar((a0, a1, a2), b, lo, hi)
+                        d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    else:                                       # OrientedBox
+                        t = obs.segment((a0, a1, a2), b)
+                        d, normal = obs.point((a0 + t * u0, a1 + t * u1, a2 + t * u2))
                     d -= radius
                     if d < best_d:
                         best_d, best = d, (obs, t, normal, box_field)

@@ -11,10 +11,10 @@ from cdmp_ros.core.kinematics.builders import (DUAL_PANDA_DISTANCE, PANDA_EE_OFF
                                                dual_panda_chains, panda_chain, planar_chain,
                                                pose)
 from cdmp_ros.core.kinematics.chain import Chain, PointOfInterest
-from cdmp_ros.core.kinematics.closest import (Box, ClosestPoint, Sphere, closest_distances,
-                                              link_closest_point)
+from cdmp_ros.core.kinematics.closest import (Box, ClosestPoint, OrientedBox, Sphere,
+                                              closest_distances, link_closest_point)
 
 __all__ = ['Chain', 'PointOfInterest', 'planar_chain', 'chain_from_urdf', 'panda_chain',
            'dual_panda_chains', 'pose', 'PANDA_EE_OFFSET', 'PANDA_JOINTS',
-           'DUAL_PANDA_DISTANCE', 'Box', 'Sphere', 'ClosestPoint', 'link_closest_point',
-           'closest_distances']
+           'DUAL_PANDA_DISTANCE', 'Box', 'OrientedBox', 'Sphere', 'ClosestPoint',
+           'link_closest_point', 'closest_distances']

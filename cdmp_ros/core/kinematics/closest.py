@@ -9,7 +9,6 @@ Segment functions are batched over any leading shape; :func:`link_closest_point`
 point on the link as a :class:`PointOfInterest`, so its Jacobian ``J_o`` (paper 000, Eq. 8)
 comes from :meth:`Chain.forward_and_jacobian`.
 """
-import math
 from dataclasses import dataclass
 from itertools import product
 from typing import Sequence, Tuple, Union
@@ -18,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.boxes import FACE_TIE, point_box, segment_box_scalar
 from cdmp_ros.core.kinematics.chain import Chain, PointOfInterest
 from cdmp_ros.core.validation import as_array, check_positive
 
@@ -60,7 +60,75 @@ class Box:
         return cls(tuple(c - s / 2), tuple(c + s / 2))
 
 
-Obstacle = Union[Sphere, Box]
+@dataclass(frozen=True)
+class OrientedBox:
+    """Box obstacle of any orientation: full edge lengths ``size`` [m] along the columns of
+    ``rotation`` (box frame -> world), centred at ``center`` [m]. In its own frame
+    (``x_b = rotation^T (x - center)``) it is the axis-aligned box ``[-half, half]``; every
+    distance is computed there and mapped back (rotations preserve distances and segment
+    parameters). :class:`Box` remains the axis-aligned kind (boards, Eq. 30-31)."""
+
+    center: tuple
+    size: tuple
+    rotation: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    def __post_init__(self):
+        c = as_array('OrientedBox.center', self.center, (3,))
+        size = as_array('OrientedBox.size', self.size, (3,))
+        if np.any(size <= 0):
+            raise ValidationError(f'OrientedBox.size: expected positive edge lengths, got '
+                                  f'{size.tolist()}')
+        R = as_array('OrientedBox.rotation', self.rotation, (3, 3))
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+            raise ValidationError(f'OrientedBox.rotation: expected a rotation matrix, got '
+                                  f'{R.tolist()}')
+        object.__setattr__(self, 'center', tuple(c.tolist()))
+        object.__setattr__(self, 'size', tuple(size.tolist()))
+        object.__setattr__(self, 'rotation', tuple(map(tuple, R.tolist())))
+        object.__setattr__(self, 'half', tuple((size / 2).tolist()))
+        object.__setattr__(self, '_neg_half', tuple((-size / 2).tolist()))
+
+    @classmethod
+    def from_quaternion(cls, center: ArrayLike, size: ArrayLike,
+                        quaternion: ArrayLike) -> 'OrientedBox':
+        """From a unit quaternion ``(x, y, z, w)`` (a CUBE marker's orientation)."""
+        x, y, z, w = as_array('quaternion', quaternion, (4,)) / np.linalg.norm(quaternion)
+        R = ((1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+             (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+             (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
+        return cls(center, size, R)
+
+    def to_box_frame(self, X: ArrayLike) -> NDArray[np.float64]:
+        """Points (..., 3) in the box frame."""
+        return (np.asarray(X, dtype=np.float64) - self.center) @ np.array(self.rotation)
+
+    def signed_distance(self, X: ArrayLike) -> Tuple[NDArray, NDArray, NDArray]:
+        """As :func:`box_signed_distance` (distance, surface point, normal; world)."""
+        R = np.array(self.rotation)
+        d, S, N = box_signed_distance(self.to_box_frame(X), self._neg_half, self.half)
+        return d, S @ R.T + self.center, N @ R.T
+
+    # plain-float versions for the single-configuration coupling
+    def _frame(self, x: Sequence[float]) -> Tuple[float, float, float]:
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.rotation
+        c = self.center
+        v0, v1, v2 = x[0] - c[0], x[1] - c[1], x[2] - c[2]
+        return (r00 * v0 + r10 * v1 + r20 * v2, r01 * v0 + r11 * v1 + r21 * v2,
+                r02 * v0 + r12 * v1 + r22 * v2)
+
+    def point(self, x: Sequence[float]) -> Tuple[float, tuple]:
+        """Signed distance and outward normal (world) of one point (plain floats)."""
+        d, _, (n0, n1, n2) = point_box(self._frame(x), self._neg_half, self.half)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self.rotation
+        return d, (r00 * n0 + r01 * n1 + r02 * n2, r10 * n0 + r11 * n1 + r12 * n2,
+                   r20 * n0 + r21 * n1 + r22 * n2)
+
+    def segment(self, a: Sequence[float], b: Sequence[float]) -> float:
+        """:func:`segment_box_scalar` of the segment ``a -> b`` (world, plain floats)."""
+        return segment_box_scalar(self._frame(a), self._frame(b), self._neg_half, self.half)
+
+
+Obstacle = Union[Sphere, Box, OrientedBox]
 
 
 @dataclass(frozen=True)
@@ -121,8 +189,9 @@ def box_signed_distance(X: ArrayLike, lower: ArrayLike, upper: ArrayLike
     clamped = np.clip(X, lo, hi)
     outside = np.linalg.norm(X - clamped, axis=-1)
     inside = np.minimum(d.max(axis=-1), 0.0)
-    k = np.argmax(d, axis=-1)[..., None]                 # nearest face's axis (inside)
-    upper_face = np.take_along_axis(X - (lo + hi) / 2, k, -1) > 0
+    # nearest face's axis (inside); ties within FACE_TIE: lowest axis, lower face
+    k = np.argmax(d >= d.max(axis=-1, keepdims=True) - FACE_TIE, axis=-1)[..., None]
+    upper_face = np.take_along_axis(X - (lo + hi) / 2, k, -1) > FACE_TIE
     face_normal = np.zeros(X.shape)
     np.put_along_axis(face_normal, k, np.where(upper_face, 1.0, -1.0), -1)
     face_point = X.copy()
@@ -193,123 +262,6 @@ def _box_candidates(A: NDArray, U: NDArray, lo: NDArray, hi: NDArray) -> NDArray
     return np.clip(np.nan_to_num(T, nan=0.0), 0.0, 1.0)
 
 
-def point_box(x: Sequence[float], lower: Sequence[float], upper: Sequence[float]
-              ) -> Tuple[float, Tuple[float, float, float], Tuple[float, float, float]]:
-    """:func:`box_signed_distance` of one point on plain floats (same conventions).
-
-    Returns
-    -------
-    distance : float
-    surface : (3,) tuple
-    normal : (3,) tuple
-    """
-    x0, x1, x2 = x
-    l0, l1, l2 = lower
-    h0, h1, h2 = upper
-    c0 = l0 if x0 < l0 else (h0 if x0 > h0 else x0)
-    c1 = l1 if x1 < l1 else (h1 if x1 > h1 else x1)
-    c2 = l2 if x2 < l2 else (h2 if x2 > h2 else x2)
-    v0, v1, v2 = x0 - c0, x1 - c1, x2 - c2
-    out = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    if out > 0.0:
-        if out > 1e-12:
-            return out, (c0, c1, c2), (v0 / out, v1 / out, v2 / out)
-        # as box_signed_distance: a (sub-1e-12) outside point takes the face normal below
-    # on or inside the surface: the face of the largest per-axis excess (first on ties)
-    k, best = 0, max(l0 - x0, x0 - h0)
-    e = max(l1 - x1, x1 - h1)
-    if e > best:
-        k, best = 1, e
-    e = max(l2 - x2, x2 - h2)
-    if e > best:
-        k, best = 2, e
-    xk, lk, hk = x[k], lower[k], upper[k]
-    up = xk - (lk + hk) / 2 > 0
-    surface = [x0, x1, x2]
-    surface[k] = hk if up else lk
-    normal = [0.0, 0.0, 0.0]
-    normal[k] = 1.0 if up else -1.0
-    if out > 0.0:
-        return out, (c0, c1, c2), tuple(normal)
-    return min(best, 0.0), tuple(surface), tuple(normal)
-
-
-def segment_box_scalar(a: Sequence[float], b: Sequence[float], lower: Sequence[float],
-                       upper: Sequence[float]) -> float:
-    """Segment parameter ``t`` in [0, 1] of the point of ``a -> b`` with the smallest signed
-    distance to the axis-aligned box (exact; plain floats, a few microseconds).
-
-    The signed distance along the segment is convex in t. If the segment meets the box
-    (slab clipping gives ``[t_in, t_out]``), the minimum is inside, where the distance is
-    the maximum of the six lines ``lo_k - x_k(t)`` and ``x_k(t) - hi_k``: it is attained at
-    ``t_in``, ``t_out`` or where a rising line meets a falling one. Otherwise the squared
-    distance is a convex piecewise quadratic whose pieces change where the segment crosses a
-    slab plane; each piece is minimised in closed form.
-    """
-    a0, a1, a2 = a
-    u = (b[0] - a0, b[1] - a1, b[2] - a2)
-    lo, hi = lower, upper
-    t_in, t_out = 0.0, 1.0
-    cuts = []
-    for k in range(3):
-        ak, uk = a[k], u[k]
-        if uk == 0.0:
-            if ak < lo[k] or ak > hi[k]:
-                t_in, t_out = 1.0, 0.0                          # never inside this slab
-            continue
-        t1, t2 = (lo[k] - ak) / uk, (hi[k] - ak) / uk
-        if t1 > t2:
-            t1, t2 = t2, t1
-        if t1 > t_in:
-            t_in = t1
-        if t2 < t_out:
-            t_out = t2
-        cuts += (t1, t2)
-    if t_in <= t_out:                                            # meets the box
-        # per axis: max(lo_k - x_k, x_k - hi_k) = |c_k + u_k t| - h_k (a V; c, h: offset
-        # from the centre and half-size); candidates: the rising branch of axis k meets the
-        # falling branch of axis l (k == l: the vertex, a mid-plane crossing)
-        c0, c1, c2 = [a[k] - 0.5 * (lo[k] + hi[k]) for k in range(3)]
-        h0, h1, h2 = [0.5 * (hi[k] - lo[k]) for k in range(3)]
-        s0, s1, s2 = u
-        axes = [(c, h, -1.0 if s < 0.0 else 1.0, abs(s)) for c, h, s in
-                ((c0, h0, s0), (c1, h1, s1), (c2, h2, s2)) if s != 0.0]
-        cand = [t_in, t_out]
-        for ck, hk, sk, ak in axes:
-            for cl, hl, sl, al in axes:
-                t = (hk - hl - sk * ck - sl * cl) / (ak + al)
-                if t_in < t < t_out:
-                    cand.append(t)
-        best_t, best = t_in, math.inf
-        for t in cand:
-            f = max(abs(c0 + s0 * t) - h0, abs(c1 + s1 * t) - h1, abs(c2 + s2 * t) - h2)
-            if f < best:
-                best_t, best = t, f
-        return best_t
-    # outside everywhere: squared distance, one quadratic per piece between slab crossings
-    knots = sorted([0.0, 1.0] + [t for t in cuts if 0.0 < t < 1.0])
-    best_t, best = 0.0, math.inf
-    for t_l, t_r in zip(knots[:-1], knots[1:]):
-        tm = 0.5 * (t_l + t_r)
-        num = den = 0.0
-        for k in range(3):
-            xk = a[k] + tm * u[k]
-            bound = lo[k] if xk < lo[k] else (hi[k] if xk > hi[k] else None)
-            if bound is not None:
-                num += (a[k] - bound) * u[k]
-                den += u[k] * u[k]
-        t = -num / den if den > 0.0 else t_l
-        t = t_l if t < t_l else (t_r if t > t_r else t)
-        g = 0.0
-        for k in range(3):
-            xk = a[k] + t * u[k]
-            e = lo[k] - xk if xk < lo[k] else (xk - hi[k] if xk > hi[k] else 0.0)
-            g += e * e
-        if g < best:
-            best_t, best = t, g
-    return best_t
-
-
 def segment_box(A: ArrayLike, B: ArrayLike, lower: ArrayLike, upper: ArrayLike,
                 link_radius: float = 0.0):
     """Closest point of segments ``A -> B`` (..., 3) to an axis-aligned box (exact).
@@ -345,12 +297,19 @@ def segment_box(A: ArrayLike, B: ArrayLike, lower: ArrayLike, upper: ArrayLike,
 
 
 def segment_obstacle(A: ArrayLike, B: ArrayLike, obstacle: Obstacle, link_radius: float = 0.0):
-    """Dispatch to :func:`segment_sphere` or :func:`segment_box`."""
+    """Dispatch to :func:`segment_sphere` or :func:`segment_box` (an :class:`OrientedBox`
+    in its own frame)."""
     if isinstance(obstacle, Sphere):
         return segment_sphere(A, B, obstacle.center, obstacle.radius, link_radius)
     if isinstance(obstacle, Box):
         return segment_box(A, B, obstacle.lower, obstacle.upper, link_radius)
-    raise ValidationError(f'obstacle: expected Sphere or Box, got {type(obstacle).__name__}')
+    if isinstance(obstacle, OrientedBox):
+        R = np.array(obstacle.rotation)
+        t, d, S, N = segment_box(obstacle.to_box_frame(A), obstacle.to_box_frame(B),
+                                 obstacle._neg_half, obstacle.half, link_radius)
+        return t, d, S @ R.T + obstacle.center, N @ R.T
+    raise ValidationError(f'obstacle: expected Sphere, Box or OrientedBox, got '
+                          f'{type(obstacle).__name__}')
 
 
 Segment = Tuple[str, Sequence[float], Sequence[float]]
