@@ -179,8 +179,8 @@ def test_dmp_fit_from_demonstrations_of_different_lengths(bag_demos, kind):
 def test_promp_fit_from_demonstrations_of_different_lengths(bag_demos):
     demos = _varied(bag_demos)
     prim = fit_primitive('promp', demos, JOINTS, LOWER, UPPER, promp_config=PrompLearnConfig(
-        n_basis=15, n_iter=50))
-    assert prim.kind == 'promp' and prim.n_basis == 15
+        n_basis=10, n_iter=30))
+    assert prim.kind == 'promp' and prim.n_basis == 10
     s = np.linspace(0, 1, 50)
     per_demo = np.array([np.stack([np.interp(s, T / T[-1], Y[:, d]) for d in range(7)], 1)
                          for T, Y in demos])

@@ -151,7 +151,8 @@ def test_stop_event_ends_early_and_promp_is_refused(chain, demos):
     imp = Improver(prim, cfg, cost, chain.lower, chain.upper)
     res = imp.run(lambda rep: stop.set() if rep.update == 3 else None, stop)
     assert res.stopped and res.updates == 3
-    promp = fit_primitive('promp', demos, JOINTS, chain.lower, chain.upper)
+    from cdmp_ros.core.promp import ProMP, RbfBasis
+    promp = ProMP(7, RbfBasis.uniform(5), joint_names=JOINTS)
     with pytest.raises(ValidationError, match='PI2 improves dmp and cdmp primitives, got '
                                               "'promp'"):
         Improver(promp, cfg, cost, chain.lower, chain.upper)

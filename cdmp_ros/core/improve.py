@@ -23,7 +23,7 @@ the *measured* joints of a pybullet rollout, plus a torque term, give the ``sim`
 import copy
 import threading
 from dataclasses import dataclass, field
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, List, Optional
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -262,9 +262,3 @@ class Improver:
         self.prim.metadata = meta
         return ImproveResult(self.prim, before, after, len(history), self.rollouts,
                              self.outside, self.max_usage, stopped, history)
-
-
-def costs_of_rollouts(cost: Callable[[Trajectory], ArrayLike],
-                      trajectories: Sequence[Trajectory]) -> NDArray[np.float64]:
-    """Total cost of each trajectory, shape (n,)."""
-    return np.array([float(np.sum(cost(t))) for t in trajectories])

@@ -75,7 +75,7 @@ class LearnerConfig:
     """Parameters of the learner node (top level); mirrored 1:1 by its ROS parameters."""
 
     kind: str = param('cdmp', 'Primitive to fit: cdmp (limits held by construction), dmp or '
-                      'promp.', choices=KINDS)
+                      'promp; a change applies at the next refit.', choices=KINDS)
     joint_names: Tuple[str, ...] = param(
         PANDA_JOINTS, 'Joints of the primitive, in its order; demonstrations are mapped by '
         'name.', read_only=True)
