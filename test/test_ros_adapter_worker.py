@@ -1,0 +1,55 @@
+"""The adapter's solver thread (cdmp_ros.ros.adapter_worker.SolveWorker), without ROS: latest
+request wins, a running solve is not interrupted, its result is marked stale when a newer
+request waits, a failing solve becomes a 'rejected' result and the thread survives."""
+import threading
+
+from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker
+
+
+def _job(name):
+    return Job(request=None, config=None, node_config=None, trigger=name, trigger_stamp_ns=0,
+               received=0.0)
+
+
+def test_latest_request_wins_and_stale_results_are_marked():
+    release = threading.Event()
+    started = threading.Event()
+    notified = threading.Semaphore(0)
+
+    def solve(job):
+        started.set()
+        if job.trigger == 'first':
+            assert release.wait(5.0)
+        if job.trigger == 'boom':
+            raise RuntimeError('solver exploded')
+        return JobResult(job, 'converged', 0.0)
+
+    w = SolveWorker(solve, notified.release)
+    w.start()
+    try:
+        w.submit(_job('first'))
+        assert started.wait(5.0)          # 'first' is running
+        w.submit(_job('second'))          # waiting ...
+        w.submit(_job('third'))           # ... replaced: 'second' is dropped
+        assert w.summary()['solver_busy']
+        release.set()
+        assert notified.acquire(timeout=5.0) and notified.acquire(timeout=5.0)
+        results = w.take()
+        assert [(r.job.trigger, r.stale) for r in results] == [('first', True),
+                                                               ('third', False)]
+        assert [r.job.id for r in results] == [1, 3]
+        w.submit(_job('boom'))
+        assert notified.acquire(timeout=5.0)
+        (bad,) = w.take()
+        assert bad.outcome == 'rejected' and 'solver exploded' in bad.error
+        assert bad.error_topic == 'boom'
+        w.submit(_job('after'))           # the thread survived
+        assert notified.acquire(timeout=5.0)
+        assert [r.outcome for r in w.take()] == ['converged']
+        c = w.summary()
+        assert (c['requests_received'], c['requests_dropped'], c['requests_stale'],
+                c['requests_solved']) == (5, 1, 1, 4)
+    finally:
+        w.stop()
+        w.join(5.0)
+    assert not w.is_alive()
