@@ -322,9 +322,13 @@ STARTUP_CASES = [('kind:=spline', 'kind: expected one of'),
                  ('improve.cost:=bogus', "cost: expected one of ['scripted', 'sim']")]
 
 
-def test_bad_startup_parameters_exit_nonzero_and_bad_bags_do_not(tmp_path):
+def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_path):
     procs = [(start_learner(173 + i, [param], log_path=str(tmp_path / f'{i}.log')), text, i)
              for i, (param, text) in enumerate(STARTUP_CASES)]  # in parallel: start-up is slow
+    broken = tmp_path / 'broken.yaml'
+    broken.write_text('/**:\n  ros__parameters:\n    kind: [unclosed\n')
+    broken_proc = start_learner(177, [], log_path=str(tmp_path / 'broken.log'),
+                                params_file=str(broken))
     bad_bags = start_learner(178, ["demonstration_bags:=['/nonexistent/bag']",
                                    'diagnostics_period:=0.2'],
                              log_path=str(tmp_path / 'bags.log'))
@@ -334,6 +338,9 @@ def test_bad_startup_parameters_exit_nonzero_and_bad_bags_do_not(tmp_path):
             code = proc.wait(STARTUP)
             log = (tmp_path / f'{i}.log').read_text()
             assert code == 2 and text in log, log
+        code = broken_proc.wait(STARTUP)  # rclpy refuses the file before the node exists
+        log = (tmp_path / 'broken.log').read_text()
+        assert code != 0 and "Couldn't parse params file" in log and 'line 3' in log, log
         h = LearnerHarness(178)
         r = h.call('refit')
         assert not r.success and "'/nonexistent/bag': not found" in r.message, r.message
@@ -345,7 +352,7 @@ def test_bad_startup_parameters_exit_nonzero_and_bad_bags_do_not(tmp_path):
     finally:
         if h is not None:
             h.close()
-        for proc, _, _ in procs:
+        for proc in [p for p, _, _ in procs] + [broken_proc]:
             stop_process(proc)
         assert stop_process(bad_bags) == 0
 
