@@ -92,6 +92,49 @@ def bench_coupled_step(chain, coupling, obstacles, reps):
     return out, alone
 
 
+def bench_streamer_tick(chain, reps):
+    """In-process streamer tick (``ReferenceStreamer.advance(1)``: coupling through
+    ``CouplingSource``, the streamer's own exogenous map, stepper, guard) on a 2 s Panda CDMP
+    at 1 kHz with 3 spheres placed so that the end effector and both links are within reach;
+    restarted every 1,000 ticks. No ROS: the node adds publishing and the executor."""
+    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.primitive_io import dumps_primitive
+    from cdmp_ros.core.stream_primitives import prepare_primitive
+    from cdmp_ros.core.streaming import CouplingSource, ReferenceStreamer, StreamerConfig
+    names = tuple(f'panda_joint{i}' for i in range(1, 8))
+    y0 = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
+    y1 = np.array([0.8, 0.2, 0.3, -1.2, 0.2, 2.0, 0.3])
+    T = np.linspace(0.0, 2.0, 401)
+    s = T / 2.0
+    s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+    text = dumps_primitive(CDMP(chain.lower, chain.upper, joint_names=names).fit(
+        T, y0 + s[:, None] * (y1 - y0)))
+    coupling = ObstacleCoupling(chain, ['panda_link3', 'panda_link5'],
+                                RepellerField(gain=0.02, influence_distance=0.3,
+                                              min_distance=0.01))
+    ends = [PointOfInterest(seg[0], seg[2]) for seg in coupling.segments]
+    X = chain.forward(0.5 * (y0 + y1), [PointOfInterest('ee')] + ends)
+    source = CouplingSource(coupling)
+    source.obstacles = [Sphere(tuple(x + [0.08, 0.05, 0.0]), 0.05) for x in X]
+    cfg = StreamerConfig(joint_states_timeout=0.0)
+    samples = []
+    cpu = []
+    for _ in range(max(1, reps // 1000)):
+        rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling=source)
+        rs.activate(prepare_primitive(text, names, cfg.dt, chain.lower, chain.upper), 0.0)
+        clock = [0.0]
+
+        def tick():
+            clock[0] += 0.001
+            rs.advance(1, clock[0])
+        samples.append(timed(tick, 1000))
+        cpu.append(CPU[id(samples[-1])])
+        assert source.min_distance < 0.3
+    out = np.concatenate(samples)
+    CPU[id(out)] = float(np.mean(cpu))
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--reps', type=int, default=5000, help='repetitions of single calls')
@@ -145,11 +188,13 @@ def main():
     assert any(coupling.joint_acceleration(qcl, qd, mixed))
     rows.append(('joint coupling, 2 spheres + 1 box, EE + 2 links (us)',
                  timed(lambda: coupling.joint_acceleration(qcl, qd, mixed), args.reps), ''))
-    far = [Sphere((3.0, 3.0, 3.0), 0.1), Sphere((-3.0, 3.0, 3.0), 0.1), box]
-    far[2] = Box((3.0, 3.0, 3.0), (3.5, 3.5, 3.5))
+    far = [Sphere((3.0, 3.0, 3.0), 0.1), Sphere((-3.0, 3.0, 3.0), 0.1),
+           Box((3.0, 3.0, 3.0), (3.5, 3.5, 3.5))]
     assert not any(coupling.joint_acceleration(qcl, qd, far))
     rows.append(('joint coupling, 3 obstacles, none within reach (us)',
                  timed(lambda: coupling.joint_acceleration(qcl, qd, far), args.reps), ''))
+    rows.append(('streamer tick in-process, coupling on, 3 spheres (us)',
+                 bench_streamer_tick(chain, args.reps), ''))
     load = os.getloadavg()[0]
     print(f'Python {platform.python_version()}, numpy {np.__version__}, '
           f'load average {load:.2f}\n')
