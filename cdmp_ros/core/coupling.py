@@ -153,6 +153,9 @@ def _eigenvalues3(a00: float, a01: float, a02: float, a11: float, a12: float,
     return lo, 3.0 * q - lo - hi, hi
 
 
+_TWO_PI_3 = 2.0 * math.pi / 3.0
+
+
 def _matmul(A: Matrix, B: Matrix) -> Matrix:
     Bt = list(zip(*B))
     return [[sum(a * b for a, b in zip(row, col)) for col in Bt] for row in A]
@@ -239,7 +242,20 @@ def _inverse_h3(a00: float, a01: float, a02: float, a11: float, a12: float, a22:
     tr = a00 + a11 + a22
     damped = False
     if not (det > 0.0 and 4.0 * det >= eps2 * tr * tr):
-        mu0, mu1, mu2 = _eigenvalues3(a00, a01, a02, a11, a12, a22)
+        # _eigenvalues3, inlined (the same operations)
+        q = tr / 3.0
+        b00, b11, b22 = a00 - q, a11 - q, a22 - q
+        p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+        if p2 <= 1e-300:
+            mu0 = mu1 = mu2 = q
+        else:
+            p = math.sqrt(p2 / 6.0)
+            r = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
+                 + a02 * (a01 * a12 - b11 * a02)) / (2.0 * p * p * p)
+            phi = math.acos(-1.0 if r < -1.0 else (1.0 if r > 1.0 else r)) / 3.0
+            mu2 = q + 2.0 * p * math.cos(phi)
+            mu0 = q + 2.0 * p * math.cos(phi + _TWO_PI_3)
+            mu1 = 3.0 * q - mu0 - mu2
         if mu0 < eps2:
             damped = True
             # h(A) = x A + y I + z P with P the projector of the isolated eigenvalue
