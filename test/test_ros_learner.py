@@ -104,12 +104,20 @@ def test_topic_demonstration_with_shuffled_names_is_mapped_and_refitted(graph):
     assert np.allclose(d['dmp']['goal'], np.mean(goals, axis=0), atol=1e-9)
 
 
-def test_a_gap_ends_a_demonstration(graph):
+def test_a_gap_ends_a_demonstration_and_auto_refit_publishes(graph):
     h, proc, _ = graph
     T, Y, _ = bag_demos()[0]
     n0 = int(h.last_state()[1].get('topic_demonstrations', 0))
-    h.publish_demo(T[:40], Y[:40], end=False, period=0.002)  # no end marker: the gap ends it
-    assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1, 10)
+    k = h.n_primitives()
+    assert h.set_parameter('auto_refit', True).successful
+    try:
+        h.publish_demo(T[:40], Y[:40], end=False, period=0.002)  # no end marker: a gap ends it
+        assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1,
+                      10)
+        assert h.wait(lambda: h.n_primitives() > k, 5)
+        assert h.last_primitive()['metadata']['demonstrations']['from_topic'] == n0 + 1
+    finally:
+        assert h.set_parameter('auto_refit', False).successful
 
 
 # -- bad input on demonstration: one test per case --------------------------------------------
