@@ -147,7 +147,7 @@ class SimHarness:
             time.sleep(0.02)
         return pred()
 
-    def wait_diag(self, text, since, timeout=5.0, name=None):
+    def wait_diag(self, text, since, timeout=10.0, name=None):
         """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
         def found():
             with self.lock:
@@ -163,7 +163,7 @@ class SimHarness:
                     return m, kv
         return None
 
-    def wait_state(self, pred, timeout=5.0):
+    def wait_state(self, pred, timeout=10.0):
         """Wait for a 'sim: state' status whose (message, values) satisfy ``pred``."""
         def found():
             m, kv = self.last_state()

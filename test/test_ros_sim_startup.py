@@ -1,0 +1,80 @@
+"""The sim node as a real process: start-up failures (exit code 2 with the reason) and other
+configurations (the planar arm as fast as possible, publishing /clock).
+
+Domain 131, as test_ros_sim.py, whose module-scoped sim has ended before this module runs.
+"""
+import numpy as np
+import pytest
+
+from sim_harness import SimHarness, start_sim, stop_process
+
+pytestmark = pytest.mark.ros
+DOMAIN = 131
+STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
+
+
+STARTUP_CASES = [('control:=velocity', 'control: expected one of'),
+                 ('robot:=ur5', 'robot: expected one of'),
+                 ('publish_rate:=300.0', 'publish_rate: expected physics_rate (1000)'),
+                 ('physics_rate:=50.0', 'physics_rate'),
+                 ('initial_positions:=[0.0,0.0,0.0,1.0,0.0,1.0,0.0]', 'initial_positions[3]'),
+                 ("initial_positions:=['a','b']", 'initial_positions')]
+
+
+def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
+    bad_file = tmp_path / 'bad.yaml'
+    bad_file.write_text('/**:\n  ros__parameters:\n    reference_timeout: -3.0\n')
+    cases = STARTUP_CASES + [(None, 'reference_timeout')]
+    procs = []
+    for i, (param, text) in enumerate(cases):  # in parallel: start-up is slow
+        log = str(tmp_path / f'{i}.log')
+        proc = (start_sim(DOMAIN, [param], log_path=log) if param else
+                start_sim(DOMAIN, log_path=log, params_file=str(bad_file)))
+        procs.append((proc, text, i))
+    try:
+        for proc, text, i in procs:
+            code = proc.wait(STARTUP)
+            log = (tmp_path / f'{i}.log').read_text()
+            assert code == 2 and text in log, log
+    finally:
+        for proc, _, _ in procs:
+            stop_process(proc)
+
+
+def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
+    log = tmp_path / 'planar.log'
+    proc = start_sim(DOMAIN, ['robot:=planar4', 'real_time:=false', 'publish_clock:=true',
+                              'control:=computed_torque', 'diagnostics_period:=0.2'],
+                     log_path=str(log))
+    h = SimHarness(DOMAIN, clock=True)
+    try:
+        ok = h.wait(lambda: len(h.clocks) > 50 or proc.poll() is not None, STARTUP)
+        assert ok and proc.poll() is None, log.read_text()
+        # faster than the wall clock (a real-time factor of 2-8 on an idle machine; one
+        # diagnostics period above 1.2 is required, as this shared machine may starve it)
+        assert h.wait_state(lambda m, kv: kv.get('robot') == 'planar4'
+                            and float(kv.get('real_time_factor', 'nan')) > 1.2, 10.0), \
+            h.last_state()
+        with h.lock:
+            clocks = list(h.clocks)
+            states = list(h.states)
+        assert np.all(np.diff([c for _, c in clocks]) > 0)
+        assert np.all(np.array([c for _, c in clocks]) % 4_000_000 == 0)  # whole 4 ms slots
+        assert states[-1][2] == ['joint1', 'joint2', 'joint3', 'joint4']
+        stamps = {s[1] for s in states}  # the stamps are simulated time, as /clock
+        common = [c for _, c in clocks if min(stamps) <= c <= max(stamps)]
+        assert len(common) > 10 and sum(c in stamps for c in common) > 0.9 * len(common), (
+            sorted(stamps)[:8], sorted(stamps)[-8:], common[:8])
+        # a reference stamped in simulated time is accepted and tracked
+        goal = np.array([0.5, -0.4, 0.3, 0.2])
+        ref = h.reference(goal, names=['joint1', 'joint2', 'joint3', 'joint4'], zero=True)
+        c = h.clocks[-1][1]
+        ref.header.stamp.sec, ref.header.stamp.nanosec = divmod(c, 1_000_000_000)
+        h.publish('joint_reference', ref)
+        assert h.wait(lambda: np.abs(h.q() - goal).max() < 1e-3, 5.0), h.q()
+        _, kv = h.last_state()
+        assert kv.get('rejected_total', '0') == '0'
+    finally:
+        h.close()
+        code = stop_process(proc)
+    assert code == 0, log.read_text()
