@@ -159,12 +159,25 @@ def test_run_request_avoids_a_sphere_on_the_mean_path(chain, prior, rng):
     assert np.all(per_time >= 0.93), per_time
 
 
+def test_obstacle_at_the_conditioned_start_is_infeasible(chain, prior):
+    x0 = ee_path(chain, Q_START[None])[0]
+    cfg = AdaptRequestConfig(n_steps=15, max_outer=2, max_inner=30)
+    res = run_request(AdaptRequest(prior, (Sphere(tuple(x0), 0.05),), None, None, Q_START),
+                      chain, cfg)
+    assert res.outcome == 'infeasible'
+    assert res.problem.infeasible == ['obstacle 0 (with its margin) contains the ee at the '
+                                      'conditioned start']
+    p_ee = [c.probability for c in res.report.constraints if c.name == 'obstacle_0_ee']
+    assert p_ee[0] < 0.5
+
+
 def test_classify():
     def report(conv, status):
         return AdaptationReport(conv, status, 0.0, 0.0, 1, 1, 1, 0.0, [])
     assert classify(report(True, 'converged')) == 'converged'
     assert classify(report(False, 'stalled_infeasible')) == 'infeasible'
     assert classify(report(False, 'infeasible_or_unconverged')) == 'unconverged'
+    assert classify(report(False, 'infeasible_or_unconverged'), ['reason']) == 'infeasible'
 
 
 def test_ee_band_matches_monte_carlo(chain, prior, rng):

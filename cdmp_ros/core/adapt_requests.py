@@ -193,6 +193,7 @@ class BuiltProblem:
     notes: List[str] = field(default_factory=list)
     obstacles_used: int = 0
     obstacles_ignored: int = 0
+    infeasible: List[str] = field(default_factory=list)
 
 
 def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltProblem:
@@ -240,7 +241,11 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
                         for j in range(n)]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
     X = chain.forward(prior.mean(grid), pois)          # (n_steps, n_points, 3)
+    # phases pinned by the conditioning: an obstacle there makes the problem infeasible
+    pinned = [(i, label) for i, label, on in ((0, 'start', 0.0 in s_obs),
+                                              (-1, 'goal', 1.0 in s_obs)) if on]
     used = ignored = 0
+    infeasible = []
     for k, ob in enumerate(req.obstacles):
         d = obstacle_distance(ob, X)                     # (n_steps, n_points)
         if float(d.min()) > cfg.influence_distance:
@@ -251,10 +256,14 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
             if isinstance(ob, Sphere):
                 constraints.append(Repeller(pt, ob.center, ob.radius + cfg.obstacle_margin,
                                             alpha=cfg.alpha, name=f'obstacle_{k}_{pname}'))
+                clear = d[:, i] - cfg.obstacle_margin
             else:
                 normal, offset, _ = box_wall(ob, X[:, i], cfg.obstacle_margin)
                 constraints.append(Hyperplane(pt, normal, offset, alpha=cfg.alpha,
                                               name=f'obstacle_{k}_{pname}'))
+                clear = (X[:, i] - offset) @ -normal
+            infeasible += [f'obstacle {k} (with its margin) contains the {pname} at the '
+                           f'conditioned {label}' for j, label in pinned if clear[j] <= 0.0]
     overrides: Dict[str, Any] = {}
     if req.constraint_doc is not None:
         ctx = RobotContext(n, [(chain, range(n))])
@@ -263,15 +272,19 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     opt = dict(n_steps=int(cfg.n_steps), max_outer=int(cfg.max_outer),
                max_inner=int(cfg.max_inner), lambda0=float(cfg.lambda0))
     opt.update(overrides)
-    return BuiltProblem(prior, constraints, AdaptationConfig(**opt), notes, used, ignored)
+    return BuiltProblem(prior, constraints, AdaptationConfig(**opt), notes, used, ignored,
+                        infeasible)
 
 
-def classify(report: AdaptationReport) -> str:
-    """``converged``, ``infeasible`` (the optimiser stalled with violated constraints) or
-    ``unconverged`` (the iteration budget ran out)."""
+def classify(report: AdaptationReport, infeasible: Sequence[str] = ()) -> str:
+    """``converged``; ``infeasible`` (the optimiser stalled with violated constraints, or
+    ``infeasible`` names a known reason, e.g. an obstacle at the conditioned start);
+    otherwise ``unconverged`` (the iteration budget ran out)."""
     if report.converged:
         return 'converged'
-    return 'infeasible' if report.status == 'stalled_infeasible' else 'unconverged'
+    if report.status == 'stalled_infeasible' or infeasible:
+        return 'infeasible'
+    return 'unconverged'
 
 
 @dataclass
@@ -289,7 +302,7 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> AdaptResul
     """Build and solve one request (paper 003, Algorithm 1)."""
     prob = build_problem(req, chain, cfg)
     adapted, report = adapt(prob.prior, prob.constraints, prob.config)
-    return AdaptResult(adapted, report, classify(report), prob)
+    return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 
 
 # -- visualisation -----------------------------------------------------------------------------

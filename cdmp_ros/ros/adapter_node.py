@@ -418,7 +418,7 @@ class AdapterNode(Node):
                                     + (' (stale: a newer request is pending)'
                                        if res.stale else ''), **kv)
         else:
-            bad = ', '.join(violated(res)[:5])
+            bad = '; '.join(res.result.problem.infeasible[:2] + violated(res)[:5])
             level = ERROR if res.outcome == 'infeasible' else WARN
             self.reporter.set_state(level, f'request {job.id} ({job.trigger}) {res.outcome}: '
                                            f'{bad}; last good primitive kept', **kv)
