@@ -161,7 +161,7 @@ def test_run_request_avoids_a_sphere_on_the_mean_path(chain, prior, rng):
 
 def test_obstacle_at_the_conditioned_start_is_infeasible(chain, prior):
     x0 = ee_path(chain, Q_START[None])[0]
-    cfg = AdaptRequestConfig(n_steps=15, max_outer=2, max_inner=30)
+    cfg = AdaptRequestConfig(n_steps=15)
     res = run_request(AdaptRequest(prior, (Sphere(tuple(x0), 0.05),), None, None, Q_START),
                       chain, cfg)
     assert res.outcome == 'infeasible'
@@ -169,6 +169,7 @@ def test_obstacle_at_the_conditioned_start_is_infeasible(chain, prior):
                                       'conditioned start']
     p_ee = [c.probability for c in res.report.constraints if c.name == 'obstacle_0_ee']
     assert p_ee[0] < 0.5
+    assert res.report.n_outer == 1 and res.report.n_inner <= 50   # a short solve only
 
 
 def test_classify():

@@ -14,6 +14,7 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 - the robot's joint limits become two-sided joint-limit constraints (Eq. 12);
 - the user's constraint set (``msg_schemas/constraints.schema.json``) is added as is.
 """
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -299,9 +300,17 @@ class AdaptResult:
 
 
 def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> AdaptResult:
-    """Build and solve one request (paper 003, Algorithm 1)."""
+    """Build and solve one request (paper 003, Algorithm 1).
+
+    A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
+    only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
+    satisfaction probabilities without keeping the solver thread from newer requests.
+    """
     prob = build_problem(req, chain, cfg)
-    adapted, report = adapt(prob.prior, prob.constraints, prob.config)
+    config = prob.config
+    if prob.infeasible:
+        config = dataclasses.replace(config, max_outer=1, max_inner=min(config.max_inner, 50))
+    adapted, report = adapt(prob.prior, prob.constraints, config)
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 
 
