@@ -29,6 +29,7 @@ class _Emitter:
         self.count = 0
         self.indent = '    '
         self.cache: Dict[str, str] = {}
+        self.negated: Dict[str, str] = {}            # name of -v -> v
 
     def sum(self, terms: Sequence[Tuple[float, Value, Value]]) -> Value:
         """Emit ``sum(sign * a * b)``, folding constants; return a constant or a name."""
@@ -51,8 +52,15 @@ class _Emitter:
                 parts.append((sign, f'{a} * {b}'))
         if not parts:
             return const
-        if len(parts) == 1 and parts[0][0] == 1.0 and const == 0.0 and ' ' not in parts[0][1]:
-            return parts[0][1]
+        if len(parts) == 1 and const == 0.0 and ' ' not in parts[0][1]:
+            sign, name = parts[0]
+            if sign == 1.0:
+                return name
+            if name in self.negated:                 # -(-v) = v
+                return self.negated[name]
+            neg = self.assign(f'-{name}')
+            self.negated[neg] = name
+            return neg
         expr = ''
         for sign, text in parts:
             if not expr:
