@@ -444,6 +444,11 @@ CONSTRAINT_CASES = {
                   'maximum of 1'),
     'joint_out_of_range': (json.dumps({'constraints': [
         {'type': 'joint_limit', 'joint': 9, 'upper': 1.0}]}), 'expected an index < 7'),
+    'nan_center': ('{"constraints": [{"type": "repeller", "point": {"link": "ee"}, '
+                   '"center": [NaN, 0, 0], "radius": 0.1}]}',
+                   'center: expected finite values, got nan'),
+    'too_large': (json.dumps({'constraints': [], 'pad': 'x' * 400000}),
+                  'exceeds max_json_bytes = 300000'),
     'unknown_link': (json.dumps({'constraints': [
         {'type': 'repeller', 'point': {'link': 'nose'}, 'center': [0, 0, 0], 'radius': 0.1}]}),
         'expected "ee" or one of'),
