@@ -18,7 +18,8 @@ Usage in ``cdmp_ros/nodes/<name>.py``::
 
 A node may define ``close(self)`` (called once at shutdown) and ``done(self) -> bool`` (the
 loop ends when it returns True, e.g. a player that finished its bag).  ``make_node`` errors
-that are :class:`~cdmp_ros.core.errors.CdmpError` are logged and give exit code 2.
+that are :class:`~cdmp_ros.core.errors.CdmpError` are logged and give exit code 2, as do
+invalid ROS arguments (a malformed ``--params-file``), reported in one line.
 """
 import signal
 import sys
@@ -56,12 +57,16 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
         RCLError = RuntimeError
 
     stop = threading.Event()
-    if graceful:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
-    else:
-        rclpy.init(args=args)
+    try:
+        if graceful:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: stop.set())
+        else:
+            rclpy.init(args=args)
+    except RCLError as exc:  # e.g. a malformed --params-file or --ros-args
+        print(f'error: invalid ROS arguments or parameter file: {exc}', file=sys.stderr)
+        return 2
     node = None
     code = 0
     executor = executor if executor is not None else SingleThreadedExecutor()
