@@ -2,12 +2,15 @@
 
 A link is modelled as the segment between two points rigidly attached to it (by default two
 consecutive joint origins, :meth:`Chain.link_segments`), optionally inflated by a radius
-(a capsule). Obstacles are spheres and axis-aligned boxes (boards). Distances are *signed*:
-negative values are penetration depths, as in paper 000, IV-B ("-1.37 cm, a collision").
+(a capsule). Obstacles are spheres, axis-aligned boxes (boards) and oriented boxes. Distances
+are *signed*: negative values are penetration depths, as in paper 000, IV-B ("-1.37 cm, a
+collision").
 
-Segment functions are batched over any leading shape; :func:`link_closest_point` returns the
-point on the link as a :class:`PointOfInterest`, so its Jacobian ``J_o`` (paper 000, Eq. 8)
-comes from :meth:`Chain.forward_and_jacobian`.
+Segment functions are batched over any leading shape; one segment to a box takes the exact
+plain-float path of :mod:`.boxes` (slab clipping; microseconds instead of the candidate
+enumeration's milliseconds). :func:`link_closest_point` returns the point on the link as a
+:class:`PointOfInterest`, so its Jacobian ``J_o`` (paper 000, Eq. 8) comes from
+:meth:`Chain.forward_and_jacobian`.
 """
 from dataclasses import dataclass
 from itertools import product
