@@ -64,6 +64,8 @@ def segment_box_scalar(a: Sequence[float], b: Sequence[float], lower: Sequence[f
     """
     a0, a1, a2 = a
     u = (b[0] - a0, b[1] - a1, b[2] - a2)
+    if u[0] == 0.0 and u[1] == 0.0 and u[2] == 0.0:           # a point
+        return 0.0
     lo, hi = lower, upper
     t_in, t_out = 0.0, 1.0
     cuts = []
