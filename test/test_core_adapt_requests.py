@@ -172,6 +172,15 @@ def test_obstacle_at_the_conditioned_start_is_infeasible(chain, prior):
     assert res.report.n_outer == 1 and res.report.n_inner <= 50   # a short solve only
 
 
+def test_promp_message_is_the_primitive_file_document(prior):
+    from cdmp_ros.core.adapt_requests import promp_message
+    p = prior.copy()
+    p.metadata = {'adapter': {'outcome': 'converged'}}
+    d = json.loads(promp_message(p))
+    assert d == primitive_to_dict(p)          # which validates against the schema
+    assert primitive_from_dict(d).cov_w.tolist() == p.cov_w.tolist()
+
+
 def test_classify():
     def report(conv, status):
         return AdaptationReport(conv, status, 0.0, 0.0, 1, 1, 1, 0.0, [])

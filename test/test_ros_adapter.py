@@ -19,7 +19,7 @@ from cdmp_ros.core.primitive_io import dumps_primitive
 
 pytestmark = pytest.mark.ros
 DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
-STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
+STARTUP = 60.0  # s; interpreter + rclpy start-up on a loaded 2-core machine (a bound)
 PARAMS = ['diagnostics_period:=0.2', 'max_input_rate:=20.0', 'max_json_bytes:=300000',
           'adaptation.n_steps:=20', 'adaptation.alpha:=0.99', 'adaptation.max_outer:=4',
           'adaptation.max_inner:=150']

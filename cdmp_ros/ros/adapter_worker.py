@@ -12,7 +12,6 @@ The worker calls ``notify()`` (a ROS guard condition's ``trigger``) after each r
 executor publishes it without polling. Everything computed here is plain data (JSON text,
 numpy arrays); no ROS call is made from this thread.
 """
-import json
 import threading
 import time
 from dataclasses import dataclass
@@ -21,10 +20,9 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from cdmp_ros.core.adapt_requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
-                                          run_request)
+                                          promp_message, run_request)
 from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError
-from cdmp_ros.core.primitive_io import primitive_to_dict
 
 
 @dataclass
@@ -81,7 +79,7 @@ def solve_job(job: Job, chain) -> JobResult:
         'trigger_stamp_ns': int(job.trigger_stamp_ns), 'outcome': res.outcome,
         'obstacles_used': res.problem.obstacles_used,
         'obstacles_ignored': res.problem.obstacles_ignored, 'notes': res.problem.notes}
-    text = json.dumps(primitive_to_dict(adapted))
+    text = promp_message(adapted)
     nc = job.node_config
     path = ee_path(chain, adapted.mean(np.linspace(0.0, 1.0, nc.path_points)))
     band = None
