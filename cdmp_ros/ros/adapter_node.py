@@ -57,6 +57,10 @@ from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
+#: Diagnostics keys describing the last result (replaced as a whole by the next one).
+RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
+               'kl', 'iterations', 'outer_iterations', 'obstacles_used', 'obstacles_ignored',
+               'latency_ms')
 
 
 def default_urdf_path() -> str:
@@ -365,8 +369,9 @@ class AdapterNode(Node):
                                     'source_sha1': p['sha1']}
         self.pub.publish(String(data=json.dumps(d)))
         self.counts['published'] += 1
+        self._clear_result_values()
         self.reporter.set_state(OK, f'{p["kind"]} retargeted to the goal from {topic}',
-                                outcome='retargeted')
+                                outcome='retargeted', trigger=topic)
         self._publish_dmp_visualization(d)
 
     def _publish_dmp_visualization(self, d=None) -> None:
@@ -398,8 +403,7 @@ class AdapterNode(Node):
             return
         self.counts[f'outcome_{res.outcome}'] += 1
         self.reporter.timing('solve', res.solve_time)
-        self.reporter.values = {k: v for k, v in self.reporter.values.items()
-                                if not k.startswith('p.')}
+        self._clear_result_values()
         kv = result_values(res)
         if res.outcome == 'rejected':
             self._reject(res.error_topic or job.trigger, res.error)
@@ -427,6 +431,11 @@ class AdapterNode(Node):
         self._publish_now()
 
     # -- diagnostics -------------------------------------------------------------------------
+    def _clear_result_values(self) -> None:
+        """Forget the key/values of the previous result (p.*, kl, ...)."""
+        self.reporter.values = {k: v for k, v in self.reporter.values.items()
+                                if not (k.startswith('p.') or k in RESULT_KEYS)}
+
     def _publish_now(self) -> None:
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 **self.worker.summary(), **self.counts)
