@@ -51,6 +51,12 @@ class Pi2Config:
         Draw a new shape noise at every time step (Eq. 32 literally) instead of once per trial
         (the common practice: smoother exploratory trajectories; the projection M_t is applied
         per time step either way).
+    n_reuse : int
+        Importance sampling by re-using the ``n_reuse`` lowest-cost trials of earlier updates
+        (Theodorou et al., JMLR 2010, the PI2 paper's "re-use of the best roll-outs"): every
+        update then averages over the K new trials plus these, whose noise is re-expressed
+        relative to the current parameters and whose costs are kept (the rollouts must be
+        deterministic functions of the parameters). 0 (default) is plain PI2.
     """
 
     n_rollouts: int = 5
@@ -60,11 +66,15 @@ class Pi2Config:
     control_cost: float = 1e-6
     noise_decay: float = 0.98
     noise_per_step: bool = False
+    n_reuse: int = 0
 
     def __post_init__(self):
         if not isinstance(self.n_rollouts, (int, np.integer)) or self.n_rollouts < 2:
             raise ValidationError(f'n_rollouts: expected an integer >= 2, got '
                                   f'{self.n_rollouts!r}')
+        if (isinstance(self.n_reuse, bool) or not isinstance(self.n_reuse, (int, np.integer))
+                or self.n_reuse < 0):
+            raise ValidationError(f'n_reuse: expected an integer >= 0, got {self.n_reuse!r}')
         check_positive('shape_std', self.shape_std, allow_zero=True)
         check_positive('goal_std', self.goal_std, allow_zero=True)
         check_positive('h', self.h)
@@ -121,6 +131,9 @@ class Pi2:
         self.goal_std = self.config.goal_std
         self._trials: Optional[List[Trial]] = None
         self.n_updates = 0
+        # re-used trials (n_reuse > 0): absolute shape parameters (n, N, D, W), absolute
+        # internal goals (n, D) and per-step costs (n, N)
+        self._elite: Optional[tuple] = None
 
     # -- exploration ---------------------------------------------------------------------------
     def ask(self) -> List[Trial]:
@@ -165,6 +178,12 @@ class Pi2:
         R = as_array('costs', costs, (K, N))
         eps = np.stack([t.shape_noise for t in self._trials])   # (K, N, D, W)
         g_eps = np.stack([t.goal_noise for t in self._trials])  # (K, D)
+        g_now = prim.to_internal(prim.goal_y_)
+        if self._elite is not None:  # importance sampling: noise relative to the current mean
+            e_theta, e_goal, e_cost = self._elite
+            eps = np.concatenate([eps, e_theta - prim.weights_[None, None]])
+            g_eps = np.concatenate([g_eps, e_goal - g_now[None]])
+            R = np.concatenate([R, e_cost])
         Meps = self.projected_noise(eps)                         # (K, N, D, W)
         theta = prim.weights_[None, None] + Meps
         control = 0.5 * cfg.control_cost * np.einsum('ktdw,ktdw->kt', theta, theta)
@@ -173,6 +192,10 @@ class Pi2:
         ctrl_to_go = np.flip(np.cumsum(np.flip(control, 1), 1), 1)
         S = S + ctrl_to_go - control
         P = self.probabilities(S)                                # (K, N)
+        if cfg.n_reuse > 0:
+            best = np.argsort(S[:, 0], kind='stable')[:cfg.n_reuse]
+            self._elite = (prim.weights_[None, None] + eps[best], g_now[None] + g_eps[best],
+                           R[best].copy())
         # Eq. (35): dtheta_i = sum_k P_ik M_ik eps_ik
         d_theta_t = np.einsum('kt,ktdw->tdw', P, Meps)
         # Eq. (36): time-weighted average with (N - i) psi_j(t_i)
@@ -190,7 +213,7 @@ class Pi2:
         self.goal_std *= cfg.noise_decay
         self.n_updates += 1
         self._trials = None
-        totals = S[:, 0]
+        totals = S[:K, 0]
         return {'mean_cost': float(np.mean(totals)), 'min_cost': float(np.min(totals)),
                 'd_theta_norm': float(np.linalg.norm(d_theta)),
                 'd_goal_norm': float(np.linalg.norm(d_goal))}

@@ -26,7 +26,7 @@ BALL_RADIUS = 0.012
 class CupSpec:
     """An open box: inner half width [m], wall height [m], wall/bottom thickness [m]."""
 
-    position: tuple = (0.55, -0.25, 0.10)  # centre of the bottom plate's top face
+    position: tuple = (0.62, -0.22, 0.10)  # centre of the bottom plate's top face
     inner_half_width: float = 0.045
     wall_height: float = 0.08
     thickness: float = 0.005
@@ -36,8 +36,8 @@ class CupSpec:
 class BoardSpec:
     """A thin static board (box) given by its centre and half extents [m]."""
 
-    center: tuple = (0.55, 0.0, 0.22)
-    half_extents: tuple = (0.15, 0.005, 0.12)
+    center: tuple = (0.55, 0.0, 0.235)
+    half_extents: tuple = (0.15, 0.005, 0.135)
 
 
 @dataclass
