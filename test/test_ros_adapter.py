@@ -254,6 +254,34 @@ def test_cdmp_goal_point_goes_through_the_ik(graph, prims, chain):
     assert np.linalg.norm(ee(chain, d['dmp']['goal']) - target) <= 1e-3 + 1e-9
 
 
+def _set_param(h, name, value):
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    client = h.node.create_client(SetParameters, '/adapter/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        fut = client.call_async(SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        assert h.wait(fut.done, 10.0)
+        return fut.result().results[0]
+    finally:
+        h.node.destroy_client(client)
+
+
+def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
+    h, proc, _ = graph
+    use(h, prims, 'cdmp')
+    assert _set_param(h, 'retarget_dmp_on_goal', False).successful
+    try:
+        t0 = time.monotonic()
+        n0 = h.n_adapted()
+        h.publish('goal', h.make_joint_state(Q_GOAL - 0.05))
+        assert h.wait_state(lambda m, lv, kv: 'goal left to the streamer' in m, t0, 10.0)
+        assert h.n_adapted() == n0
+    finally:
+        assert _set_param(h, 'retarget_dmp_on_goal', True).successful
+
+
 def test_cdmp_obstacles_are_only_shown(graph, prims):
     from visualization_msgs.msg import Marker, MarkerArray
     h, proc, _ = graph

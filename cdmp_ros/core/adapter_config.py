@@ -100,6 +100,10 @@ class AdapterConfig:
         1e-6, 0.1)
     ik_max_iter: int = _param(200, 'Iterations of the damped least-squares IK per seed.',
                               1, 10000)
+    retarget_dmp_on_goal: bool = _param(
+        True, 'With a DMP / CDMP primitive, publish an adapted primitive with the new goal for '
+        'goal messages too (goal_point always is). False leaves joint goals to the streamer, '
+        'which subscribes goal itself and moves the goal without restarting the movement.')
     diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
                                        0.01, 60.0)
     path_points: int = _param(

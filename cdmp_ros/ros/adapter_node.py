@@ -338,6 +338,11 @@ class AdapterNode(Node):
             if topic == 'constraints':
                 self.reporter.set_state(OK, f'constraint set stored: it applies to ProMPs, the '
                                             f'primitive is a {p["kind"]}')
+            elif topic == 'goal' and not self.config.retarget_dmp_on_goal:
+                self.reporter.set_state(OK, f'goal left to the streamer ({p["kind"]}, '
+                                            f'retarget_dmp_on_goal false)')
+                self._publish_dmp_visualization(
+                    retarget_primitive_dict(p['d'], self.goal_y, self.joint_names))
             else:
                 self._retarget_dmp(topic)
             return
