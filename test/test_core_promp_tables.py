@@ -60,3 +60,19 @@ def test_reproduce_promp_tables_full(tmp_path, repo_root):
         assert rows[f'table2.obstacles_{K}.failed_pct']['ours'] <= 2.0
         assert rows[f'table3.waypoints_{K}.failed_pct']['ours'] <= 1.0
         assert rows[f'table4.walls_{K}.failed_pct']['ours'] <= 1.0
+
+
+def test_confidence_margin_enforces_the_stricter_level(rng):
+    from cdmp_ros.core.adaptation import adapt
+    from cdmp_ros.experiments.exp_promp_tables import parse_margins
+    p = make_problem('table2', 2, rng, relative_step=True, confidence_margin=0.2)
+    assert p.config.confidence_margin == 0.2
+    q, rep = adapt(p.prior, p.constraints, p.config)
+    assert rep.converged and rep.status == 'converged', rep.to_text()
+    for c in rep.constraints:      # approximate violation <= 0.2 (1 - alpha) (within tol)
+        assert 1.0 - c.probability <= 0.2 * (1.0 - c.alpha) * (1.0 + 0.1) + 1e-12
+    assert parse_margins('0.5') == {'table2': 0.5, 'table3': 0.5, 'table4': 0.5}
+    assert parse_margins('table2=0.2') == {'table2': 0.2, 'table3': 1.0, 'table4': 1.0}
+    for bad in ('table5=0.2', '0', '1.5'):
+        with pytest.raises(SystemExit):
+            parse_margins(bad)

@@ -43,8 +43,10 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
-    # EMM aim: violation probability target * (1 - alpha); acceptance stays F >= alpha - tol
-    alpha_aim = 1.0 - config.violation_target * (1.0 - prob.alpha)
+    # stopping level: violation probability confidence_margin * (1 - alpha) (1: alpha itself);
+    # EMM aim: violation_target times that
+    alpha_stop = 1.0 - config.confidence_margin * (1.0 - prob.alpha)
+    alpha_aim = 1.0 - config.violation_target * (1.0 - alpha_stop)
     n_inner = 0
     n_outer = 0
     prev = None
@@ -54,7 +56,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
         ftol = config.lbfgs_ftol
         if config.lbfgs_ftol_first is not None:
             # inexact early inner loops: the multipliers are still far from their values
-            ftol = max(ftol, config.lbfgs_ftol_first * 0.1 ** (n_outer - 1))
+            ftol = max(ftol, config.lbfgs_ftol_first * config.lbfgs_ftol_decay ** (n_outer - 1))
         res = minimize(prob.lagrangian, theta, args=(lam,), jac=True, method='L-BFGS-B',
                        options={'maxiter': int(config.max_inner), 'ftol': ftol,
                                 'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
@@ -65,8 +67,8 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
         if F is None:
             mu, L, _ = prob.unpack(theta)
             F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
-        C = prob.alpha - F
-        feasible = bool(np.all(C <= config.feasibility_tol))
+        C = alpha_stop - F
+        feasible = bool(np.all(C <= config.feasibility_tol * config.confidence_margin))
         value = float(res.fun)
         if feasible:
             status = 'converged'
@@ -87,13 +89,18 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     Sigma = L @ L.T
     adapted = prior.copy(mu, 0.5 * (Sigma + Sigma.T))
     kl = float(prob.kl(mu, L))
-    F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
+    F = prob.cached_values(theta)
+    if F is None:
+        F = prob.constraint_values(mu, L)
     reports = []
     for c, sl in zip(prob.constraints, prob.slices):
         p = float(np.min(F[sl]))
         reports.append(ConstraintReport(c.name, c.kind, c.alpha, p,
                                         p >= c.alpha - config.feasibility_tol,
                                         float(np.max(lam[sl]))))
+    if not feasible and all(r.satisfied for r in reports):
+        # the stricter margin level was not reached, the constraints' own alpha was
+        feasible, status = True, 'converged_without_margin'
     if not feasible and status == 'max_outer_reached':
         status = 'infeasible_or_unconverged'
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,

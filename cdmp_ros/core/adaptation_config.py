@@ -45,6 +45,13 @@ class AdaptationConfig:
         ftol = max(lbfgs_ftol, lbfgs_ftol_first * 10^-(r-1)) (None: lbfgs_ftol throughout).
         While the multipliers are far from their final values a precise inner solve is
         wasted; the final iterations are as precise as before.
+    confidence_margin : float
+        In (0, 1]: the optimiser enforces every constraint at the stricter confidence
+        alpha_m = 1 - confidence_margin (1 - alpha) under the approximation (stopping rule and
+        EMM), while the report still checks alpha. Below 1 it buys a margin against the
+        approximation error (the Gamma approximation underestimates the tails of |x - c|^2,
+        and a trajectory violates if any of its time steps does); 1 is the paper's rule.
+        ``feasibility_tol`` is scaled by it.
     violation_target : float
         Confidence margin of the EMM updates, in (0, 1]: the multipliers aim at the violation
         probability violation_target * (1 - alpha) (the step uses
@@ -81,8 +88,10 @@ class AdaptationConfig:
     lbfgs_ftol: float = 1e-6
     lbfgs_gtol: float = 1e-4
     lbfgs_maxcor: int = 20
-    lbfgs_ftol_first: Optional[float] = 1e-3
+    lbfgs_ftol_first: Optional[float] = 3e-3
+    lbfgs_ftol_decay: float = 0.1
     violation_target: float = 0.6
+    confidence_margin: float = 1.0
     relative_step: bool = True
     max_log_step: float = 3.0
     whiten: bool = True
@@ -102,6 +111,9 @@ class AdaptationConfig:
         check_positive('ut_alpha', self.ut_alpha)
         if self.lbfgs_ftol_first is not None:
             check_positive('lbfgs_ftol_first', self.lbfgs_ftol_first)
+        if not 0.0 < float(self.confidence_margin) <= 1.0:
+            raise ValidationError(f'confidence_margin: expected a value in (0, 1], '
+                                  f'got {self.confidence_margin!r}')
         if not 0.0 < float(self.violation_target) <= 1.0:
             raise ValidationError(f'violation_target: expected a value in (0, 1], '
                                   f'got {self.violation_target!r}')

@@ -52,9 +52,18 @@ def gamma_cdf(E: NDArray, V: NDArray, x: NDArray
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         log_dens = (k - 1.0) * np.log(np.maximum(u, 1e-300)) - u - special.gammaln(k)
         dP_du = np.where(u > 0, np.exp(log_dens), 0.0)
-    # dP/dk: the one scalar derivative without a closed form in scipy (central difference)
+    # dP/dk: the one scalar derivative without a closed form in scipy (central difference),
+    # only where P is not 0 or 1 to working precision (elsewhere |dP/dk| < 1e-30 * O(1))
     h = 1e-5 * (1.0 + k)
-    dP_dk = (special.gammainc(k + h, u) - special.gammainc(k - h, u)) / (2.0 * h)
+    live = (P > 1e-30) & (P < 1.0 - 1e-16)
+    if np.all(live):
+        dP_dk = (special.gammainc(k + h, u) - special.gammainc(k - h, u)) / (2.0 * h)
+    else:
+        dP_dk = np.zeros(np.broadcast(k, u).shape)
+        if np.any(live):
+            kl, ul, hl = (np.broadcast_to(a, live.shape)[live] for a in (k, u, h))
+            dP_dk[live] = (special.gammainc(kl + hl, ul)
+                           - special.gammainc(kl - hl, ul)) / (2.0 * hl)
     dk_dE = 2.0 * E / V
     dk_dV = -k / V
     du_dE = x / V

@@ -40,18 +40,43 @@ def add_arguments(parser):
     parser.add_argument('--emm-step', choices=['paper', 'relative'], default='relative',
                         help="multiplier update: the paper's lambda exp(eta C) or (default) "
                              'the scale-free lambda exp(eta C / (1 - alpha))')
+    parser.add_argument('--confidence-margin', default='table2=0.2',
+                        help='AdaptationConfig.confidence_margin: one value for every table, '
+                             'or table=value pairs (others 1.0), e.g. "table2=0.2"; 1.0 is '
+                             "the paper's stopping rule")
     parser.add_argument('--no-plot', action='store_true', help='skip the PNG figures')
     parser.add_argument('--no-progress', action='store_true', help='hide the progress bar')
 
 
+def parse_margins(text):
+    """'0.5' -> every table 0.5; 'table2=0.5,table4=0.8' -> those tables (others 1.0)."""
+    out = {t: 1.0 for t in DEFAULT_N}
+    for part in str(text).split(','):
+        part = part.strip()
+        if not part:
+            continue
+        if '=' in part:
+            key, value = (v.strip() for v in part.split('=', 1))
+            if key not in out:
+                raise SystemExit(f'--confidence-margin: unknown table {key!r}')
+            out[key] = float(value)
+        else:
+            out = {t: float(part) for t in out}
+    for key, value in out.items():
+        if not 0.0 < value <= 1.0:
+            raise SystemExit(f'--confidence-margin: expected values in (0, 1], got {value} '
+                             f'for {key}')
+    return out
+
+
 def solve_row(table, K, n, rng, prior='scripts', n_samples=10000, progress=None,
-              relative_step=False):
+              relative_step=False, confidence_margin=1.0):
     """Generate and solve ``n`` problems; returns per-problem records."""
     from cdmp_ros.core.adaptation import adapt
     from cdmp_ros.experiments.promp_problems import make_problem, violation_rate
     records = []
     for _ in range(n):
-        prob = make_problem(table, K, rng, prior, relative_step)
+        prob = make_problem(table, K, rng, prior, relative_step, confidence_margin)
         t0 = time.perf_counter()
         adapted, report = adapt(prob.prior, prob.constraints, prob.config)
         dt = time.perf_counter() - t0
@@ -139,6 +164,7 @@ def run(args):
             raise SystemExit(f'--tables: unknown table {t!r} (expected table2, table3, table4)')
     os.makedirs(args.out, exist_ok=True)
     rng = np.random.default_rng(args.seed)
+    margins = parse_margins(args.confidence_margin)
     total = sum(3 * (args.n_problems or DEFAULT_N[t]) for t in tables)
     rows, figures = [], []
     with tqdm(total=total, desc='promp-tables', disable=args.no_progress) as bar:
@@ -147,13 +173,14 @@ def run(args):
             for K in (1, 2, 3):
                 bar.set_postfix_str(f'{table} K={K}')
                 recs = solve_row(table, K, n, rng, args.prior, args.n_samples, bar,
-                                 args.emm_step == 'relative')
+                                 args.emm_step == 'relative', margins[table])
                 rows += summarise(table, K, recs)
                 if not args.no_plot and K == len(PAPER[table]):
                     figures.append(os.path.basename(plot_examples(args.out, table, recs)))
     notes = [f'Problems per the protocol (../shared/promp_benchmark_protocol.md), prior '
              f'"{args.prior}", seed {args.seed}, {args.n_samples} samples per problem, '
-             f'EMM step "{args.emm_step}".',
+             f'EMM step "{args.emm_step}", confidence margins '
+             + ', '.join(f'{t} {margins[t]:g}' for t in tables) + '.',
              'Violation and KL average over the problems that did not fail (> 30 % '
              'violations); KL is divided by the number of basis functions per dimension.',
              'Solve times: wall clock of adapt() on this machine (shared, 2 cores).']

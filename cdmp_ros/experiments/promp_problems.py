@@ -43,9 +43,11 @@ def original_promp(n_basis: int, rng: np.random.Generator, prior: str = 'scripts
 
 
 def make_problem(table: str, K: int, rng: np.random.Generator,
-                 prior: str = 'scripts', relative_step: bool = False) -> TableProblem:
+                 prior: str = 'scripts', relative_step: bool = False,
+                 confidence_margin: float = 1.0) -> TableProblem:
     """One random problem of ``table`` ('table2', 'table3', 'table4') with K constraints,
-    with the authors' optimiser settings (``relative_step=False``: the paper's EMM step)."""
+    with the authors' optimiser settings (``relative_step=False``: the paper's EMM step;
+    ``confidence_margin``: see AdaptationConfig)."""
     n_steps, n_basis, lambda0 = SETTINGS[table]
     p0, start, end = original_promp(n_basis, rng, prior)
     cons: List = []
@@ -84,7 +86,8 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
     else:
         raise ValueError(f'table: expected table2, table3 or table4, got {table!r}')
     cfg = AdaptationConfig(n_steps=n_steps, lambda0=lambda0, eta=1.0, max_outer=10,
-                           max_inner=500, objective_tol=1e-2, relative_step=relative_step)
+                           max_inner=500, objective_tol=1e-2, relative_step=relative_step,
+                           confidence_margin=confidence_margin)
     return TableProblem(table, p0, cons, cfg, start, end)
 
 
