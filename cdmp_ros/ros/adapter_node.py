@@ -6,14 +6,17 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 (JSON, latched), ``visualization`` (MarkerArray, latched) and ``diagnostics``.
 
 - DMP / CDMP primitives: a goal (``goal``, or ``goal_point`` through the IK) gives an adapted
-  primitive with the new goal and the same weights, published at once. Obstacles are handled
-  by the streamer's coupling terms; the adapter only shows them on ``visualization``.
+  primitive with the new goal and the same weights, published at once
+  (``retarget_dmp_on_goal`` false: only for ``goal_point``). Obstacles are handled by the
+  streamer's coupling terms; the adapter only shows them on ``visualization``.
 - ProMPs: every change of the primitive, the obstacles, the goal or the constraint set submits
   an adaptation request (:mod:`cdmp_ros.core.adapt_requests`) to the solver thread
   (:mod:`cdmp_ros.ros.adapter_worker`: latest request wins, stale converged results are still
-  published). Only converged adaptations are published; an infeasible or unconverged solve is
-  reported on ``diagnostics`` (WARN / ERROR with the satisfaction probabilities) and the last
-  good primitive stays latched.
+  published; results for a primitive replaced meanwhile are dropped). Only converged
+  adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
+  ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
+  latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
+  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms.
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 
 Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
