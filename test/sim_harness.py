@@ -206,7 +206,7 @@ class SimHarness:
             self.publish('joint_reference', self.reference(pos, vel))
             time.sleep(max(0.0, t0 + (k + 1) / rate - time.monotonic()))
 
-    def call(self, service, timeout=10.0):
+    def call(self, service, timeout=30.0):
         from std_srvs.srv import Trigger
         client = self.clients[service]
         assert client.wait_for_service(timeout_sec=timeout), f'no service {service}'

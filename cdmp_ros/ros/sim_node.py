@@ -43,7 +43,6 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.streaming import RateLimiter
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
@@ -68,6 +67,32 @@ REASONS = (('flooding', ('flooding',)), ('stamp', ('in the future', 'in the past
            ('frame', ('frame_id',)), ('marker_scale', ('scale.',)),
            ('marker_type', ('.type:',)), ('marker_action', ('.action:', 'DELETE of unknown')),
            ('too_many', ('obstacle limit',)), ('marker_pose', ('pose.',)))
+
+
+class RateLimiter:
+    """Token bucket: at most ``rate`` events per second on average, bursts of ``burst``.
+
+    The semantics of :class:`cdmp_ros.core.streaming.RateLimiter`, repeated here because
+    importing that module pulls in scipy.signal and scipy.stats (about 1.5 s of start-up CPU
+    that the sim does not otherwise need).
+    """
+
+    def __init__(self, rate: float, burst=None):
+        self.rate = float(rate)
+        self.burst = float(burst if burst is not None else max(10.0, 0.1 * rate))
+        self.tokens = self.burst
+        self.last = None
+        self.dropped = 0
+
+    def allow(self, now: float) -> bool:
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        self.dropped += 1
+        return False
 
 
 def reason_category(reason: str) -> str:
