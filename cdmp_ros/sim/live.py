@@ -176,6 +176,14 @@ class LiveSim:
             self.initial_positions = self.check_positions(
                 'initial_positions', home if config.initial_positions is None
                 else config.initial_positions)
+            r0 = self.robots[0]
+            offset = np.asarray(r0.spec.ee_offset, dtype=np.float64)
+            self._ee_offset = offset if np.any(offset != 0.0) else None
+            self._base_identity = self.base_frame == 'world' or (
+                np.allclose(r0.base_position, 0.0)
+                and np.allclose(r0.base_orientation, [0.0, 0.0, 0.0, 1.0]))
+            self._base_inv = pybullet.invertTransform(r0.base_position.tolist(),
+                                                      r0.base_orientation.tolist())
             self.n_steps = 0
             self.stats = SimStats()
             self._contact_keys: Set[Tuple[str, str, str]] = set()
@@ -287,14 +295,14 @@ class LiveSim:
         """Position ``(3,)`` [m] and quaternion ``(4,)`` (x, y, z, w) of the end effector of
         the first robot, in the base frame (its ``ee_link`` orientation at the tool point)."""
         r = self.robots[0]
-        pos = r.ee_position()
-        _, orn = r.link_pose(r.ee_link)
-        if self.base_frame == 'world' or (np.allclose(r.base_position, 0.0)
-                                          and np.allclose(r.base_orientation, [0, 0, 0, 1])):
+        pos, orn = r.link_pose(r.ee_link)
+        if self._ee_offset is not None:  # the tool point: ee_offset in the ee_link frame
+            R = np.array(pybullet.getMatrixFromQuaternion(orn.tolist())).reshape(3, 3)
+            pos = pos + R @ self._ee_offset
+        if self._base_identity:
             return pos, orn
-        inv_p, inv_q = pybullet.invertTransform(r.base_position.tolist(),
-                                                r.base_orientation.tolist())
-        p, q = pybullet.multiplyTransforms(inv_p, inv_q, pos.tolist(), orn.tolist())
+        p, q = pybullet.multiplyTransforms(self._base_inv[0], self._base_inv[1], pos.tolist(),
+                                           orn.tolist())
         return np.array(p), np.array(q)
 
     # -- obstacles --------------------------------------------------------------------------
