@@ -405,6 +405,10 @@ def test_runtime_parameter_changes_are_validated(graph):
     assert not r.successful and 'expected 7 values' in r.reason
     r = h.set_parameter('initial_positions', [0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0])
     assert not r.successful and 'initial_positions[3] (panda_joint4)' in r.reason
+    for value in (False, True):  # switching the pacing keeps the node publishing
+        r = h.set_parameter('real_time', value)
+        assert r.successful, r.reason
+        alive(h, proc)
     for mode in ('computed_torque', 'exogenous', 'position'):
         r = h.set_parameter('control', mode)
         assert r.successful, r.reason

@@ -3,14 +3,31 @@ configurations (the planar arm as fast as possible, publishing /clock).
 
 Domain 131, as test_ros_sim.py, whose module-scoped sim has ended before this module runs.
 """
+import os
+
 import numpy as np
 import pytest
+import yaml
 
 from sim_harness import SimHarness, start_sim, stop_process
 
 pytestmark = pytest.mark.ros
 DOMAIN = 131
 STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
+
+
+def test_config_file_mirrors_every_parameter(repo_root):
+    from cdmp_ros.ros.params import parameter_fields
+    from cdmp_ros.sim.node_config import SimConfig
+    with open(os.path.join(repo_root, 'config', 'sim.yaml')) as f:
+        params = yaml.safe_load(f)['/**']['ros__parameters']
+    fields = {f.name: default for f, _, default in parameter_fields(SimConfig)}
+    assert set(params) == set(fields) | {'initial_positions'}
+    for name, default in fields.items():  # the file states the defaults
+        assert params[name] == default, name
+    assert np.allclose(params['initial_positions'], [0.0, -np.pi / 4, 0.0, -3 * np.pi / 4,
+                                                     0.0, np.pi / 2, np.pi / 4])
+    SimConfig(**{k: v for k, v in params.items()})  # and they are valid
 
 
 STARTUP_CASES = [('control:=velocity', 'control: expected one of'),
