@@ -16,7 +16,10 @@ Options: ``--param name:=value`` (repeatable) is passed to the streamer (e.g.
 ``realtime_priority:=50``, ``tick_thread:=false``); ``--listener-priority P`` runs the
 measuring subscriber under SCHED_FIFO priority P (set before ``rclpy.init`` so the DDS threads
 inherit it, as a controller's would); ``--configs 1000,1000o`` selects configurations (``o`` =
-with a sphere obstacle).
+with a sphere obstacle); ``--graph sim,adapter`` starts the sim node (pybullet, 1 kHz physics,
+tracking ``joint_reference``, publishing ``joint_states``) and the adapter node (idle: it
+receives the primitive and the obstacles) next to the streamer, with their config files, and
+the measurement starts once ``joint_states`` flow.
 
     .venv/bin/python benchmarks/bench_streamer.py [--seconds 8] [--domain 165]
 """
@@ -65,7 +68,21 @@ def realtime_listener(priority):
             print(f'listener: {st.message}', file=sys.stderr)
 
 
-def listen(seconds, rate, obstacle, warmup, priority=0):
+def wait_joint_states(node, ex, n=20, timeout=90.0):
+    """Spin until ``n`` joint_states arrived (the sim is up); False on timeout."""
+    from sensor_msgs.msg import JointState
+    from cdmp_ros.ros import qos_profiles
+    got = []
+    sub = node.create_subscription(JointState, 'joint_states', lambda m: got.append(1),
+                                   qos_profiles.SENSOR)
+    end = time.monotonic() + timeout
+    while len(got) < n and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    node.destroy_subscription(sub)
+    return len(got) >= n
+
+
+def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
     """Listener process: publish the inputs, record joint_reference, print JSON stats."""
     realtime_listener(priority)
     import gc
@@ -111,6 +128,8 @@ def listen(seconds, rate, obstacle, warmup, priority=0):
         m.header.frame_id = 'panda_link0'
         m.pose.position.x, m.pose.position.y, m.pose.position.z = 0.45, 0.1, 0.45
         m.scale.x = m.scale.y = m.scale.z = 0.1
+    if graph:
+        assert wait_joint_states(node, ex), 'no joint_states from the sim'
     end = time.monotonic() + 60.0
     while len(rec) < 50 and time.monotonic() < end:  # the streamer is up and streaming
         ex.spin_once(timeout_sec=0.05)
@@ -148,7 +167,7 @@ def listen(seconds, rate, obstacle, warmup, priority=0):
     rclpy.try_shutdown()
 
 
-def listen_latency(reps, priority=0):
+def listen_latency(reps, priority=0, graph=False):
     """Listener: obstacle message -> first joint_reference that reflects it.
 
     The open-loop reference converges to the goal and rests; a sphere is then published
@@ -210,6 +229,8 @@ def listen_latency(reps, priority=0):
     def rested():
         return 'yd' in last and np.abs(last['yd']).max() < 1e-9
 
+    if graph:
+        assert wait_joint_states(node, ex), 'no joint_states from the sim'
     assert spin_until(lambda: obs_pub.get_subscription_count() > 0 and 'y' in last, 60.0)
     print(json.dumps({'event': 'streaming'}), flush=True)
     lat = []
@@ -251,11 +272,47 @@ def start_streamer(rate, domain, params):
                             stderr=subprocess.DEVNULL)
 
 
-def run_latency(rate, reps, domain, params=(), priority=0):
+GRAPH_NODES = {'sim': 'sim.yaml', 'adapter': 'adapter.yaml'}
+
+
+def start_graph(graph, domain):
+    """The sim / adapter nodes as processes, with their config files."""
+    procs = []
+    for name in graph:
+        procs.append(subprocess.Popen(
+            [sys.executable, '-m', f'cdmp_ros.nodes.{name}', '--ros-args', '--params-file',
+             os.path.join(REPO, 'config', GRAPH_NODES[name])],
+            env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    return procs
+
+
+def cpu_percent(procs, c0, t0):
+    """CPU [% of one core] of each process since the (cpu_times, time) of c0/t0."""
+    out = []
+    for p, c in zip(procs, c0):
+        c1 = p.cpu_times()
+        out.append((c1.user + c1.system - c.user - c.system) / (time.monotonic() - t0) * 100)
+    return out
+
+
+def stop_all(procs):
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(2)
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def run_latency(rate, reps, domain, params=(), priority=0, graph=()):
+    others = start_graph(graph, domain)
     streamer = start_streamer(rate, domain, params)
     listener = subprocess.Popen(
         [sys.executable, __file__, '--listen-latency', str(reps),
-         '--listener-priority', str(priority)],
+         '--listener-priority', str(priority)] + (['--graph', ','.join(graph)] if graph else []),
         env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
     try:
         first = listener.stdout.readline()
@@ -264,46 +321,35 @@ def run_latency(rate, reps, domain, params=(), priority=0):
         listener.wait(20)
         return out
     finally:
-        for p in (listener, streamer):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_all([listener, streamer] + others)
 
 
-def run_config(rate, obstacle, seconds, domain, measure_cpu, params=(), priority=0):
+def run_config(rate, obstacle, seconds, domain, measure_cpu, params=(), priority=0, graph=()):
     import psutil
+    others = start_graph(graph, domain)
     streamer = start_streamer(rate, domain, params)
     listener = subprocess.Popen(
         [sys.executable, __file__, '--listen', '--rate', str(rate), '--seconds', str(seconds),
          '--listener-priority', str(priority)]
-        + (['--obstacle'] if obstacle else []),
+        + (['--obstacle'] if obstacle else []) + (['--graph', ','.join(graph)] if graph else []),
         env=env(domain), cwd=REPO, stdout=subprocess.PIPE, text=True)
     try:
         first = listener.stdout.readline()
         assert 'streaming' in first, f'listener: {first!r}'
         time.sleep(1.0)  # same warm-up as the listener
-        proc = psutil.Process(streamer.pid)
-        c0, t0 = proc.cpu_times(), time.monotonic()
+        procs = [psutil.Process(p.pid) for p in [streamer] + others]
+        c0, t0 = [p.cpu_times() for p in procs], time.monotonic()
         line = listener.stdout.readline()
-        c1, t1 = proc.cpu_times(), time.monotonic()
+        cpus = cpu_percent(procs, c0, t0)
         stats = json.loads(line)
-        cpu = (c1.user + c1.system - c0.user - c0.system) / (t1 - t0) * 100.0
-        stats['cpu_percent'] = cpu if measure_cpu else None
+        stats['cpu_percent'] = cpus[0] if measure_cpu else None
+        stats['graph_cpu'] = dict(zip(graph, cpus[1:]))
+        for name, p in zip(graph, others):
+            assert p.poll() is None, f'{name} died'
         listener.wait(20)
         return stats
     finally:
-        for p in (listener, streamer):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_all([listener, streamer] + others)
 
 
 def main():
@@ -323,23 +369,30 @@ def main():
     ap.add_argument('--configs', default='1000,1000o,500,500o',
                     help='rates to measure, comma-separated; suffix o = with a sphere obstacle')
     ap.add_argument('--latency-rate', type=float, default=500.0)
+    ap.add_argument('--graph', default='',
+                    help='nodes started next to the streamer: sim, adapter (comma-separated)')
     args = ap.parse_args()
+    graph = tuple(filter(None, args.graph.split(',')))
+    for name in graph:
+        if name not in GRAPH_NODES:
+            ap.error(f'--graph: expected names from {sorted(GRAPH_NODES)}, got {name!r}')
     if args.listen:
         return listen(args.seconds, args.rate, args.obstacle, warmup=1.0,
-                      priority=args.listener_priority)
+                      priority=args.listener_priority, graph=bool(graph))
     if args.listen_latency:
-        return listen_latency(args.listen_latency, args.listener_priority)
+        return listen_latency(args.listen_latency, args.listener_priority, bool(graph))
     rows = []
     load0 = os.getloadavg()[0]
     for c in filter(None, args.configs.split(',')):
         rate, obstacle = float(c.rstrip('o')), c.endswith('o')
         s = run_config(rate, obstacle, args.seconds, args.domain, measure_cpu=True,
-                       params=args.param, priority=args.listener_priority)
+                       params=args.param, priority=args.listener_priority, graph=graph)
         rows.append((rate, obstacle, s))
     print(f'Streamer timing, {args.seconds:g} s per configuration, separate subscriber '
           f'process, load average {load0:.2f} -> {os.getloadavg()[0]:.2f} on '
           f'{os.cpu_count()} cores; streamer parameters {args.param or "defaults"}; '
-          f'listener SCHED_FIFO {args.listener_priority or "off"}\n')
+          f'listener SCHED_FIFO {args.listener_priority or "off"}; alongside: '
+          f'{", ".join(graph) or "nothing (streamer and listener only)"}\n')
     print('| rate [Hz] | obstacle (coupling every tick) | received | missing | on time (<= 1 '
           'period) | delay p50 [ms] | delay p99 [ms] | measured rate [Hz] | streamer CPU '
           '[% of one core] | streamer wake-up late p99 / max [ms] | tick p99 / max [ms] |')
@@ -352,6 +405,11 @@ def main():
               f'{s["missing"]} | {100 * s["on_time_fraction"]:.2f} % | '
               f'{s["delay_ms_p50"]:.3f} | {s["delay_ms_p99"]:.3f} | {s["rate_hz"]:.1f} | '
               f'{s["cpu_percent"]:.1f} | {wake} | {tick} |')
+    for rate, obstacle, s in rows:
+        if s.get('graph_cpu'):
+            what = ' with the sphere' if obstacle else ''
+            cpus = ', '.join(f'{k} {v:.1f} %' for k, v in s['graph_cpu'].items())
+            print(f'\nCPU of the other nodes at {rate:g} Hz{what}: {cpus}')
     if args.latency_reps:
         print(f'\nObstacle message published -> first joint_reference that reflects it (across '
               f'processes, {args.latency_rate:g} Hz, reference at rest, sphere 0.1 m from the '
@@ -360,7 +418,7 @@ def main():
         print('| repetitions | p50 [ms] | p99 [ms] | max [ms] | inside p50 / p99 / max [ms] |')
         print('|---|---|---|---|---|')
         lat = run_latency(args.latency_rate, args.latency_reps, args.domain, args.param,
-                          args.listener_priority)
+                          args.listener_priority, graph)
         fmt = (lambda v: 'n/a' if v is None else f'{v:.2f}')
         ins = lat.get('inside', {})
         inside = ' / '.join(ins.get(f'obstacle_latency_ms_{k}', 'n/a')

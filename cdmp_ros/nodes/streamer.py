@@ -4,11 +4,15 @@ Run: ``ros2 run cdmp_ros streamer --ros-args --params-file config/streamer.yaml`
 ``python -m cdmp_ros.nodes.streamer --ros-args -p rate:=1000.0``. The logic is in
 :mod:`cdmp_ros.core.streaming`, the ROS glue in :mod:`cdmp_ros.ros.streamer_node`.
 
-The node is spun by rclpy's EventsExecutor (measured on this machine: a 1 kHz timer costs
+The references are published by the node's own tick thread (sleeping to absolute deadlines,
+optionally under SCHED_FIFO: ``-p realtime_priority:=50``, see
+:mod:`cdmp_ros.ros.streamer_node`). The subscriptions, the diagnostics timer and the parameter
+services are spun by rclpy's EventsExecutor (measured on this machine: a 1 kHz timer costs
 about 9 % of a core instead of about 45 % with the SingleThreadedExecutor, whose wait-set
-rebuild per callback dominates), in the graceful loop of
-:func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag; ``EventsExecutor.spin()``
-does not return on SIGINT in this rclpy).
+rebuild per callback dominates; it also runs the tick with ``tick_thread:=false``), in the
+graceful loop of :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag;
+``EventsExecutor.spin()`` does not return on SIGINT in this rclpy); the node's ``close()``
+stops the tick thread before the node is destroyed.
 """
 import sys
 

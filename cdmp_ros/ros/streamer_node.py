@@ -13,7 +13,9 @@ optionally under SCHED_FIFO (``realtime_priority``) and pinned (``tick_cpu``); r
 publishing from any thread. The executor thread only runs the subscriptions, the diagnostics
 timer and the parameter services, so a slow callback delays a tick by the GIL and one short
 lock at most, not by a whole callback queue. One lock (``_lock``) serialises the tick and the
-callbacks that change the streamer's state. With ``obstacle_wakeup`` an obstacle message wakes
+callbacks that change the streamer's state (diagnostics are built and published outside it).
+Everything allocated at start-up is frozen out of the garbage collector (``gc.freeze``), so a
+full collection does not stall the tick. With ``obstacle_wakeup`` an obstacle message wakes
 the tick thread: the next slot is integrated with the new obstacle set and published at once
 with its own scheduled stamp (at most one period early); the schedule and the stamps are those
 of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
@@ -24,7 +26,6 @@ import os
 import sys
 import threading
 import time
-from typing import Optional, Tuple
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -49,6 +50,7 @@ from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import (DeadlineSleeper, configure_thread, process_thread_ids,
                                    set_threads_fifo)
+from cdmp_ros.ros.streamer_worker import PrimitiveWorker
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: Obstacle-to-reference latencies kept for the diagnostics percentiles (a ring).
@@ -63,54 +65,6 @@ def default_urdf_path() -> str:
     """The Panda URDF shipped with pybullet_data."""
     import pybullet_data
     return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
-
-
-class _PrimitiveWorker(threading.Thread):
-    """Prepares the latest primitive message off the executor thread."""
-
-    def __init__(self, prepare):
-        super().__init__(name='primitive-worker', daemon=True)
-        self._prepare = prepare
-        self._cv = threading.Condition()
-        self._pending: Optional[Tuple[str, str]] = None
-        self._results = []
-        self._stopping = False
-
-    def submit(self, topic: str, text: str) -> None:
-        with self._cv:
-            self._pending = (topic, text)  # coalesce: only the newest counts
-            self._cv.notify()
-
-    def take(self):
-        """Results since the last call: list of (topic, prepared or None, error or None)."""
-        if not self._results:
-            return ()
-        with self._cv:
-            out, self._results = self._results, []
-        return out
-
-    def stop(self) -> None:
-        with self._cv:
-            self._stopping = True
-            self._cv.notify()
-
-    def run(self) -> None:
-        while True:
-            with self._cv:
-                while self._pending is None and not self._stopping:
-                    self._cv.wait()
-                if self._stopping:
-                    return
-                topic, text = self._pending
-                self._pending = None
-            try:
-                res = (topic, self._prepare(topic, text), None)
-            except CdmpError as exc:
-                res = (topic, None, str(exc))
-            except Exception as exc:  # noqa: BLE001 -- a worker must survive any payload
-                res = (topic, None, f'{topic}: cannot be prepared: {exc!r}')
-            with self._cv:
-                self._results.append(res)
 
 
 class StreamerNode(Node):
@@ -151,10 +105,10 @@ class StreamerNode(Node):
         self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
                                  qos_profiles.COMMAND)
 
-        self.worker = _PrimitiveWorker(self._prepare)
+        self.worker = PrimitiveWorker(self._prepare)
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
-                       'coupling_rejected': 0, 'coupled': 0}
+                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0}
         self.active_text = None
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
@@ -163,8 +117,17 @@ class StreamerNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._dt = cfg.dt
         self._lock = threading.RLock()  # the tick reports rejections while holding it
+        # the reporter's own lock: building and publishing diagnostics (milliseconds on a
+        # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
+        # writes without a lock
+        self._report_lock = threading.Lock()
         self._tick_errors = 0
         self._t0 = time.monotonic()
+        # stamps: slot j is stamped stamp0 + j / rate exactly (ROS clock = steady clock +
+        # an offset measured at start and re-measured with every diagnostics message)
+        self._dt_ns = 1e9 / cfg.rate
+        self._stamp0 = self._clock_offset_ns() + round(self._t0 * 1e9)
+        self._pub_slot0 = 0
         self._k = 0
         self.timer = None
         self.tick_thread = None
@@ -178,9 +141,12 @@ class StreamerNode(Node):
         gc.freeze()
         if cfg.tick_thread:
             sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_PERIODS * cfg.dt))
+            self._configured = threading.Event()
             self.tick_thread = threading.Thread(target=self._tick_loop, name='streamer-tick',
                                                 daemon=True)
             self.tick_thread.start()
+            self._configured.wait(5.0)
+            self._report_scheduling(cfg)
         else:
             self.timer = self.create_timer(cfg.dt, self._locked_tick, clock=self._steady)
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
@@ -262,7 +228,7 @@ class StreamerNode(Node):
         return True
 
     def _reject(self, topic: str, reason: str) -> None:
-        with self._lock:
+        with self._report_lock:
             self.reporter.reject(topic, reason)
             self.reporter.publish_if_due(self.get_clock().now().to_msg())
 
@@ -356,18 +322,12 @@ class StreamerNode(Node):
     def _tick_loop(self) -> None:
         """The tick thread: sleep to the next slot's deadline (or an obstacle wake-up), tick."""
         cfg = self.config
-        st = self.realtime_status = configure_thread(
-            cfg.realtime_priority, (cfg.tick_cpu,) if cfg.tick_cpu >= 0 else ())
-        if not st.ok:
-            self.get_logger().warning(f'tick thread: {st.message}')
-        others = ''
+        st = configure_thread(cfg.realtime_priority,
+                              (cfg.tick_cpu,) if cfg.tick_cpu >= 0 else ())
         if st.realtime:
             self._sleeper.spin = 0.0  # never spin under SCHED_FIFO
-            if cfg.realtime_threads == 'all':
-                others = self._lift_other_threads(st.priority)
-        self.get_logger().info(
-            f'tick thread: {"SCHED_FIFO priority %d" % st.priority if st.realtime else "normal"}'
-            f' scheduling, CPUs {list(st.cpus)}, spin {self._sleeper.spin * 1e3:g} ms{others}')
+        self.realtime_status = st
+        self._configured.set()
         dt, t0, sleeper, lock, stopping = self._dt, self._t0, self._sleeper, self._lock, \
             self._stopping
         clock = time.monotonic
@@ -383,6 +343,8 @@ class StreamerNode(Node):
                 with lock:
                     if not woken:  # deadline -> tick running (sleep, GIL and lock)
                         timing('tick_wake_late', clock() - deadline)
+                    elif clock() < deadline:  # the next slot goes out now, stamped on the grid
+                        self.counts['early_ticks'] += 1
                     self._tick()
             except Exception as exc:  # noqa: BLE001 -- the stream must go on
                 self._tick_errors += 1
@@ -391,9 +353,27 @@ class StreamerNode(Node):
                     self.get_logger().error(f'tick failed ({self._tick_errors} so far): '
                                             f'{exc!r}')
 
+    def _report_scheduling(self, cfg: StreamerConfig) -> None:
+        """Log the tick thread's scheduling; lift the other threads (``realtime_threads``).
+
+        Runs in the constructor's thread (the executor thread), so threads it creates later
+        (executor, middleware) inherit its policy."""
+        st = self.realtime_status
+        if st is None:
+            self.get_logger().error('tick thread: did not start within 5 s')
+            return
+        if not st.ok:
+            self.get_logger().warning(f'tick thread: {st.message}')
+        others = ''
+        if st.realtime and cfg.realtime_threads == 'all':
+            others = self._lift_other_threads(st.priority)
+        self.get_logger().info(
+            f'tick thread: {"SCHED_FIFO priority %d" % st.priority if st.realtime else "normal"}'
+            f' scheduling, CPUs {list(st.cpus)}, spin {self._sleeper.spin * 1e3:g} ms{others}')
+
     def _lift_other_threads(self, priority: int) -> str:
         """SCHED_FIFO for the threads the tick depends on (see ``realtime_threads``)."""
-        own, worker = threading.get_native_id(), self.worker.native_id
+        own, worker = self.tick_thread.native_id, self.worker.native_id
         others = [t for t in process_thread_ids() if t not in (own, worker)]
         n, problems = set_threads_fifo(max(1, priority - 1), others)
         _, worker_problems = set_threads_fifo(1, [worker])
@@ -430,8 +410,7 @@ class StreamerNode(Node):
         st = self.streamer
         if st.state is not StreamState.WAITING:
             # every integrated slot is published with its own stamp (a late tick catches up)
-            self._pub_base = (self.get_clock().now().nanoseconds
-                              - int((now - (self._t0 + (k - steps + 1) * dt)) * 1e9))
+            self._pub_slot0 = k - steps + 1
             flags = st.advance(steps, now, self._publish_step)
         else:
             flags = st.advance(steps, now)
@@ -448,7 +427,8 @@ class StreamerNode(Node):
 
     def _publish_step(self, i: int) -> None:
         st = self.streamer
-        self.pub.publish(self.writer.fill(self._pub_base + int(i * self._dt * 1e9), st.y, st.yd))
+        stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
+        self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
         self.counts['published'] += 1
         if self._latency_pending_ns:
             lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
@@ -456,7 +436,26 @@ class StreamerNode(Node):
             self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
             self._latency_n += 1
 
+    def _clock_offset_ns(self) -> int:
+        """ROS clock - steady clock [ns], from the closest of three back-to-back readings."""
+        best = None
+        for _ in range(3):
+            a = time.monotonic_ns()
+            ros = self.get_clock().now().nanoseconds
+            b = time.monotonic_ns()
+            if best is None or b - a < best[0]:
+                best = (b - a, ros - (a + b) // 2)
+        return best[1]
+
+    def _resync_stamps(self) -> None:
+        """Follow a step of the ROS clock (NTP step, sim time): re-anchor when the stamp
+        grid is more than 1 ms off; otherwise the grid stays exact."""
+        stamp0 = self._clock_offset_ns() + round(self._t0 * 1e9)
+        if abs(stamp0 - self._stamp0) > 1_000_000:
+            self._stamp0 = stamp0
+
     def _publish_diagnostics(self) -> None:
+        self._resync_stamps()
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())
@@ -471,7 +470,7 @@ class StreamerNode(Node):
         if self.realtime_status is not None:
             extra['tick_scheduling'] = (f'SCHED_FIFO {self.realtime_status.priority}'
                                         if self.realtime_status.realtime else 'normal')
-        with self._lock:  # the reporter is shared with the tick (primitive rejections)
+        with self._report_lock:
             self.reporter.set_state(
                 level, f'{state.value}: {reason}', state=state.value,
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
