@@ -420,11 +420,15 @@ def test_runtime_parameter_changes_are_validated(graph):
     alive(h, proc)
 
 
-def test_reason_categories():
-    from cdmp_ros.ros.sim_node import reason_category
+def test_reason_categories_and_rate_limiter():
+    from cdmp_ros.ros.sim_support import RateLimiter, reason_category
     assert reason_category("joint_reference.position of 'a': expected a finite value, got nan"
                            ) == 'non_finite'
     assert reason_category('x.header.stamp: stamp 3.0 s in the future') == 'stamp'
     assert reason_category('obstacles.markers[0].scale.x: expected at most 10 m') == \
         'marker_scale'
     assert reason_category('something new') == 'other'
+    lim = RateLimiter(100.0)  # burst 10
+    assert sum(lim.allow(0.0) for _ in range(50)) == 10 and lim.dropped == 40
+    assert sum(lim.allow(0.05) for _ in range(50)) == 5  # 0.05 s refills 5 tokens
+    assert sum(lim.allow(t * 0.01) for t in range(6, 106)) >= 99  # 100/s passes

@@ -61,7 +61,8 @@ def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
 def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
     log = tmp_path / 'planar.log'
     proc = start_sim(DOMAIN, ['robot:=planar4', 'real_time:=false', 'publish_clock:=true',
-                              'control:=computed_torque', 'diagnostics_period:=0.2'],
+                              'control:=computed_torque', 'diagnostics_period:=0.2',
+                              'max_stamp_age:=60.0'],  # this process may receive /clock late
                      log_path=str(log))
     h = SimHarness(DOMAIN, clock=True)
     try:
@@ -88,9 +89,9 @@ def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
         c = h.clocks[-1][1]
         ref.header.stamp.sec, ref.header.stamp.nanosec = divmod(c, 1_000_000_000)
         h.publish('joint_reference', ref)
-        assert h.wait(lambda: np.abs(h.q() - goal).max() < 1e-3, 5.0), h.q()
+        assert h.wait(lambda: np.abs(h.q() - goal).max() < 1e-3, 15.0), (h.q(), h.last_state())
         _, kv = h.last_state()
-        assert kv.get('rejected_total', '0') == '0'
+        assert kv.get('rejected_total', '0') == '0', kv
     finally:
         h.close()
         code = stop_process(proc)

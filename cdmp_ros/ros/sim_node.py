@@ -7,12 +7,12 @@ Topics (relative names, remappable):
   ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos_profiles.COMMAND`);
 - publishes ``joint_states`` (names, position, velocity, effort) and ``ee_pose``
   (geometry_msgs/PoseStamped of the tool centre point, in ``base_frame``) at
-  ``publish_rate`` of simulated time (QoS :data:`STATE_QOS`: reliable, volatile, keep last
-  50, so the burst of one late tick (up to ``max_catch_up * publish_rate`` messages) reaches
-  a reliable subscriber whole; matches reliable and best-effort subscribers),
-  ``diagnostics`` (COMMAND) and, with ``publish_clock``,
-  ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects; reliable, keep
-  last 1).
+  ``publish_rate`` of simulated time (QoS :data:`~cdmp_ros.ros.sim_support.STATE_QOS`:
+  reliable, volatile, keep last 50, so the burst of one late tick, up to
+  ``max_catch_up * publish_rate`` messages, reaches a reliable subscriber whole; matches
+  reliable and best-effort subscribers), ``diagnostics`` (COMMAND) and, with
+  ``publish_clock``, ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects;
+  reliable, keep last 1).
 - services ``~/snapshot`` (std_srvs/Trigger: TinyRenderer PNG, the path in the message) and
   ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest).
 
@@ -37,7 +37,6 @@ from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParameters
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -47,60 +46,12 @@ from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.sim_support import CLOCK_QOS, RateLimiter, reason_category, STATE_QOS
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
 
 #: Timer period and stepping slice [s] when ``real_time`` is false.
 FAST_PERIOD, FAST_SLICE = 0.002, 0.0015
-STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-#: Reason categories counted on diagnostics as ``rejected_<category>``: first match wins.
-REASONS = (('flooding', ('flooding',)), ('stamp', ('in the future', 'in the past', 'unstamped')),
-           ('non_finite', ('finite value', 'finite values')),
-           ('joint_names', ('unknown joints', 'missing joints', 'duplicate joint')),
-           ('length', ('values (one per name)', 'expected 0 or')),
-           ('limits', ('outside the limits', 'velocity limit')),
-           ('frame', ('frame_id',)), ('marker_scale', ('scale.',)),
-           ('marker_type', ('.type:',)), ('marker_action', ('.action:', 'DELETE of unknown')),
-           ('too_many', ('obstacle limit',)), ('marker_pose', ('pose.',)))
-
-
-class RateLimiter:
-    """Token bucket: at most ``rate`` events per second on average, bursts of ``burst``.
-
-    The semantics of :class:`cdmp_ros.core.streaming.RateLimiter`, repeated here because
-    importing that module pulls in scipy.signal and scipy.stats (about 1.5 s of start-up CPU
-    that the sim does not otherwise need).
-    """
-
-    def __init__(self, rate: float, burst=None):
-        self.rate = float(rate)
-        self.burst = float(burst if burst is not None else max(10.0, 0.1 * rate))
-        self.tokens = self.burst
-        self.last = None
-        self.dropped = 0
-
-    def allow(self, now: float) -> bool:
-        if self.last is not None:
-            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
-        self.last = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        self.dropped += 1
-        return False
-
-
-def reason_category(reason: str) -> str:
-    """The :data:`REASONS` category of a rejection message ('other' if none matches)."""
-    for cat, texts in REASONS:
-        if any(t in reason for t in texts):
-            return cat
-    return 'other'
 
 
 class SimNode(Node):
