@@ -148,12 +148,17 @@ class SolveWorker(threading.Thread):
             res.finished = time.monotonic()
             with self._cv:
                 self.busy = False
+                if self._stopping:  # the node is shutting down: nobody takes results
+                    return
                 res.stale = self._pending is not None
                 self.counts['requests_solved'] += 1
                 if res.stale:
                     self.counts['requests_stale'] += 1
                 self._results.append(res)
-            self._notify()
+            try:
+                self._notify()
+            except Exception:  # noqa: BLE001 -- guard condition destroyed at shutdown
+                return
 
     def summary(self) -> Dict[str, Any]:
         with self._cv:
