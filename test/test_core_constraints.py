@@ -9,7 +9,7 @@ from cdmp_ros.core.adaptation import AdaptationConfig, adapt, monte_carlo_satisf
 from cdmp_ros.core.constraints import (DofPoint, JointLimit, MutualAvoidance, Repeller,
                                        SmoothnessConstraint)
 from cdmp_ros.core.gaussian import (UnscentedTransform, batched_cholesky, cholesky_backward,
-                                    gamma_cdf, quadratic_moments)
+                                    gamma_cdf, inv_lower, quadratic_moments)
 from cdmp_ros.core.promp import ProMP, RbfBasis
 from test_core_adaptation import Planar2
 
@@ -58,6 +58,13 @@ def test_cholesky_backward_matches_finite_differences(rng):
         # a symmetric perturbation of an off-diagonal pair counts the entry twice
         expected = G[n, i, j] * (1 if i == j else 2)
         assert np.isclose(fd, expected, rtol=1e-5, atol=1e-8)
+
+
+def test_inv_lower_matches_the_general_inverse(rng):
+    B = rng.standard_normal((20, 7, 9))
+    A = np.linalg.cholesky(B @ np.swapaxes(B, 1, 2))
+    assert np.allclose(inv_lower(A), np.linalg.inv(A), rtol=1e-10, atol=1e-10)
+    assert np.allclose(inv_lower(A[0]) @ A[0], np.eye(7), atol=1e-10)
 
 
 @pytest.mark.parametrize('alpha', [1.0, 0.8, 1.5])

@@ -109,6 +109,34 @@ def batched_cholesky(S: NDArray, jitter: float = 1e-12) -> NDArray:
     return np.linalg.cholesky(S + (jitter * scale)[..., None, None] * np.eye(k))
 
 
+def inv_lower(A: NDArray) -> NDArray:
+    """Inverses of a batch (..., k, k) of lower-triangular matrices by forward substitution,
+    vectorised over the batch (for small k much cheaper than the general batched inverse)."""
+    k = A.shape[-1]
+    X = np.zeros_like(A)
+    dinv = 1.0 / np.diagonal(A, axis1=-2, axis2=-1)
+    for i in range(k):
+        # row i: X[i, :] = (e_i - A[i, :i] X[:i, :]) / A[i, i]
+        if i:
+            r = -np.matmul(A[..., i:i + 1, :i], X[..., :i, :])[..., 0, :]
+        else:
+            r = np.zeros(A.shape[:-2] + (k,))
+        r[..., i] += 1.0
+        X[..., i, :] = r * dinv[..., i, None]
+    return X
+
+
+_MASKS = {}
+
+
+def _masks(k: int):
+    m = _MASKS.get(k)
+    if m is None:
+        low = np.tril(np.ones((k, k)))
+        m = _MASKS[k] = (low, low - 0.5 * np.eye(k))
+    return m
+
+
 def cholesky_backward(A: NDArray, A_bar: NDArray) -> NDArray:
     """Back-propagate a gradient through A = chol(S) (Murray 2016), batched.
 
@@ -124,13 +152,11 @@ def cholesky_backward(A: NDArray, A_bar: NDArray) -> NDArray:
     S_bar : ndarray, shape (..., k, k)
         Symmetric gradient dF/dS (treating S's entries as independent).
     """
-    k = A.shape[-1]
-    low = np.tril(np.ones((k, k)))
+    low, phi = _masks(A.shape[-1])
     P = np.swapaxes(A, -1, -2) @ (A_bar * low)
-    P = P * low - 0.5 * P * np.eye(k)
-    inv = np.linalg.inv(A)
-    inv_T = np.swapaxes(inv, -1, -2)
-    X = inv_T @ P @ inv
+    P *= phi                               # lower triangle, half diagonal
+    inv = inv_lower(A)
+    X = np.swapaxes(inv, -1, -2) @ P @ inv
     return 0.5 * (X + np.swapaxes(X, -1, -2))
 
 

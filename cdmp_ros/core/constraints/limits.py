@@ -49,7 +49,9 @@ class JointLimit(Constraint):
 
     def rows(self, times):
         a, b = self.bounds(times)
-        return {'a': np.asarray(a, float), 'b': np.asarray(b, float)}
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        finite = bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)))
+        return {'a': a, 'b': b, 'finite': np.full(times.size, finite)}
 
     @staticmethod
     def probability_rows(m, S, params):
@@ -57,6 +59,13 @@ class JointLimit(Constraint):
         a, b = params['a'], params['b']
         mu = m[:, 0]
         sd = np.sqrt(np.maximum(S[:, 0, 0], 1e-300))
+        finite = params.get('finite')
+        if finite is not None and np.all(finite):    # every bound finite: no masking
+            zb, za = (b - mu) / sd, (a - mu) / sd
+            pb, pa = normal_pdf(zb), normal_pdf(za)
+            F = normal_cdf(zb) - normal_cdf(za)
+            dF_dvar = (-pb * zb + pa * za) / (2.0 * sd * sd)
+            return F, ((pa - pb) / sd)[:, None], dF_dvar[:, None, None]
         fb, fa = np.isfinite(b), np.isfinite(a)
         zb0 = np.where(fb, (np.where(fb, b, 0.0) - mu) / sd, 0.0)
         za0 = np.where(fa, (np.where(fa, a, 0.0) - mu) / sd, 0.0)
