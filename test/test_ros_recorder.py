@@ -1,5 +1,5 @@
-"""Recorder node as a real process: clean-stop exactness (SIGINT and SIGTERM), recording of
-all discovered topics, QoS and type hash in the bag."""
+"""Recorder node as a real process: clean-stop exactness (SIGINT and SIGTERM; take thread and
+executor callbacks), recording of all discovered topics, QoS and type hash in the bag."""
 import os
 import time
 
@@ -20,13 +20,16 @@ def peer():
     p.close()
 
 
-@pytest.mark.parametrize('sig_name', ['SIGINT', 'SIGTERM'])
-def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name):
+@pytest.mark.parametrize('sig_name, take_period, rt', [('SIGINT', 0.005, 0), ('SIGTERM', 0.0, 0),
+                                                       ('SIGINT', 0.005, 10)])
+def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name, take_period,
+                                                       rt):
     import signal
     from std_msgs.msg import String
     from cdmp_ros.bag.cdr import encode_string
     bag = str(tmp_path / 'rec')
-    rec = start_node('recorder', {'output': bag, 'topics': ['/exact']},
+    rec = start_node('recorder', {'output': bag, 'topics': ['/exact'],
+                                  'take_period': take_period, 'realtime_priority': rt},
                      log_path=str(tmp_path / 'rec.log'))
     try:
         pub = peer.publisher(String, '/exact')
@@ -46,6 +49,9 @@ def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name)
         assert stop(rec, getattr(signal, sig_name)) == 0
     finally:
         stop(rec, signal.SIGKILL)
+    if rt:  # granted (root / CAP_SYS_NICE / rtprio limit) or refused with a warning
+        log = (tmp_path / 'rec.log').read_text()
+        assert 'under SCHED_FIFO priority 10' in log or 'SCHED_FIFO' in log and 'refused' in log
     msgs = list(BagReader(bag).messages())
     assert [m.data for m in msgs] == sent  # N = N, byte-identical, in order
     assert [m.sequence for m in msgs] == list(range(1, 501))

@@ -182,6 +182,17 @@ class BagWriter:
         self._mcap.flush()
         self._chunk_started = None
 
+    def flush_if_due(self) -> bool:
+        """:meth:`flush` if the open chunk is older than ``flush_period``; True if flushed.
+
+        For a recorder that polls: :meth:`write` checks the age only when a message arrives.
+        """
+        if (self._chunk_started is not None and self.flush_period
+                and time.monotonic() - self._chunk_started >= self.flush_period):
+            self.flush()
+            return True
+        return False
+
     @property
     def message_count(self) -> int:
         return self._count

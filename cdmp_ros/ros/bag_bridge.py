@@ -21,6 +21,8 @@ from cdmp_ros.bag.cdr import encode_clock
 from cdmp_ros.bag.schemas import normalize_type
 from cdmp_ros.ros.qos import (RECORDER_DEPTH, adapted_subscription_profile, playback_profile,
                               profile_to_dict)
+from cdmp_ros.ros.realtime import check_priority
+from cdmp_ros.ros.recorder_take import TakeThread, ThreadTakenGroup
 
 #: Topics left out when recording "all" topics (rclpy's own plumbing).
 HIDDEN_TOPICS = ('/rosout', '/parameter_events')
@@ -68,6 +70,14 @@ class RecorderNode(Node):
         ``zstd``, ``lz4`` or ``none``.
     queue_depth : int
         Subscription queue depth per topic.
+    take_period : float
+        Seconds between two drains of the subscriptions by the take thread
+        (:mod:`cdmp_ros.ros.recorder_take`); 0 = executor callbacks (one wake-up per arrival).
+    realtime_priority : int
+        SCHED_FIFO priority of the take thread (needs CAP_SYS_NICE or an rtprio limit;
+        refused = warning); 0 = normal scheduling.
+    realtime_dds : bool
+        With ``realtime_priority``: the Fast DDS receive threads get it too.
     """
 
     def __init__(self, **kwargs):
@@ -87,12 +97,30 @@ class RecorderNode(Node):
         comp = _describe(self, 'compression', 'zstd', 'chunk compression: zstd, lz4, none')
         self.depth = _describe(self, 'queue_depth', RECORDER_DEPTH, 'subscription queue depth',
                                integer_range=[IntegerRange(from_value=1, to_value=100000)])
+        self.take_period = _describe(
+            self, 'take_period', 0.005, 'seconds between drains of the take thread; '
+            '0 = executor callbacks', floating_point_range=[FloatingPointRange(
+                from_value=0.0, to_value=1.0)])
+        self.rt_priority = check_priority('realtime_priority', _describe(
+            self, 'realtime_priority', 0, 'SCHED_FIFO priority of the receive path; 0 = off',
+            integer_range=[IntegerRange(from_value=0, to_value=99)]))
+        rt_dds = _describe(self, 'realtime_dds', True,
+                           'with realtime_priority: DDS receive threads under SCHED_FIFO too')
         self.writer = BagWriter(out, compression=comp, chunk_size=chunk, flush_period=flush)
         self._subs: Dict[str, object] = {}
         self._closed = False
+        self._taker = None
+        if self.take_period > 0:
+            self._group = ThreadTakenGroup()
+            self._taker = TakeThread(self.writer, self.take_period, self.rt_priority, rt_dds,
+                                     lambda level, text: getattr(self.get_logger(), level)(text))
+        elif self.rt_priority:
+            self.get_logger().warning('realtime_priority needs take_period > 0; ignored')
         self._discover()
         self.create_timer(period, self._discover)
-        if flush > 0:
+        if self._taker is not None:
+            self._taker.start()
+        elif flush > 0:
             self.create_timer(flush, self.writer.flush)
         self.get_logger().info(f'recording to {out} '
                                f'({", ".join(self.wanted) if self.wanted else "all topics"})')
@@ -127,6 +155,13 @@ class RecorderNode(Node):
         self.writer.add_topic(topic, type_name, [profile_to_dict(q) for q in offered],
                               type_description_hash=thash if thash.startswith('RIHS') else None)
         qos = adapted_subscription_profile(offered, self.depth)
+        if self._taker is not None:
+            sub = self.create_subscription(cls, topic, _never_called, qos,
+                                           callback_group=self._group, raw=True)
+            self._taker.add(topic, sub)
+            self._subs[topic] = sub
+            self.get_logger().info(f'subscribed to {topic} [{type_name}]')
+            return
         holder: List = []
 
         def on_message(data: bytes, info: dict) -> None:
@@ -154,6 +189,10 @@ class RecorderNode(Node):
         if self._closed:
             return
         self._closed = True
+        if self._taker is not None:
+            self._taker.stop()
+            if self._taker.error is not None:
+                print(f'[recorder] take thread stopped: {self._taker.error!r}', flush=True)
         for topic, sub in self._subs.items():
             if sub is None:
                 continue
@@ -169,6 +208,10 @@ class RecorderNode(Node):
         meta = self.writer.close()
         print(f'[recorder] closed {self.writer.bag_dir}: {meta.message_count} messages on '
               f'{len(meta.topics)} topics', flush=True)
+
+
+def _never_called(_msg) -> None:  # pragma: no cover - ThreadTakenGroup is never executed
+    raise RuntimeError('a thread-taken subscription was executed by an executor')
 
 
 class PlayerNode(Node):

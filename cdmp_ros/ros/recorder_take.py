@@ -1,0 +1,215 @@
+"""The recorder's receive path: one thread drains every recorded subscription in batches.
+
+Why not executor callbacks: with the rclpy executors every wake-up of the executor costs tens
+of microseconds of Python (wait-set rebuild, callback dispatch), and an event-driven executor
+wakes up as often as messages arrive, so at 20,000 messages/s the per-wake-up overhead, not
+the take or the write, dominates the recorder's CPU (measured in benchmarks/RESULTS.md, "bag
+(recording throughput, after optimisation)").  Here a dedicated thread wakes up every
+``period`` seconds (default 5 ms, i.e. 200 wake-ups/s whatever the message rate) and takes
+everything queued in the DDS readers with ``take_message(raw=True)``, writing each serialized
+message straight into the :class:`~cdmp_ros.bag.BagWriter`.  Messages wait at most ``period``
+in the DDS reader's history (depth ``queue_depth`` per topic, ~100 messages at 20 kHz), and the
+thread is the only writer of the bag while it runs, so no lock and no per-message queue is
+needed.  The subscriptions belong to a callback group the executor never waits on
+(:class:`ThreadTakenGroup`), so the executor does not compete for their messages.
+
+Optionally (``priority`` > 0) the take thread, the main (executor) thread and the process's
+Fast DDS receive threads (``dds.shm.*``, ``dds.udp.*``) run under SCHED_FIFO, through
+:func:`cdmp_ros.ros.realtime.configure_thread` for the calling thread and
+``os.sched_setscheduler`` by thread id for the others; a refusal is logged, never fatal.  The
+main thread is included because it shares the GIL with the take thread: a normal-priority
+holder of the GIL descheduled by the machine's load would stall the real-time take thread.
+"""
+import os
+import threading
+import time
+from typing import Callable, List, Optional, Tuple
+
+from rclpy.callback_groups import CallbackGroup
+
+from cdmp_ros.ros.realtime import configure_thread
+
+#: Prefixes of the Fast DDS receive threads' names (Fast DDS >= 2.13 names its threads).
+DDS_RECEIVE_THREADS = ('dds.shm.', 'dds.udp.')
+
+
+class ThreadTakenGroup(CallbackGroup):
+    """Callback group of subscriptions that no executor waits on (a thread takes them)."""
+
+    def can_execute(self, entity) -> bool:
+        return False
+
+    def beginning_execution(self, entity) -> bool:
+        return False
+
+    def ending_execution(self, entity) -> None:
+        pass
+
+
+def dds_receive_threads() -> List[int]:
+    """Thread ids of this process's Fast DDS receive threads."""
+    tids = []
+    for tid in os.listdir('/proc/self/task'):
+        try:
+            with open(f'/proc/self/task/{tid}/comm') as f:
+                name = f.read().strip()
+        except OSError:
+            continue
+        if name.startswith(DDS_RECEIVE_THREADS):
+            tids.append(int(tid))
+    return tids
+
+
+def set_fifo(tids: List[int], priority: int) -> str:
+    """SCHED_FIFO ``priority`` for the given thread ids; returns '' or what was refused."""
+    refused = []
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError as exc:
+            refused.append(f'{tid} ({exc.strerror})')
+    return f'SCHED_FIFO refused for DDS threads {", ".join(refused)}' if refused else ''
+
+
+class TakeThread:
+    """Drain raw subscriptions into a bag writer every ``period`` seconds.
+
+    Parameters
+    ----------
+    writer : cdmp_ros.bag.BagWriter
+        Written only by this thread while it runs (and by :meth:`drain` after :meth:`stop`).
+    period : float
+        Seconds between two drains (> 0).
+    priority : int
+        SCHED_FIFO priority of this thread (and of the DDS receive threads if
+        ``realtime_dds``); 0 = normal.
+    realtime_dds : bool
+        Also put the process's Fast DDS receive threads under SCHED_FIFO ``priority``.
+    log : callable
+        ``log(level, text)`` with level ``'info'`` or ``'warning'``.
+    """
+
+    def __init__(self, writer, period: float, priority: int = 0, realtime_dds: bool = True,
+                 log: Callable[[str, str], None] = lambda level, text: None):
+        if not period > 0:
+            raise ValueError(f'period: expected > 0 s, got {period!r}')
+        self.writer = writer
+        self.period = float(period)
+        self.priority = int(priority)
+        self.realtime_dds = bool(realtime_dds)
+        self.log = log
+        self.error: Optional[BaseException] = None
+        self._subs: List[Tuple[str, object]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='recorder_take', daemon=True)
+
+    def add(self, topic: str, sub) -> None:
+        """Start draining ``sub`` (a raw subscription of ``topic``); any thread."""
+        self._subs = self._subs + [(topic, sub)]  # replace, never mutate: the thread iterates
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the thread and wait for it (the caller then drains once more)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10.0)
+
+    def drain(self) -> int:
+        """Take and write every queued message of every subscription; returns the count."""
+        n = 0
+        write = self.writer.write
+        now = time.time_ns
+        for topic, sub in self._subs:
+            handle = sub.handle
+            take = handle.take_message
+            msg_type = sub.msg_type
+            with handle:
+                while True:
+                    taken = take(msg_type, True)
+                    if taken is None:
+                        break
+                    data, info = taken
+                    recv = info.get('received_timestamp') or now()
+                    write(topic, data, recv, info.get('source_timestamp') or recv)
+                    n += 1
+        return n
+
+    def _run(self) -> None:
+        if self.priority > 0:
+            status = configure_thread(self.priority, timer_slack_ns=None)
+            # the main (executor) thread too: it takes the GIL for discovery and timers, and a
+            # normal-priority GIL holder descheduled by the load would stall the real-time
+            # take thread (priority inversion); it never wakes per message
+            problems = [status.message,
+                        set_fifo([threading.main_thread().native_id], self.priority)]
+            if self.realtime_dds:
+                problems.append(set_fifo(dds_receive_threads(), self.priority))
+            problems = [p for p in problems if p]
+            if problems:
+                self.log('warning', '; '.join(problems))
+            else:
+                self.log('info', f'take and main threads'
+                                 f'{" and DDS receive threads" * self.realtime_dds} '
+                                 f'under SCHED_FIFO priority {self.priority}')
+        writer = self.writer
+        next_t = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                if not self.drain() and writer.flush_period:
+                    writer.flush_if_due()
+                next_t += self.period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:
+                    next_t = time.monotonic()
+        except Exception as exc:  # context shut down under the thread: the caller reports
+            self.error = exc
+
+
+#: Environment variables through which Fast DDS 2.x (rmw_fastrtps, Jazzy) and 3.x load an
+#: XML profile file.
+PROFILE_ENV = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+#: File name of the recorder's Fast DDS profile (in config/, installed to share/cdmp_ros/config).
+PROFILE_FILE = 'recorder_fastdds.xml'
+#: Set to a path to use another profile file, or to an empty string to load none.
+PROFILE_OVERRIDE = 'CDMP_RECORDER_DDS_PROFILE'
+
+
+def find_profile() -> Optional[str]:
+    """The recorder's Fast DDS profile: the source tree's config/ or the installed share/."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(here, '..', '..', 'config', PROFILE_FILE)]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(os.path.join(get_package_share_directory('cdmp_ros'), 'config',
+                                       PROFILE_FILE))
+    except Exception:  # not installed with an ament index: source tree only
+        pass
+    for path in candidates:
+        if os.path.isfile(path):
+            return os.path.normpath(path)
+    return None
+
+
+def apply_dds_profile(environ=os.environ) -> Optional[str]:
+    """Make this process's Fast DDS participant load the recorder's profile.
+
+    Must run before ``rclpy.init``.  Does nothing when the user already set a profile file
+    (``FASTRTPS_DEFAULT_PROFILES_FILE`` / ``FASTDDS_DEFAULT_PROFILES_FILE``), when another
+    rmw than Fast DDS is selected, or when ``CDMP_RECORDER_DDS_PROFILE`` is set to ''.
+    Returns the profile path now in use by the recorder, or None.
+    """
+    if any(environ.get(k) for k in PROFILE_ENV):
+        return None
+    if environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') != 'rmw_fastrtps_cpp':
+        return None
+    path = environ.get(PROFILE_OVERRIDE)
+    if path is None:
+        path = find_profile()
+    if not path:
+        return None
+    environ[PROFILE_ENV[0]] = path  # the variable Fast DDS 2.x (Jazzy) reads
+    return path
