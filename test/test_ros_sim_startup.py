@@ -1,5 +1,6 @@
-"""The sim node as a real process: start-up failures (exit code 2 with the reason) and other
-configurations (the planar arm as fast as possible, publishing /clock).
+"""The sim node as a real process: start-up failures (exit code 2 with the reason), other
+configurations (the planar arm as fast as possible, publishing /clock), and the streamer
+driving the sim (the topic contract between two real nodes).
 
 Domain 131, as test_ros_sim.py, whose module-scoped sim has ended before this module runs.
 """
@@ -96,3 +97,36 @@ def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
         h.close()
         code = stop_process(proc)
     assert code == 0, log.read_text()
+
+
+def test_streamer_drives_the_sim(tmp_path):
+    """The contract of design.md between two real nodes: the streamer's joint_reference
+    (reliable) reaches the sim, the sim's joint_states (reliable, 250 Hz) satisfy the
+    streamer's best-effort subscription, and the robot follows the streamed reach."""
+    from std_msgs.msg import String
+
+    from cdmp_ros.core.primitive_io import dumps_primitive
+    from cdmp_ros.ros import qos_profiles
+    from streamer_util import Q_GOAL, Q_START, reach_cdmp, start_streamer
+    sim = start_sim(DOMAIN, [f'initial_positions:={[float(v) for v in Q_START]}',
+                             'diagnostics_period:=0.2'],
+                    log_path=str(tmp_path / 'sim.log'), params_file='config/sim.yaml')
+    streamer = start_streamer(DOMAIN, [], log_path=str(tmp_path / 'streamer.log'),
+                              params_file='config/streamer.yaml')
+    h = SimHarness(DOMAIN)
+    try:
+        pub = h.node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
+        ok = h.wait(lambda: h.wait_state(lambda m, kv: int(kv.get('references_received', 0))
+                                         > 50, 0.1)
+                    or sim.poll() is not None or streamer.poll() is not None, STARTUP)
+        assert ok and sim.poll() is None and streamer.poll() is None, (
+            (tmp_path / 'sim.log').read_text() + (tmp_path / 'streamer.log').read_text())
+        assert np.abs(h.q() - Q_START).max() < 0.01  # the streamer holds the measured pose
+        pub.publish(String(data=dumps_primitive(reach_cdmp(duration=1.5))))
+        assert h.wait(lambda: np.abs(h.q() - Q_GOAL).max() < 0.01, 20.0), h.q() - Q_GOAL
+        _, kv = h.last_state()
+        assert kv['limit_violations'] == '0' and kv.get('rejected_total', '0') == '0', kv
+    finally:
+        h.close()
+        codes = stop_process(streamer), stop_process(sim)
+    assert codes == (0, 0), codes
