@@ -105,18 +105,35 @@ def solve_goal_point(chain, target: ArrayLike, seeds: Sequence[ArrayLike], tol: 
 
 
 def retarget_primitive_dict(d: Dict[str, Any], goal_y: ArrayLike,
-                            joint_names: Sequence[str]) -> Dict[str, Any]:
+                            joint_names: Sequence[str], margin: Optional[float] = None
+                            ) -> Dict[str, Any]:
     """A copy of a dmp/cdmp primitive dict with the goal ``goal_y`` (given in the order of
     ``joint_names``) written into ``dmp.goal`` in the primitive's own joint order; the
-    weights are unchanged (paper 000: the goal is a parameter of the transformation system)."""
+    weights are unchanged (paper 000: the goal is a parameter of the transformation system).
+
+    With ``margin``, the goal is first clipped into the primitive's own ``limits`` (if any;
+    a CDMP's may be tighter than the robot's): see :func:`retarget_clipped`.
+    """
+    return retarget_clipped(d, goal_y, joint_names, margin)[0]
+
+
+def retarget_clipped(d: Dict[str, Any], goal_y: ArrayLike, joint_names: Sequence[str],
+                     margin: Optional[float] = None) -> Tuple[Dict[str, Any], List[int]]:
+    """:func:`retarget_primitive_dict` and the joints (robot order) clipped into the
+    primitive's limits with ``margin`` (none when ``margin`` is None or there are no limits)."""
     perm = permutation(d['joint_names'], joint_names)
     g = np.asarray(goal_y, dtype=float)
+    clipped: List[int] = []
+    if margin is not None and 'limits' in d:
+        lim = d['limits']
+        g, clipped = clip_goal(g, np.asarray(lim['lower'], float)[perm],
+                               np.asarray(lim['upper'], float)[perm], margin)
     goal = [0.0] * len(perm)
     for i, p in enumerate(perm):
         goal[p] = float(g[i])
     out = dict(d)
     out['dmp'] = dict(d['dmp'], goal=goal)
-    return out
+    return out, clipped
 
 
 # -- obstacles -> constraints ------------------------------------------------------------------

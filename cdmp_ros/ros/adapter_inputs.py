@@ -73,3 +73,13 @@ def goal_point_target(msg, base_frame: str) -> np.ndarray:
         if not math.isfinite(v):
             raise ValidationError(f'goal_point.point.{axis}: expected a finite value, got {v}')
     return target
+
+
+def primitive_goal(p: Optional[Dict[str, Any]]) -> Optional[np.ndarray]:
+    """The goal (robot joint order) of a primitive parsed by :func:`parse_primitive`: a
+    ProMP's mean at phase 1, a DMP / CDMP's ``dmp.goal``; None without a primitive."""
+    if p is None:
+        return None
+    if p['kind'] == 'promp':
+        return p['prim'].mean([1.0])[0]
+    return np.asarray(p['d']['dmp']['goal'], dtype=float)[p['perm']]

@@ -43,15 +43,17 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_primitive_dict,
-                                          rollout_path, solve_goal_point)
+from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_clipped,
+                                          retarget_primitive_dict, rollout_path,
+                                          solve_goal_point)
 from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.kinematics import panda_chain
 from cdmp_ros.core.primitive_io import primitive_from_dict
 from cdmp_ros.core.streaming import RateLimiter
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.adapter_inputs import goal_point_target, parse_constraints, parse_primitive
+from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints,
+                                         parse_primitive, primitive_goal)
 from cdmp_ros.ros.adapter_viz import build_markers
 from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
                                          violated)
@@ -269,23 +271,10 @@ class AdapterNode(Node):
         self._set_goal('goal_point', res.q, target, stamp_to_ns(msg.header.stamp))
 
     def _ik_seeds(self):
-        seeds = []
-        if self.q is not None:
-            seeds.append(self.q)
-        g = self._primitive_goal()
-        if g is not None:
-            seeds.append(g)
-        seeds.append(0.5 * (self.chain.lower + self.chain.upper))
-        return seeds
-
-    def _primitive_goal(self) -> Optional[np.ndarray]:
-        """The primitive's own goal in the robot joint order."""
-        p = self.primitive
-        if p is None:
-            return None
-        if p['kind'] == 'promp':
-            return p['prim'].mean([1.0])[0]
-        return np.asarray(p['d']['dmp']['goal'], dtype=float)[p['perm']]
+        """IK seeds: the current joint state, the primitive's goal, the middle of the limits."""
+        g = primitive_goal(self.primitive)
+        mid = 0.5 * (self.chain.lower + self.chain.upper)
+        return [q for q in (self.q, g, mid) if q is not None]
 
     def _set_goal(self, topic: str, g: np.ndarray, point, stamp_ns: int) -> None:
         lo, hi = self.chain.lower, self.chain.upper
@@ -362,16 +351,11 @@ class AdapterNode(Node):
             self._publish_dmp_visualization()
             return
         p = self.primitive
-        goal = self.goal_y
-        if 'limits' in p['d']:  # a CDMP's own limits may be tighter than the robot's
-            lim = p['d']['limits']
-            goal, clipped = clip_goal(goal, np.asarray(lim['lower'])[p['perm']],
-                                      np.asarray(lim['upper'])[p['perm']],
+        d, clipped = retarget_clipped(p['d'], self.goal_y, self.joint_names,
                                       self.config.goal_margin)
-            if clipped:
-                self._reject(topic, f'{topic} outside the primitive limits, clipped: '
-                                    + ', '.join(self.joint_names[j] for j in clipped))
-        d = retarget_primitive_dict(p['d'], goal, self.joint_names)
+        if clipped:
+            self._reject(topic, f'{topic} outside the primitive limits, clipped: '
+                                + ', '.join(self.joint_names[j] for j in clipped))
         d['metadata'] = dict(d.get('metadata') or {})
         d['metadata']['adapter'] = {'trigger': topic, 'outcome': 'retargeted',
                                     'source_sha1': p['sha1']}
