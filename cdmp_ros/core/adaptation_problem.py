@@ -36,18 +36,22 @@ class _Group:
 
     def forward(self, mu, L):
         D, M = self.D, self.M
+        nw = L.shape[1]
         self.m = self.phi @ mu.reshape(D, M).T          # (n, D)
-        Bd = np.matmul(self.phi, L.reshape(D, M, -1))  # (D, n, nw)
-        self.B = np.ascontiguousarray(Bd.transpose(1, 0, 2))   # (n, D, nw)
-        self.S = np.matmul(self.B, Bd.transpose(1, 2, 0))      # (n, D, D)
+        # one GEMM: B[t, d] = phi_t^T L[d-th block]  (n, D, nw)
+        Lm = L.reshape(D, M, nw).transpose(1, 0, 2).reshape(M, D * nw)
+        self.B = (self.phi @ Lm).reshape(-1, D, nw)
+        self.S = np.matmul(self.B, np.swapaxes(self.B, 1, 2))   # (n, D, D)
         self.g_m = np.zeros_like(self.m)
         self.g_S = np.zeros_like(self.S)
 
     def backward(self, g_mu, g_L):
         D, M = self.D, self.M
+        nw = g_L.shape[1]
         g_mu += (self.phi.T @ self.g_m).T.ravel()
         g_B = np.matmul(self.g_S + np.swapaxes(self.g_S, 1, 2), self.B)   # (n, D, nw)
-        g_L += np.matmul(self.phi.T, g_B.transpose(1, 0, 2)).reshape(D * M, -1)
+        g_Lm = self.phi.T @ g_B.reshape(-1, D * nw)                       # (M, D nw)
+        g_L += g_Lm.reshape(M, D, nw).transpose(1, 0, 2).reshape(D * M, nw)
 
 
 class _PointMoments:
