@@ -84,6 +84,20 @@ def test_retarget_writes_the_goal_in_the_primitive_joint_order():
     primitive_from_dict(out)                                  # still a valid primitive
 
 
+def test_retarget_clips_into_the_primitive_limits():
+    from cdmp_ros.core.adapt_requests import retarget_clipped
+    d = primitive_to_dict(reach_cdmp())
+    d['limits']['upper'][1] = 0.5                          # tighter than the robot's 1.8326
+    goal = np.array([0.1, 1.0, 0.3, -1.0, 0.5, 1.6, 0.7])
+    out, clipped = retarget_clipped(d, goal, PANDA_JOINTS, margin=0.01)
+    assert clipped == [1]
+    lo, hi = d['limits']['lower'][1], d['limits']['upper'][1]
+    assert out['dmp']['goal'][1] == pytest.approx(0.5 * (lo + hi) + 0.99 * 0.5 * (hi - lo))
+    assert out['dmp']['goal'][0] == goal[0]
+    _, none = retarget_clipped(d, goal, PANDA_JOINTS)      # no margin: no clipping
+    assert none == []
+
+
 def test_obstacle_distance_closed_form():
     X = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 3.0, 4.0]])
     np.testing.assert_allclose(obstacle_distance(Sphere((0.0, 0.0, 0.0), 0.5), X),
