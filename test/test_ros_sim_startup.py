@@ -76,6 +76,9 @@ def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
             h.last_state()
         with h.lock:
             clocks = list(h.clocks)
+        # this process may lag behind the joint_states burst: let it catch up with the clock
+        assert h.wait(lambda: h.states_since(0.0)[-1][1] >= clocks[-1][1], 15.0)
+        with h.lock:
             states = list(h.states)
         assert np.all(np.diff([c for _, c in clocks]) > 0)
         assert np.all(np.array([c for _, c in clocks]) % 4_000_000 == 0)  # whole 4 ms slots
