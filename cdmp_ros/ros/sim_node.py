@@ -25,7 +25,19 @@ its slot (simulated time with ``publish_clock``).
 
 Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
 each rejection or sanitisation is logged and counted per topic and per reason on
-``diagnostics``; the node keeps running.
+``diagnostics``; the node keeps running. A reference outside the joint limits is clipped into
+them, a velocity above the URDF velocity limit is clipped (both reported).
+
+Diagnostics: status ``sim: state`` (level WARN while holding a stale reference or in contact)
+with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
+``min_obstacle_distance_since_start_m``, ``contacts``, ``contacts_since_start``,
+``limit_violations``, ``max_limit_usage_since_start``, ``tracking_error_rad``,
+``tracking_error_max_rad``) plus ``state`` (waiting / tracking / holding), ``robot``,
+``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
+``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
+``resets``, ``rejected_total`` and ``rejected_<reason>`` per category of
+:data:`cdmp_ros.ros.sim_support.REASONS`; ``sim: input <topic>`` per topic with rejections
+(``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
 """
 import math
 import time
