@@ -169,3 +169,32 @@ def test_gradient_through_chain_kinematics_planar4(rng):
     cons = [Repeller(ee, [2.0, 1.0], 0.5), Hyperplane(elbow, [1.0, 1.0], [0.0, 2.0]),
             Repeller(ee, [1.0, 2.0], 0.4, support=(0.2, 0.6))]
     _check_gradient(Problem(prior, cons, AdaptationConfig(n_steps=9)), rng)
+
+
+def test_chain_points_share_one_ut_but_subclasses_keep_their_own_kinematics(rng):
+    """Points of one chain are stacked into one FK call and one unscented transform; a
+    ChainPoint subclass (here shifted by 3 m) keeps its own forward kinematics."""
+    from cdmp_ros.core.adaptation import Problem
+    from cdmp_ros.core.constraints import ChainPoint
+    from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
+
+    class Shifted(ChainPoint):
+        def forward_and_jacobian(self, Z):
+            X, J = super().forward_and_jacobian(Z)
+            return X + np.array([3.0, 0.0]), J
+
+    chain = planar_chain([1.0, 1.0, 1.0, 1.0])
+    ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
+    elbow = ChainPoint(chain, PointOfInterest('link3'), axes=(0, 1))
+    far = Shifted(chain, PointOfInterest('link2'), axes=(0, 1))
+    prior = ProMP(4, RbfBasis.uniform(4), 0.3 * rng.standard_normal(16), 0.02 * np.eye(16))
+    cons = [Repeller(ee, [2.0, 1.0], 0.5), Repeller(elbow, [1.0, 1.5], 0.4),
+            Repeller(far, [4.5, 0.5], 0.4)]
+    cfg = AdaptationConfig(n_steps=9)
+    prob = Problem(prior, cons, cfg)
+    assert len(prob.points) == 2          # ee and elbow stacked; the subclass on its own
+    mu, L, _ = prob.unpack(prob.initial_theta())
+    F = prob.constraint_values(mu, L)
+    for c, sl in zip(cons, prob.slices):
+        assert np.allclose(F[sl], Problem(prior, [c], cfg).constraint_values(mu, L),
+                           rtol=0, atol=1e-12)

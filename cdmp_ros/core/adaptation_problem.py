@@ -148,7 +148,7 @@ class Problem:
                 if key not in groups:
                     groups[key] = _Group(prior, times)
                 keys.append(key)
-                if isinstance(c.point, ChainPoint):
+                if type(c.point) is ChainPoint:      # subclasses may override the FK
                     skey = (id(c.point.chain), c.point.dofs, c.point.axes, key)
                     members = stacks.setdefault(skey, [])
                     if all(m is not c.point for m in members):
