@@ -112,7 +112,7 @@ def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
 
     def on_diag(msg):  # the streamer's own tick figures (wake-up lateness, tick duration)
         for st in msg.status:
-            if st.name.endswith(': timing'):
+            if st.name == 'streamer: timing':  # not the sim's or adapter's timings
                 timing.update({v.key: v.value for v in st.values})
 
     node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
@@ -212,7 +212,7 @@ def listen_latency(reps, priority=0, graph=False):
     def on_diag(msg):  # the streamer's own figures: marker stamp -> first reference published
         for st in msg.status:
             kv = {v.key: v.value for v in st.values}
-            if 'obstacle_latency_n' in kv:
+            if st.name.startswith('streamer') and 'obstacle_latency_n' in kv:
                 inside.update(kv)
 
     node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
