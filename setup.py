@@ -29,7 +29,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', _files('config/*.yaml')),
+        ('share/' + package_name + '/config', _files('config/*.yaml') + _files('config/*.xml')),
         ('share/' + package_name + '/config/graphs', _files('config/graphs/*.yaml')),
         ('share/' + package_name + '/msg_schemas', _files('msg_schemas/*.json')),
         ('share/' + package_name + '/msg_schemas/msg', _files('msg_schemas/msg/*.msg')),

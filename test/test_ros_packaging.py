@@ -68,7 +68,7 @@ def test_colcon_build_installs_package(tmp_path):
     assert schemas, 'msg_schemas/*.json not installed under share/cdmp_ros'
     share = prefix / 'share' / 'cdmp_ros'
     for f in ['config/streamer.yaml', 'config/sim.yaml', 'config/graphs/demo.yaml',
-              'bags/panda_reach/demo_00/metadata.yaml']:
+              'config/recorder_fastdds.xml', 'bags/panda_reach/demo_00/metadata.yaml']:
         assert (share / f).is_file(), f'{f} not installed under share/cdmp_ros'
     # every design executable is a console script
     assert set(console_scripts()) >= {'cdmp', 'learner', 'adapter', 'streamer', 'sim',
