@@ -47,6 +47,10 @@ def graph(tmp_path_factory):
         ok = h.wait(lambda: bool(h.states_since(0)) or proc.poll() is not None, STARTUP)
         assert ok and proc.poll() is None, log.read_text()
         h.robot_q = Q_ROBOT
+        # the ProMP tests condition on this state: wait until the adapter has it
+        t0 = time.monotonic()
+        assert h.wait_state(lambda m, lv, kv: kv.get('robot_state') == 'fresh', t0, 20.0), \
+            h.states_since(t0)[-1:]
         yield h, proc, log
     finally:
         h.close()

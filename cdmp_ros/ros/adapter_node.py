@@ -16,7 +16,9 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
   ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
-  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms.
+  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms; and
+  robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
+  current joint_states).
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 
 Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
@@ -437,8 +439,12 @@ class AdapterNode(Node):
         if self.obstacles.expire(time.monotonic()):
             self._obstacles_changed('obstacles', 0)
         p = self.primitive
+        age = time.monotonic() - self.q_time
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 primitive=p['kind'] if p else 'none',
+                                robot_state=('none' if math.isinf(age) else 'fresh'
+                                             if age <= self.config.joint_states_timeout
+                                             else 'stale'),
                                 obstacles=len(self.obstacles),
                                 constraints=(len(self.constraint_doc['constraints'])
                                              if self.constraint_doc else 0),
