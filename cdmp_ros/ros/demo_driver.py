@@ -61,8 +61,10 @@ def parse_args(argv):
     ap.add_argument('--vertical', type=float, default=0.0,
                     help='vertical offset of the landing point from the path, m (default 0)')
     ap.add_argument('--goal-offset', type=float, nargs='+',
-                    default=[-0.5, 0.15, 0.2, 0.25, 0.0, -0.2, 0.0],
-                    help='rad added to the primitive goal for the goal change')
+                    default=[0.4, 0.0, 0.0, 0.3, 0.0, -0.3, 0.0],
+                    help='rad added to the primitive goal for the goal change (default: the '
+                         'hand ~25 cm to the left and ~10 cm higher, every link outside the '
+                         'sphere\'s field at the new goal)')
     ap.add_argument('--frame', default='panda_link0')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     return ap.parse_args(argv)

@@ -51,7 +51,7 @@ Obstacle = Union[Sphere, Box]
 
 #: Camera of the snapshots per robot kind.
 CAMERAS = {
-    'panda': CameraConfig(),
+    'panda': CameraConfig(target=(0.35, 0.1, 0.4), distance=1.4, yaw=60.0, pitch=-25.0),
     'dual_panda': CameraConfig(target=(0.56, 0.0, 0.4), distance=2.4, yaw=20.0, pitch=-30.0),
     'planar4': CameraConfig(target=(1.0, 0.0, 0.0), distance=6.0, yaw=0.0, pitch=-89.0),
 }
