@@ -64,7 +64,7 @@ def parse_args(argv):
                     default=[0.4, 0.0, 0.0, 0.3, 0.0, -0.3, 0.0],
                     help='rad added to the primitive goal for the goal change (default: the '
                          'hand ~25 cm to the left and ~10 cm higher, every link outside the '
-                         'sphere\'s field at the new goal)')
+                         'field of the sphere at the new goal)')
     ap.add_argument('--frame', default='panda_link0')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     return ap.parse_args(argv)
