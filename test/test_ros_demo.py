@@ -26,7 +26,9 @@ def test_cdmp_demo_runs_end_to_end(tmp_path):
     for k in KEYS:
         assert k in s, k
     assert s['min_obstacle_distance_m'] > 0.0 and s['contacts'] == 0
-    assert 0.0 < s['max_limit_usage'] < 1.0
+    assert 0.0 < s['reference_limit_usage'] < 1.0  # the streamer's guarantee
+    assert s['limit_violations'] == 0 and s['max_limit_excess_rad'] <= 1e-4
+    assert s['max_limit_usage'] < 1.0 + 1e-4
     assert 0.0 < s['latency_ms_p50'] <= s['latency_ms_p99']
     assert s['latency_samples'] >= 1
     assert s['messages_recorded'] > 1000

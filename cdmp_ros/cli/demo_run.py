@@ -13,7 +13,11 @@ Figures and where they come from:
   closest points between every robot link and the obstacle), from its last diagnostics;
 - ``max_limit_usage``: max over joints and samples of ``|q - centre| / half_range`` of the
   measured ``joint_states`` in the bag (``reference_limit_usage``: same for
-  ``joint_reference``); above 1 is a violation;
+  ``joint_reference``); above 1 is outside a limit. ``limit_violations``: the sim's count of
+  physics steps with a joint further than its ``limit_tolerance`` (1e-4 rad) outside a limit,
+  and ``max_limit_excess_rad`` the largest measured excess beyond a limit (0 when inside):
+  when the streamer holds a joint close to its limit, the tracking controller may overshoot
+  the reference by some 1e-5 rad, which reads as a usage of 1.00002 but is no violation;
 - ``latency_ms_p50/p99``: the streamer's obstacle-message-stamp to first-reference latency over
   the dropped obstacle's messages (its diagnostics);
 - ``tracking_error_rad``: largest |reference - measured| joint error at the ``joint_states``
@@ -90,6 +94,9 @@ def summarise(out: str, bag: str, driver: Dict, lower, upper) -> Dict:
         'contacts': _float(sim, 'contacts_since_start'),
         'max_limit_usage': limit_usage(Q, lower, upper),
         'reference_limit_usage': limit_usage(Q_ref, lower, upper),
+        'limit_violations': _float(sim, 'limit_violations'),
+        'max_limit_excess_rad': float(max(0.0, np.max(np.asarray(lower) - Q),
+                                          np.max(Q - np.asarray(upper)))),
         'latency_ms_p50': _float(streamer, 'obstacle_latency_ms_p50'),
         'latency_ms_p99': _float(streamer, 'obstacle_latency_ms_p99'),
         'latency_samples': _float(streamer, 'obstacle_latency_n'),
@@ -160,6 +167,7 @@ def markdown(s: Dict) -> str:
             ('contacts', f'{s["contacts"]:.0f}'),
             ('largest joint-limit usage (measured)', f'{s["max_limit_usage"]:.3f}'),
             ('largest joint-limit usage (reference)', f'{s["reference_limit_usage"]:.3f}'),
+            ('limit violations (sim, beyond 1e-4 rad)', f'{s["limit_violations"]:.0f}'),
             ('obstacle -> reference latency p50 / p99',
              f'{s["latency_ms_p50"]:.2f} / {s["latency_ms_p99"]:.2f} ms '
              f'({s["latency_samples"]:.0f} messages)'),
