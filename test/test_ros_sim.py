@@ -430,7 +430,8 @@ def test_runtime_parameter_changes_are_validated(graph):
 
 
 def test_reason_categories_and_rate_limiter():
-    from cdmp_ros.ros.sim_support import RateLimiter, reason_category
+    from cdmp_ros.core.rate_limit import RateLimiter
+    from cdmp_ros.ros.sim_support import reason_category
     assert reason_category("joint_reference.position of 'a': expected a finite value, got nan"
                            ) == 'non_finite'
     assert reason_category('x.header.stamp: stamp 3.0 s in the future') == 'stamp'
@@ -441,3 +442,14 @@ def test_reason_categories_and_rate_limiter():
     assert sum(lim.allow(0.0) for _ in range(50)) == 10 and lim.dropped == 40
     assert sum(lim.allow(0.05) for _ in range(50)) == 5  # 0.05 s refills 5 tokens
     assert sum(lim.allow(t * 0.01) for t in range(6, 106)) >= 99  # 100/s passes
+
+
+def test_rate_limiter_imports_neither_numpy_nor_scipy():
+    """Node processes import it at start-up: it must stay cheap (scipy costs ~1.5 s of CPU)."""
+    import subprocess
+    import sys
+    code = ('import sys; import cdmp_ros.core.rate_limit; '
+            'print(sorted(m for m in ("numpy", "scipy") if m in sys.modules))')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == '[]', out

@@ -32,7 +32,6 @@ the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
 """
 import json
 import math
-import os
 import time
 from typing import Optional
 
@@ -50,9 +49,8 @@ from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_clip
                                           solve_goal_point)
 from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.kinematics import panda_chain
 from cdmp_ros.core.primitive_io import primitive_from_dict
-from cdmp_ros.core.streaming import RateLimiter
+from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints,
                                          parse_primitive, primitive_goal)
@@ -62,18 +60,13 @@ from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_val
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
                'kl', 'iterations', 'outer_iterations', 'obstacles_used', 'obstacles_ignored',
                'latency_ms')
-
-
-def default_urdf_path() -> str:
-    """The Panda URDF shipped with pybullet_data (as the streamer's)."""
-    import pybullet_data
-    return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
 
 
 class AdapterNode(Node):
@@ -87,7 +80,7 @@ class AdapterNode(Node):
                                        on_change=self._on_params)
         cfg: AdapterConfig = self.params['']
         self.urdf_path = cfg.urdf_path or default_urdf_path()
-        self.chain = self._load_chain(cfg)
+        self.chain = load_panda_chain(self.urdf_path, cfg.joint_names)
         self._check_links(self.params['adaptation'])
         self.joint_names = list(cfg.joint_names)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
@@ -137,17 +130,6 @@ class AdapterNode(Node):
             f'{self.resolve_topic_name("adapted_primitive")}; robot {self.urdf_path}')
 
     # -- setup -------------------------------------------------------------------------------
-    def _load_chain(self, cfg: AdapterConfig):
-        try:
-            chain = panda_chain(self.urdf_path)
-        except (OSError, CdmpError) as exc:
-            raise ValidationError(f'urdf_path: cannot load a Panda from {self.urdf_path!r}: '
-                                  f'{exc}') from None
-        if list(chain.joint_names) != list(cfg.joint_names):
-            raise ValidationError(f'joint_names: expected the joints of {self.urdf_path!r} '
-                                  f'{list(chain.joint_names)}, got {list(cfg.joint_names)}')
-        return chain
-
     def _check_links(self, acfg: AdaptRequestConfig) -> None:
         bad = [n for n in acfg.avoid_links if n not in self.chain.link_names]
         if bad:

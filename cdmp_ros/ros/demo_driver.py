@@ -34,7 +34,7 @@ from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.stream_primitives import prepare_primitive
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.streamer_node import default_urdf_path
+from cdmp_ros.ros.robot_model import default_urdf_path
 
 #: A reference whose velocity stays below this for REST_TIME is at rest (rad/s).
 REST_SPEED = 0.01

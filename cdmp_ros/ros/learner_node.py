@@ -40,13 +40,14 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.improve import CostConfig, ImproveConfig
 from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig, fit_primitive
 from cdmp_ros.core.primitive_io import primitive_to_dict, save_primitive
-from cdmp_ros.core.streaming import RateLimiter
+from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.core.validation import check_limits
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.convert import JointStateMapper, check_stamp, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.learner_improve import ImproveWorker, load_bag_demonstrations
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.robot_model import default_urdf_path
 
 #: ``demonstration``: reliable, volatile, keep last 1000 -- a demonstration streamed at up to
 #: 1 kHz loses no sample while a refit briefly holds the executor.
@@ -54,12 +55,6 @@ DEMONSTRATION_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                                reliability=ReliabilityPolicy.RELIABLE,
                                durability=DurabilityPolicy.VOLATILE)
 POLL_PERIOD = 0.05  # s, segmentation gaps and improve progress
-
-
-def default_urdf_path() -> str:
-    """The Panda URDF shipped with pybullet_data."""
-    import pybullet_data
-    return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
 
 
 class LearnerNode(Node):

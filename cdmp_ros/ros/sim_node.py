@@ -54,11 +54,12 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.sim_support import CLOCK_QOS, RateLimiter, reason_category, STATE_QOS
+from cdmp_ros.ros.sim_support import CLOCK_QOS, reason_category, STATE_QOS
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
 

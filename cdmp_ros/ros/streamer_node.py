@@ -22,7 +22,6 @@ of the fixed grid, each slot is published exactly once. ``tick_thread: false`` f
 steady-clock executor timer.
 """
 import gc
-import os
 import sys
 import threading
 import time
@@ -36,9 +35,8 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling import DampingConfig
-from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
-from cdmp_ros.core.kinematics import panda_chain
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.stream_primitives import prepare_primitive
 from cdmp_ros.core.streaming import (CouplingSource, RateLimiter, ReferenceStreamer,
@@ -48,23 +46,17 @@ from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSe
                                   check_stamp)
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.realtime import (DeadlineSleeper, configure_thread, process_thread_ids,
-                                   set_threads_fifo)
+from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
+from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
+from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
+                                          report_scheduling)
 from cdmp_ros.ros.streamer_worker import PrimitiveWorker
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
-#: Obstacle-to-reference latencies kept for the diagnostics percentiles (a ring).
-LATENCY_SAMPLES = 4096
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
 #: holding the GIL (executor callback, primitive worker) hands it to the waiting tick thread
 #: after at most this long (CPython's default is 5 ms, five periods at 1 kHz).
 SWITCH_INTERVAL_PERIODS = 0.1
-
-
-def default_urdf_path() -> str:
-    """The Panda URDF shipped with pybullet_data."""
-    import pybullet_data
-    return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
 
 
 class StreamerNode(Node):
@@ -79,7 +71,7 @@ class StreamerNode(Node):
                    ('box_field', ConstantField)], on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
         self.urdf_path = cfg.urdf_path or default_urdf_path()
-        self.chain = self._load_chain(cfg)
+        self.chain = load_panda_chain(self.urdf_path, cfg.joint_names)
         self.coupling_source = CouplingSource(self._make_coupling(self.params.configs))
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
@@ -126,7 +118,7 @@ class StreamerNode(Node):
         # stamps: slot j is stamped stamp0 + j / rate exactly (ROS clock = steady clock +
         # an offset measured at start and re-measured with every diagnostics message)
         self._dt_ns = 1e9 / cfg.rate
-        self._stamp0 = self._clock_offset_ns() + round(self._t0 * 1e9)
+        self._stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
         self._pub_slot0 = 0
         self._k = 0
         self.timer = None
@@ -156,18 +148,6 @@ class StreamerNode(Node):
             f'{self.resolve_topic_name("joint_reference")}; robot {self.urdf_path}')
 
     # -- setup -------------------------------------------------------------------------------
-    def _load_chain(self, cfg: StreamerConfig):
-        """The Panda chain of ``urdf_path`` (limits, velocity limits, kinematics)."""
-        try:
-            chain = panda_chain(self.urdf_path)
-        except (OSError, CdmpError) as exc:
-            raise ValidationError(f'urdf_path: cannot load a Panda from {self.urdf_path!r}: '
-                                  f'{exc}') from None
-        if list(chain.joint_names) != list(cfg.joint_names):
-            raise ValidationError(f'joint_names: expected the joints of {self.urdf_path!r} '
-                                  f'{chain.joint_names}, got {list(cfg.joint_names)}')
-        return chain
-
     def _make_coupling(self, configs) -> ObstacleCoupling:
         cc = configs['coupling']
         cc = CouplingConfig(damping=configs['damping'], link_radius=cc.link_radius,
@@ -358,30 +338,8 @@ class StreamerNode(Node):
 
         Runs in the constructor's thread (the executor thread), so threads it creates later
         (executor, middleware) inherit its policy."""
-        st = self.realtime_status
-        if st is None:
-            self.get_logger().error('tick thread: did not start within 5 s')
-            return
-        if not st.ok:
-            self.get_logger().warning(f'tick thread: {st.message}')
-        others = ''
-        if st.realtime and cfg.realtime_threads == 'all':
-            others = self._lift_other_threads(st.priority)
-        self.get_logger().info(
-            f'tick thread: {"SCHED_FIFO priority %d" % st.priority if st.realtime else "normal"}'
-            f' scheduling, CPUs {list(st.cpus)}, spin {self._sleeper.spin * 1e3:g} ms{others}')
-
-    def _lift_other_threads(self, priority: int) -> str:
-        """SCHED_FIFO for the threads the tick depends on (see ``realtime_threads``)."""
-        own, worker = self.tick_thread.native_id, self.worker.native_id
-        others = [t for t in process_thread_ids() if t not in (own, worker)]
-        n, problems = set_threads_fifo(max(1, priority - 1), others)
-        _, worker_problems = set_threads_fifo(1, [worker])
-        problems = '; '.join(p for p in (problems, worker_problems) if p)
-        if problems:
-            self.get_logger().warning(f'tick thread: {problems}')
-        return (f'; {n} other threads at SCHED_FIFO {max(1, priority - 1)}, primitive worker '
-                f'at 1')
+        report_scheduling(self.get_logger(), self.realtime_status, cfg.realtime_threads,
+                          self.tick_thread, self.worker, self._sleeper.spin)
 
     def _locked_tick(self) -> None:
         with self._lock:
@@ -436,21 +394,10 @@ class StreamerNode(Node):
             self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
             self._latency_n += 1
 
-    def _clock_offset_ns(self) -> int:
-        """ROS clock - steady clock [ns], from the closest of three back-to-back readings."""
-        best = None
-        for _ in range(3):
-            a = time.monotonic_ns()
-            ros = self.get_clock().now().nanoseconds
-            b = time.monotonic_ns()
-            if best is None or b - a < best[0]:
-                best = (b - a, ros - (a + b) // 2)
-        return best[1]
-
     def _resync_stamps(self) -> None:
         """Follow a step of the ROS clock (NTP step, sim time): re-anchor when the stamp
         grid is more than 1 ms off; otherwise the grid stays exact."""
-        stamp0 = self._clock_offset_ns() + round(self._t0 * 1e9)
+        stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
         if abs(stamp0 - self._stamp0) > 1_000_000:
             self._stamp0 = stamp0
 
@@ -476,20 +423,9 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
-                rate_hz=f'{self.config.rate:g}', **self._latency_values(n_lat, lat), **extra,
+                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
                 **counts)
             self.reporter.publish(self.get_clock().now().to_msg())
-
-    @staticmethod
-    def _latency_values(n_total: int, lat) -> dict:
-        """Obstacle message stamp -> first joint_reference published with it, over the last
-        :data:`LATENCY_SAMPLES` obstacle messages (ms)."""
-        if n_total == 0:
-            return {'obstacle_latency_n': 0}
-        p50, p99, top = np.percentile(lat, [50.0, 99.0, 100.0])
-        return {'obstacle_latency_n': n_total,
-                'obstacle_latency_ms_p50': f'{p50:.3f}', 'obstacle_latency_ms_p99': f'{p99:.3f}',
-                'obstacle_latency_ms_max': f'{top:.3f}'}
 
     def close(self) -> None:
         """Stop the tick thread (before the node is destroyed) and the primitive worker."""

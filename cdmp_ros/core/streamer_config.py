@@ -1,0 +1,128 @@
+"""The streamer's parameters (:class:`StreamerConfig`), mirrored 1:1 by the ROS parameters of
+the streamer node; ranges and descriptions live in the field metadata."""
+import math
+from dataclasses import dataclass, field, fields
+from typing import Tuple
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
+
+__all__ = ['StreamerConfig']
+
+
+def _param(default, description, lo=None, hi=None, read_only=False, step=None):
+    """A dataclass field carrying what the ROS parameter descriptor needs."""
+    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
+    if step is not None:
+        meta['step'] = step
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda: tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class StreamerConfig:
+    """Parameters of the streamer; mirrored 1:1 by the ROS parameters of the streamer node.
+
+    Ranges and descriptions live in the field metadata (used for the parameter descriptors).
+    """
+
+    rate: float = _param(500.0, 'Publishing rate of joint_reference [Hz] (1 kHz supported); '
+                         'fixed at start.', 1.0, 2000.0, read_only=True)
+    joint_states_timeout: float = _param(
+        0.5, 'joint_states older than this [s] are stale: the reference stops smoothly and '
+        'holds. 0 disables the check (open loop: the reference starts at the primitive start).',
+        0.0, 60.0)
+    stop_time: float = _param(0.5, 'Duration of the smooth stop [s].', 0.01, 10.0)
+    max_catch_up: int = _param(
+        10, 'Integration steps made at most in one tick after a late timer callback.', 1, 1000)
+    limit_margin: float = _param(
+        1e-3, 'Goals outside the limits are clipped to centre +- (1 - limit_margin) * half '
+        'range (the CDMP margin).', 1e-9, 0.5)
+    joint_names: Tuple[str, ...] = _param(
+        PANDA_JOINTS, 'Joints of the reference, in the published order.', read_only=True)
+    urdf_path: str = _param(
+        '', 'Robot URDF (limits, kinematics for the coupling). Empty: the Panda of '
+        'pybullet_data.', read_only=True)
+    base_frame: str = _param(
+        'panda_link0', 'Robot base frame: obstacles must be given in it (or with an empty '
+        'frame_id).', read_only=True)
+    max_stamp_age: float = _param(
+        5.0, 'Input messages stamped more than this [s] in the past are rejected.', 0.001, 3600.0)
+    max_stamp_lead: float = _param(
+        1.0, 'Input messages stamped more than this [s] in the future are rejected.',
+        0.001, 3600.0)
+    accept_unstamped: bool = _param(
+        True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+    max_input_rate: float = _param(
+        100.0, 'Messages per second accepted on goal, obstacles, primitive and '
+        'adapted_primitive; the excess is dropped and reported (flooding).', 1.0, 100000.0)
+    max_joint_states_rate: float = _param(
+        2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
+        1.0, 100000.0)
+    max_obstacles: int = _param(64, 'Largest number of obstacles kept.', 0, 10000)
+    max_obstacle_size: float = _param(
+        10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].', 1e-6, 1000.0)
+    max_obstacle_distance: float = _param(
+        100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+    diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
+                                       0.01, 60.0)
+    coupling_enabled: bool = _param(
+        True, 'Apply the obstacle coupling terms (paper 000, Eq. 7/12) every tick.')
+    coupling_decimation: int = _param(
+        1, 'Evaluate the coupling every N ticks and hold it in between (box obstacles with '
+        'link terms cost milliseconds per evaluation).', 1, 1000)
+    tick_thread: bool = _param(
+        True, 'Publish from a dedicated tick thread that sleeps to absolute deadlines of the '
+        'steady clock (False: an executor timer, sharing the executor thread with the '
+        'subscriptions).', read_only=True)
+    realtime_priority: int = _param(
+        0, 'SCHED_FIFO priority of the tick thread (1-99; 0 = normal scheduling). Refused '
+        'without CAP_SYS_NICE / an rtprio limit: logged, normal scheduling.', 0, 99,
+        read_only=True)
+    realtime_threads: str = _param(
+        'all', "With realtime_priority > 0: 'all' also puts the node's other threads under "
+        'SCHED_FIFO (executor and middleware threads at realtime_priority - 1, the primitive '
+        'worker at 1), so no thread the tick waits for (GIL, DDS) is preempted by normal '
+        "processes; 'tick' lifts the tick thread only.", read_only=True)
+    tick_cpu: int = _param(-1, 'CPU the tick thread is pinned to (-1 = no pinning).',
+                           -1, 1023, read_only=True)
+    tick_spin: float = _param(
+        0.0, 'Seconds before each deadline at which the tick thread stops sleeping and '
+        'yields until the deadline (normal scheduling only, never under SCHED_FIFO; costs '
+        'CPU).', 0.0, 0.01, read_only=True)
+    obstacle_wakeup: bool = _param(
+        True, 'An obstacle message wakes the tick thread: the next slot is integrated with '
+        'the new obstacles and published at once with its own scheduled stamp (at most one '
+        'period early); the schedule is unchanged.')
+    coupling_links: Tuple[str, ...] = _param(
+        ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
+        '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            lo, hi = f.metadata['range']
+            if isinstance(f.default, bool):
+                if not isinstance(v, bool):
+                    raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
+                continue
+            if lo is None:
+                continue
+            kind = int if isinstance(f.default, int) else float
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                    kind is int and not float(v).is_integer()):
+                raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+        if self.realtime_threads not in ('all', 'tick'):
+            raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
+                                  f'{self.realtime_threads!r}')
+        names = self.joint_names
+        if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
+                or not all(isinstance(n, str) and n for n in names)):
+            raise ValidationError(f'joint_names: expected unique non-empty names, got {names!r}')
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate
