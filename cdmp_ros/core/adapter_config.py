@@ -7,19 +7,12 @@ state become a constrained ProMP adaptation problem, paper 003; parameters ``ada
 Ranges and descriptions live in the field metadata (used for the parameter descriptors).
 """
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Tuple
 
+from cdmp_ros.core.config_fields import param as _param
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
-
-
-def _param(default, description, lo=None, hi=None, read_only=False):
-    """A dataclass field carrying what the ROS parameter descriptor needs."""
-    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
-    if isinstance(default, (list, tuple)):
-        return field(default_factory=lambda: tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 def _check_fields(cfg) -> None:

@@ -10,13 +10,13 @@ the learner node (ranges and descriptions in the field metadata, like
 :class:`cdmp_ros.core.streaming.StreamerConfig`); the DMP constants are the
 :class:`~cdmp_ros.core.dmp.DmpConfig` of the core.
 """
-import math
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cdmp_ros.core.config_fields import check_fields, param
 from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -27,41 +27,6 @@ KINDS = ('cdmp', 'dmp', 'promp')
 #: The sample demonstrations of the package (bags/README.md), relative to the source tree or
 #: to ``<prefix>/share/cdmp_ros``.
 DEFAULT_BAGS = ('bags/panda_reach',)
-
-
-def param(default, description, lo=None, hi=None, read_only=False, choices=None):
-    """A dataclass field carrying what the ROS parameter descriptor needs."""
-    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
-    if choices is not None:
-        meta['choices'] = tuple(choices)
-    if isinstance(default, (list, tuple)):
-        return field(default_factory=lambda: tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
-
-
-def check_fields(cfg) -> None:
-    """Type, range and choice checks of a config built with :func:`param` fields."""
-    for f in fields(cfg):
-        v = getattr(cfg, f.name)
-        lo, hi = f.metadata.get('range', (None, None))
-        default = f.default if f.default is not MISSING else f.default_factory()
-        if isinstance(default, bool):
-            if not isinstance(v, bool):
-                raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
-            continue
-        choices = f.metadata.get('choices')
-        if choices is not None and v not in choices:
-            raise ValidationError(f'{f.name}: expected one of {list(choices)}, got {v!r}')
-        if isinstance(default, str) and not isinstance(v, str):
-            raise ValidationError(f'{f.name}: expected a string, got {v!r}')
-        if lo is None:
-            continue
-        kind = int if isinstance(default, int) else float
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or (
-                kind is int and not float(v).is_integer()):
-            raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
-        if not (math.isfinite(v) and lo <= v <= hi):
-            raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
 
 
 def check_names(name: str, names) -> None:

@@ -1,23 +1,14 @@
 """The streamer's parameters (:class:`StreamerConfig`), mirrored 1:1 by the ROS parameters of
 the streamer node; ranges and descriptions live in the field metadata."""
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Tuple
 
+from cdmp_ros.core.config_fields import param as _param
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 
 __all__ = ['StreamerConfig']
-
-
-def _param(default, description, lo=None, hi=None, read_only=False, step=None):
-    """A dataclass field carrying what the ROS parameter descriptor needs."""
-    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
-    if step is not None:
-        meta['step'] = step
-    if isinstance(default, (list, tuple)):
-        return field(default_factory=lambda: tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)

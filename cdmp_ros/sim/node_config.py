@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Optional, Tuple
 
+from cdmp_ros.core.config_fields import param as _param
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array
 
@@ -17,14 +18,6 @@ ROBOTS = ('panda', 'dual_panda', 'planar4')
 #: Control laws: pybullet position motors, computed torque (Eq. 2, paper 000), the
 #: joint-limit-avoiding law in exogenous coordinates (Eq. 4-5, paper 000).
 CONTROL_MODES = ('position', 'computed_torque', 'exogenous')
-
-
-def _param(default, description, lo=None, hi=None, read_only=False, choices=None):
-    """A dataclass field carrying what the ROS parameter descriptor needs."""
-    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
-    if choices is not None:
-        meta['choices'] = tuple(choices)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,47 @@
+"""Config dataclass fields that carry what a ROS parameter descriptor needs (description,
+range, read-only, choices, step), and the checks of a config built from them. Shared by the
+config dataclasses of every node (streamer, adapter, learner, sim)."""
+import math
+from dataclasses import MISSING, field, fields
+
+from cdmp_ros.core.errors import ValidationError
+
+__all__ = ['param', 'check_fields']
+
+
+def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
+    """A dataclass field carrying what the ROS parameter descriptor needs (list and tuple
+    defaults become a tuple factory)."""
+    meta = {'description': description, 'range': (lo, hi), 'read_only': read_only}
+    if choices is not None:
+        meta['choices'] = tuple(choices)
+    if step is not None:
+        meta['step'] = step
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda: tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def check_fields(cfg) -> None:
+    """Type, range and choice checks of a config built with :func:`param` fields."""
+    for f in fields(cfg):
+        v = getattr(cfg, f.name)
+        lo, hi = f.metadata.get('range', (None, None))
+        default = f.default if f.default is not MISSING else f.default_factory()
+        if isinstance(default, bool):
+            if not isinstance(v, bool):
+                raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
+            continue
+        choices = f.metadata.get('choices')
+        if choices is not None and v not in choices:
+            raise ValidationError(f'{f.name}: expected one of {list(choices)}, got {v!r}')
+        if isinstance(default, str) and not isinstance(v, str):
+            raise ValidationError(f'{f.name}: expected a string, got {v!r}')
+        if lo is None:
+            continue
+        kind = int if isinstance(default, int) else float
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                kind is int and not float(v).is_integer()):
+            raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
