@@ -28,6 +28,9 @@ from numpy.typing import ArrayLike
 from cdmp_ros.core.basis import U_END
 from cdmp_ros.core.validation import as_array, check_positive
 
+#: Relative back-off of the velocity-limited time scaling: reported |yd| <= vmax exactly.
+VMAX_BACKOFF = 1.0 - 1e-12
+
 
 class StepStatus(enum.IntFlag):
     """Status flags of one tick (combinable)."""
@@ -426,7 +429,9 @@ class DmpStepper:
                     v *= self._yd_[d] * (1.0 - t * t)
                 v = abs(v)
                 if v * kappa > vmax[d]:
-                    kappa = vmax[d] / v
+                    # backed off by 1e-12: kappa * v rounds to at most vmax (a consumer that
+                    # checks |yd| <= vmax strictly must not see a 1-ulp excess)
+                    kappa = vmax[d] / v * VMAX_BACKOFF
             if kappa < 1.0:
                 status |= StepStatus.VELOCITY_LIMITED
             self._kappa = kappa
