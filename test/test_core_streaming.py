@@ -297,6 +297,31 @@ def test_any_strong_coupling_keeps_a_cdmp_inside_the_limits(acc):
 TEXT_CACHE = {'cdmp': dumps_primitive(reach_cdmp())}
 
 
+def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text, monkeypatch):
+    """A joint pushed into its upper limit (exogenous state saturated), then a coupling away
+    from it: with the cap near saturation (as ObstacleCoupling.to_internal) the reference
+    leaves the limit continuously; uncapped it jumps to the other limit in one tick."""
+    import cdmp_ros.core.streaming as streaming
+
+    def largest_step(floor):
+        monkeypatch.setattr(streaming, 'SATURATION_FLOOR', floor)
+        push = {'a': 1e5}
+        rs, prep = make_streamer(cdmp_text, timeout=0.0,
+                                 coupling=lambda y, yd: [0.0, 0.0, 0.0, push['a'], 0.0, 0.0,
+                                                         0.0])
+        rs.activate(prep, 0.0)
+        rec = []
+        run(rs, 400, 0.0, measure=False, record=rec)
+        assert UPPER[3] - rec[-1][0][3] < 1e-6  # held at (inside) the limit
+        push['a'] = -10.0
+        rec2 = [rec[-1]]
+        run(rs, 400, 1.0, measure=False, record=rec2)
+        assert all(LOWER[3] < r[0][3] < UPPER[3] for r in rec2)
+        return max_step_changes(rec2)[0].max()
+    assert largest_step(streaming.SATURATION_FLOOR) < 0.01  # rad per 2 ms tick
+    assert largest_step(0.0) > 1.0  # what the cap prevents
+
+
 def test_plain_dmp_is_clamped_to_the_limits():
     rs, prep = make_streamer(dumps_primitive(reach_dmp()), timeout=0.0,
                              coupling=lambda y, yd: [0.0, 0.0, 0.0, 200.0, 0.0, 0.0, 0.0])

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.obstacle_coupling import SATURATION_FLOOR
 from cdmp_ros.core.rate_limit import RateLimiter  # noqa: F401 (re-exported)
 from cdmp_ros.core.stream_primitives import PreparedPrimitive
 from cdmp_ros.core.streamer_config import StreamerConfig
@@ -326,7 +327,10 @@ class ReferenceStreamer:
     def _coupling_into(self, stepper) -> int:
         """Joint-space coupling accelerations -> the stepper's internal units (tau^2 xidd).
 
-        The same map as ``ObstacleCoupling.to_internal`` (Eq. 21/29), written in place.
+        The same map as ``ObstacleCoupling.to_internal`` (Eq. 21/29), written in place, with
+        the same cap near saturation: ``1 - tanh(xi)^2`` floored at :data:`SATURATION_FLOOR`,
+        so a coupling that turns away from a limit the state was pushed into cannot ask for
+        an exogenous acceleration that crosses the whole range in one tick.
         """
         P = stepper.input.coupling
         try:
@@ -350,13 +354,15 @@ class ReferenceStreamer:
         scale = self._jac_scale
         xi = stepper.output.xi
         any_nonzero = False
+        floor = SATURATION_FLOOR
         for d in range(n):
             v = vals[d]
             if v != 0.0:
                 any_nonzero = True
             if scale is not None:  # xidd = ydd / J(xi), J = y_delta (1 - tanh^2), Eq. (28)
                 t = math.tanh(xi[d])
-                v = v / max(scale[d] * (1.0 - t * t), 1e-300)
+                s = 1.0 - t * t
+                v = v / max(scale[d] * (s if s > floor else floor), 1e-300)
             P[d] = tau2 * v
         return int(StreamFlags.COUPLED) if any_nonzero else 0
 
