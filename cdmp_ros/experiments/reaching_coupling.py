@@ -34,6 +34,7 @@ from cdmp_ros.core.coupling import DampingConfig, coupling_3d
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
+from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
 from cdmp_ros.core.validation import as_array, check_positive
 
 Segment = Tuple[str, Tuple[float, float, float], Tuple[float, float, float]]
@@ -239,12 +240,6 @@ class BoardLinkCoupling:
                   y_delta: Optional[Sequence[float]]) -> List[float]:
         """Coupling term ``P`` of Eq. 21 (CDMP, ``y_delta`` given) or Eq. 13 (DMP, None):
         ``tau^2 dq_dd / (y_delta (1 - tanh(xi)^2))`` resp. ``tau^2 dq_dd`` (Eq. 29 solved for
-        the exogenous acceleration, as ``TanhTransform.joint_accel_to_exogenous``)."""
-        tau2 = tau * tau
-        if y_delta is None:
-            return [tau2 * a for a in dq_dd]
-        out = []
-        for a, x, yd in zip(dq_dd, xi, y_delta):
-            th = math.tanh(x)
-            out.append(tau2 * a / max(yd * (1.0 - th * th), 1e-300))
-        return out
+        the exogenous acceleration), with the streamer's cap near saturation
+        (:meth:`cdmp_ros.core.obstacle_coupling.ObstacleCoupling.to_internal`)."""
+        return ObstacleCoupling.to_internal(dq_dd, xi, tau, y_delta)
