@@ -107,6 +107,42 @@ def test_obstacle_distance_closed_form():
                                [0.9, -0.1, np.hypot(2.9, 3.9)], atol=1e-12)
 
 
+def test_oriented_box_distance_and_wall_are_the_rotated_ones(rng):
+    """An OrientedBox gives the same distance and wall as the axis-aligned box in its own
+    frame, mapped back: checked against OrientedBox.signed_distance and by rotating the
+    points and the box together."""
+    from cdmp_ros.core.kinematics import OrientedBox
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    ob = OrientedBox.from_quaternion((0.5, 0.1, 0.3), (0.2, 0.4, 0.1), q)
+    R, c = np.array(ob.rotation), np.array(ob.center)
+    X = rng.uniform(-0.5, 1.0, (200, 3))
+    np.testing.assert_allclose(obstacle_distance(ob, X), ob.signed_distance(X)[0], atol=1e-12)
+    aabb = Box((-0.1, -0.2, -0.05), (0.1, 0.2, 0.05))          # the box in its own frame
+    np.testing.assert_allclose(obstacle_distance(ob, X), obstacle_distance(aabb, (X - c) @ R),
+                               atol=1e-12)
+    Xb = np.column_stack([rng.uniform(-0.3, 0.3, 30), rng.uniform(0.25, 0.6, 30),
+                          rng.uniform(-0.05, 0.05, 30)])      # +y side in the box frame
+    normal, offset, clearance = box_wall(ob, c + Xb @ R.T, margin=0.01)
+    n_b, o_b, cl_b = box_wall(aabb, Xb, margin=0.01)
+    np.testing.assert_allclose(normal, R @ n_b, atol=1e-12)
+    np.testing.assert_allclose(offset, c + R @ o_b, atol=1e-12)
+    assert clearance == pytest.approx(cl_b)
+    np.testing.assert_allclose(normal, -R[:, 1], atol=1e-12)  # into the box, rotated -y
+    assert np.all((c + Xb @ R.T - offset) @ normal <= 1e-12)
+
+
+def test_quaternion_of_inverts_from_quaternion(rng):
+    from cdmp_ros.core.kinematics import OrientedBox
+    special = [np.array(v, float) for v in ((0, 0, 0, 1), (1, 0, 0, 0), (0, 1, 0, 0),
+                                            (0, 0, 1, 0), (0, 0, 1e-9, -1))]
+    for q in list(rng.normal(size=(500, 4))) + special:
+        q = q / np.linalg.norm(q)
+        ob = OrientedBox.from_quaternion((0, 0, 0), (1, 1, 1), q)
+        back = np.array(ob.quaternion())
+        assert abs(abs(back @ q) - 1.0) < 1e-12, (q, back)
+
+
 def test_box_wall_is_the_face_leaving_the_most_room(rng):
     box = Box((0.4, -0.2, 0.0), (0.6, 0.2, 0.5))
     X = np.column_stack([rng.uniform(0.0, 1.0, 30), rng.uniform(0.25, 0.9, 30),

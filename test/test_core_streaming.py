@@ -364,6 +364,38 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     assert math.isfinite(source.min_distance)
 
 
+def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
+    """A box rotated 30 deg about z (an oriented CUBE marker) across the free path: the
+    streamed end effector stays outside it (signed distance from OrientedBox)."""
+    import pybullet_data
+    from cdmp_ros.core.kinematics import OrientedBox, PointOfInterest, panda_chain
+    from cdmp_ros.core.fields import ConstantField
+    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    text = TEXT_CACHE['cdmp']
+    free, prep_f = make_streamer(text, timeout=0.0)
+    free.activate(prep_f, 0.0)
+    path = []
+    for _ in range(1000):
+        free.advance(1, 0.0)
+        path.append(chain.forward(np.array(free.y), [PointOfInterest('ee')])[0])
+    q = (0.0, 0.0, math.sin(math.pi / 12), math.cos(math.pi / 12))
+    box = OrientedBox.from_quaternion(tuple(path[450]), (0.06, 0.06, 0.06), q)
+    source = CouplingSource(ObstacleCoupling(chain, links=(),
+                                             box_field=ConstantField(magnitude=20.0,
+                                                                     influence_distance=0.1)))
+    source.obstacles = (box,)
+    rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+    rs.activate(prep, 0.0)
+    d_free = min(box.signed_distance(np.array(path))[0])
+    X = []
+    for _ in range(1000):
+        rs.advance(1, 0.0)
+        X.append(chain.forward(np.array(rs.y), [PointOfInterest('ee')])[0])
+    d_coupled = min(box.signed_distance(np.array(X))[0])
+    assert d_free < 0.0 < d_coupled, (d_free, d_coupled)
+
+
 # -- prepare_primitive -------------------------------------------------------------------------
 def test_prepare_rejects_malformed_json(cdmp_text):
     with pytest.raises(PrimitiveFileError, match='primitive: not valid JSON'):

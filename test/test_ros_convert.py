@@ -7,7 +7,7 @@ from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import Box, Sphere
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSet, check_stamp,
                                   stamp_to_ns)
 from streamer_util import PANDA_JOINTS
@@ -118,15 +118,24 @@ def test_sphere_and_cube_become_obstacles():
     assert len(s) == 3
 
 
-def test_rotated_cube_uses_its_bounding_box():
+def test_rotated_cube_is_an_oriented_box():
     s = ObstacleSet()
     c = math.cos(math.pi / 8)
     q = (0.0, 0.0, math.sin(math.pi / 8), c)  # 45 deg about z
-    assert s.apply([marker(type=Marker.CUBE, scale=(0.2, 0.2, 0.1), quat=q)]) == []
+    assert s.apply([marker(type=Marker.CUBE, scale=(0.2, 0.4, 0.1), quat=q,
+                           xyz=(0.5, 0.1, 0.3))]) == []
     box = s.snapshot.items[0]
-    half = 0.1 * math.sqrt(2)
-    np.testing.assert_allclose(np.array(box.upper) - np.array(box.lower),
-                               (2 * half, 2 * half, 0.1), atol=1e-12)
+    assert isinstance(box, OrientedBox)
+    np.testing.assert_allclose(box.center, (0.5, 0.1, 0.3), atol=1e-12)
+    np.testing.assert_allclose(box.size, (0.2, 0.4, 0.1), atol=1e-12)
+    r = math.sqrt(0.5)
+    np.testing.assert_allclose(box.rotation, [[r, -r, 0], [r, r, 0], [0, 0, 1]], atol=1e-12)
+    # the same rotation as the library's own quaternion constructor
+    ref = OrientedBox.from_quaternion((0.5, 0.1, 0.3), (0.2, 0.4, 0.1), q)
+    np.testing.assert_allclose(box.rotation, ref.rotation, atol=1e-12)
+    # unrotated: still the axis-aligned Box (boards of Eq. 30-31 need it)
+    s.apply([marker(id=1, type=Marker.CUBE, scale=(0.2, 0.4, 0.1))])
+    assert isinstance(s.snapshot.items[1], Box)
 
 
 def test_modify_delete_and_deleteall_per_ns_id():

@@ -234,6 +234,30 @@ def test_distance_to_a_sphere_matches_the_closed_form(planar):
     assert len(planar.world.obstacles) == 0
 
 
+def test_oriented_box_is_placed_with_its_orientation(planar):
+    """A box rotated 45 deg about z above link 2: pybullet's body has the rotation, and its
+    closest corner is sqrt(2) * half-width closer than the axis-aligned box's face."""
+    import pybullet
+    from cdmp_ros.core.kinematics import OrientedBox
+    q = (0.0, 0.0, math.sin(math.pi / 8), math.cos(math.pi / 8))
+    planar.sync_obstacles({'b': OrientedBox.from_quaternion((1.5, 0.5, 0.0), (0.2, 0.2, 0.2),
+                                                            q)})
+    info = planar.world.obstacles.get('b')
+    _, orn = pybullet.getBasePositionAndOrientation(info.body_id,
+                                                    physicsClientId=planar.world.client_id)
+    assert abs(abs(np.dot(orn, q)) - 1.0) < 1e-9
+    # link 2: capsule of radius 0.05 around y = 0; the rotated box reaches down to
+    # y = 0.5 - 0.1 * sqrt(2)
+    assert planar.monitor().min_obstacle_distance_m == pytest.approx(
+        0.5 - 0.1 * math.sqrt(2) - 0.05, abs=1e-3)
+    body = info.body_id
+    planar.sync_obstacles({'b': OrientedBox.from_quaternion((1.5, 0.5, 0.0), (0.2, 0.2, 0.2),
+                                                            (0, 0, 0, 1))})
+    assert planar.world.obstacles.get('b').body_id == body  # same shape: turned, not rebuilt
+    assert planar.monitor().min_obstacle_distance_m == pytest.approx(0.5 - 0.1 - 0.05,
+                                                                     abs=1e-3)
+
+
 def test_contacts_count_onsets(planar):
     overlap = {'s': Sphere((1.5, 0.1, 0.0), 0.1)}  # 5 cm into link 2
     planar.sync_obstacles(overlap)

@@ -27,12 +27,12 @@ from cdmp_ros.core.adapter_config import AdaptRequestConfig
 from cdmp_ros.core.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.ik import IkResult, solve_position_ik
-from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere
+from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
 from cdmp_ros.core.kinematics.closest import box_signed_distance
 from cdmp_ros.core.promp import ProMP
 from cdmp_ros.core.validation import as_array
 
-Obstacle = Union[Sphere, Box]
+Obstacle = Union[Sphere, Box, OrientedBox]
 EE = PointOfInterest('ee')
 
 #: Outcomes reported by the adapter (diagnostics key ``outcome``).
@@ -142,12 +142,22 @@ def obstacle_distance(obstacle: Obstacle, X: ArrayLike) -> NDArray[np.float64]:
     X = np.asarray(X, dtype=float)
     if isinstance(obstacle, Sphere):
         return np.linalg.norm(X - np.asarray(obstacle.center), axis=-1) - obstacle.radius
-    return box_signed_distance(X, obstacle.lower, obstacle.upper)[0]
+    R, c, lo, hi = _box_frame(obstacle)
+    return box_signed_distance((X - c) @ R, lo, hi)[0]
 
 
-def box_wall(box: Box, X: ArrayLike, margin: float = 0.0
+def _box_frame(box: Union[Box, OrientedBox]):
+    """(R, c, lo, hi): the box is ``[lo, hi]`` in the frame ``x_b = R^T (x - c)``."""
+    if isinstance(box, OrientedBox):
+        half = np.asarray(box.half)
+        return np.asarray(box.rotation), np.asarray(box.center), -half, half
+    return np.eye(3), np.zeros(3), np.asarray(box.lower), np.asarray(box.upper)
+
+
+def box_wall(box: Union[Box, OrientedBox], X: ArrayLike, margin: float = 0.0
              ) -> Tuple[NDArray[np.float64], NDArray[np.float64], float]:
-    """The face plane of ``box`` that leaves the points X (n, 3) the most room.
+    """The face plane of ``box`` that leaves the points X (n, 3) the most room (faces of an
+    :class:`OrientedBox` are its rotated ones).
 
     Returns
     -------
@@ -161,8 +171,8 @@ def box_wall(box: Box, X: ArrayLike, margin: float = 0.0
         min over X of the distance to the plane on the free side (negative: some points are
         on the forbidden side).
     """
-    X = np.asarray(X, dtype=float).reshape(-1, 3)
-    lo, hi = np.asarray(box.lower), np.asarray(box.upper)
+    R, c, lo, hi = _box_frame(box)
+    X = (np.asarray(X, dtype=float).reshape(-1, 3) - c) @ R  # in the box frame
     centre = 0.5 * (lo + hi)
     best = None
     for axis in range(3):
@@ -174,7 +184,8 @@ def box_wall(box: Box, X: ArrayLike, margin: float = 0.0
                 offset = centre.copy()
                 offset[axis] = face + sign * margin
                 best = (-u, offset, clearance)
-    return best
+    normal, offset, clearance = best
+    return R @ normal, c + R @ offset, clearance
 
 
 @dataclass(frozen=True)

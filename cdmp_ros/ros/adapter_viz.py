@@ -16,7 +16,7 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cdmp_ros.core.kinematics import Sphere
+from cdmp_ros.core.kinematics import OrientedBox, Sphere
 
 
 def _marker(ns: str, mid: int, mtype: int, frame: str, stamp, rgba) -> Marker:
@@ -66,6 +66,12 @@ def build_markers(frame: str, stamp, path: Optional[np.ndarray] = None,
             m = _marker('obstacles', i, Marker.SPHERE, frame, stamp, (1.0, 0.1, 0.1, 0.5))
             c = ob.center
             m.scale.x = m.scale.y = m.scale.z = max(2.0 * ob.radius, 1e-4)
+        elif isinstance(ob, OrientedBox):
+            m = _marker('obstacles', i, Marker.CUBE, frame, stamp, (1.0, 0.1, 0.1, 0.5))
+            c = ob.center
+            m.scale.x, m.scale.y, m.scale.z = (float(v) for v in ob.size)
+            o = m.pose.orientation
+            o.x, o.y, o.z, o.w = ob.quaternion()
         else:
             m = _marker('obstacles', i, Marker.CUBE, frame, stamp, (1.0, 0.1, 0.1, 0.5))
             lo, hi = np.asarray(ob.lower), np.asarray(ob.upper)

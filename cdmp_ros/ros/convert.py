@@ -5,9 +5,9 @@
   unknown names, wrong lengths and non-finite values are rejected.
 - Header stamps: :func:`check_stamp` rejects stamps far in the future or the past.
 - ``visualization_msgs/MarkerArray`` -> an obstacle set (:class:`ObstacleSet`): SPHERE = a
-  repeller of radius ``scale.x / 2``, CUBE = a box (its axis-aligned bounding box when
-  rotated); ADD/MODIFY, DELETE and DELETEALL honoured per ``(ns, id)``; marker ``lifetime``
-  honoured; positions in the robot base frame.
+  repeller of radius ``scale.x / 2``, CUBE = a box (:class:`Box` when axis-aligned,
+  :class:`OrientedBox` when rotated); ADD/MODIFY, DELETE and DELETEALL honoured per
+  ``(ns, id)``; marker ``lifetime`` honoured; positions in the robot base frame.
 
 Every rejection raises (or returns) :class:`~cdmp_ros.core.errors.ValidationError` with a
 message naming the field, the expectation and the received value.
@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import Box, Sphere
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 
 # visualization_msgs/Marker constants (kept here so that the core needs no message package).
 MARKER_TYPES = {0: 'ARROW', 1: 'CUBE', 2: 'SPHERE', 3: 'CYLINDER', 4: 'LINE_STRIP',
@@ -28,6 +28,8 @@ MARKER_TYPES = {0: 'ARROW', 1: 'CUBE', 2: 'SPHERE', 3: 'CYLINDER', 4: 'LINE_STRI
                 9: 'TEXT_VIEW_FACING', 10: 'MESH_RESOURCE', 11: 'TRIANGLE_LIST',
                 12: 'ARROW_STRIP'}
 CUBE, SPHERE = 1, 2
+#: A CUBE whose rotation matrix is within this of the identity is an axis-aligned Box.
+AXIS_ALIGNED_TOL = 1e-9
 ADD, DELETE, DELETEALL = 0, 2, 3
 
 
@@ -170,13 +172,13 @@ class Obstacles:
 
     Attributes
     ----------
-    items : tuple of Sphere or Box
+    items : tuple of Sphere, Box or OrientedBox
         The obstacles (:mod:`cdmp_ros.core.kinematics.closest`), ordered by ``(ns, id)``.
     keys : tuple of (ns, id)
         The marker key of each item.
     """
 
-    items: Tuple[Union[Sphere, Box], ...]
+    items: Tuple[Union[Sphere, Box, OrientedBox], ...]
     keys: Tuple[Tuple[str, int], ...]
 
     def __len__(self) -> int:
@@ -300,8 +302,11 @@ class ObstacleSet:
             for axis, v in zip('xyz', (s.x, s.y, s.z)):
                 self._check_scale(f'{name}.scale.{axis}', v)
             R = _rotation(f'{name}.pose.orientation', m.pose.orientation)
-            half = 0.5 * np.abs(R) @ np.array([s.x, s.y, s.z])  # AABB of the rotated box
-            item = Box(tuple(center - half), tuple(center + half))
+            size = np.array([s.x, s.y, s.z])
+            if np.abs(R - np.eye(3)).max() <= AXIS_ALIGNED_TOL:
+                item = Box(tuple(center - 0.5 * size), tuple(center + 0.5 * size))
+            else:
+                item = OrientedBox(tuple(center), tuple(size), tuple(map(tuple, R.tolist())))
         if key not in self._items and len(self._items) >= self.max_obstacles:
             raise ValidationError(f'{name}: obstacle limit reached ({self.max_obstacles}); '
                                   f'(ns={m.ns!r}, id={m.id}) not added')

@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 import pybullet
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import Box, Sphere
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere, quaternion_of
 from cdmp_ros.core.validation import as_array
 from cdmp_ros.sim.camera import CameraConfig, snapshot
 from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
@@ -47,7 +47,7 @@ from cdmp_ros.sim.node_config import SimConfig
 from cdmp_ros.sim.robots import add_dual_panda, panda_spec, planar_arm_spec
 from cdmp_ros.sim.world import World, WorldConfig
 
-Obstacle = Union[Sphere, Box]
+Obstacle = Union[Sphere, Box, OrientedBox]
 
 #: Camera of the snapshots per robot kind.
 CAMERAS = {
@@ -79,6 +79,11 @@ def build_robots(world: World, robot: str) -> Tuple[list, Tuple[str, ...], str]:
         names = tuple(f'{r.name}_{j}' for r in robots for j in r.joint_names)
         return robots, names, 'world'
     raise ValidationError(f'robot: expected one of panda, dual_panda, planar4, got {robot!r}')
+
+
+def _same_rotation(q1, q2) -> bool:
+    """Two unit quaternions describe the same rotation (q and -q do)."""
+    return abs(abs(float(np.dot(q1, q2))) - 1.0) < 1e-12
 
 
 @dataclass
@@ -307,7 +312,7 @@ class LiveSim:
 
     # -- obstacles --------------------------------------------------------------------------
     def sync_obstacles(self, obstacles: Dict[str, Obstacle]) -> None:
-        """Make the world's obstacles exactly ``obstacles`` (name -> Sphere or Box).
+        """Make the world's obstacles exactly ``obstacles`` (name -> Sphere, Box or OrientedBox).
 
         Unchanged ones are kept, moved ones moved, changed shapes replaced, the rest removed.
         """
@@ -317,8 +322,12 @@ class LiveSim:
             if name not in obstacles:
                 obs.remove(name)
         for name, item in obstacles.items():
+            orn = (0.0, 0.0, 0.0, 1.0)
             if isinstance(item, Sphere):
                 shape, size, pos = 'sphere', (float(item.radius),), item.center
+            elif isinstance(item, OrientedBox):
+                shape, size, pos = 'box', tuple(item.half), item.center
+                orn = quaternion_of(item.rotation)
             else:
                 lo, hi = np.asarray(item.lower), np.asarray(item.upper)
                 shape, size, pos = 'box', tuple((0.5 * (hi - lo)).tolist()), 0.5 * (lo + hi)
@@ -327,8 +336,9 @@ class LiveSim:
                 info = obs.get(name)
                 if (info.shape == shape and info.collide == collide
                         and np.allclose(info.size, size, rtol=0.0, atol=1e-12)):
-                    if not np.allclose(info.position, pos, rtol=0.0, atol=1e-12):
-                        obs.move(name, pos)
+                    if not (np.allclose(info.position, pos, rtol=0.0, atol=1e-12)
+                            and _same_rotation(info.orientation, orn)):
+                        obs.move(name, pos, orn)
                     continue
             if shape == 'sphere':
                 if size[0] > 0.0:
@@ -336,7 +346,7 @@ class LiveSim:
                 elif name in obs:  # a zero-radius sphere is a point: no body to collide with
                     obs.remove(name)
             else:
-                obs.add_box(name, pos, size, collide=collide, replace=True)
+                obs.add_box(name, pos, size, orientation=orn, collide=collide, replace=True)
 
     def monitor(self) -> SimStats:
         """Update the obstacle distance and contact figures from the current state."""

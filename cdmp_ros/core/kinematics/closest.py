@@ -63,6 +63,29 @@ class Box:
         return cls(tuple(c - s / 2), tuple(c + s / 2))
 
 
+def quaternion_of(rotation) -> tuple:
+    """Unit quaternion (x, y, z, w) of a rotation matrix (ROS and pybullet order), by the
+    numerically stable branch on the largest of trace and diagonal; the inverse of
+    :meth:`OrientedBox.from_quaternion` up to the sign of q."""
+    R = np.asarray(rotation, dtype=float)
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > max(R[0, 0], R[1, 1], R[2, 2]):
+        w = 0.5 * np.sqrt(1.0 + tr)
+        q = ((R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
+             (R[1, 0] - R[0, 1]) / (4 * w), w)
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        r = np.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 0.0))
+        v = [0.0, 0.0, 0.0]
+        v[i] = 0.5 * r
+        v[j] = (R[j, i] + R[i, j]) / (2 * r)
+        v[k] = (R[k, i] + R[i, k]) / (2 * r)
+        q = (v[0], v[1], v[2], (R[k, j] - R[j, k]) / (2 * r))
+    n = np.sqrt(sum(c * c for c in q))
+    return tuple(float(c / n) for c in q)
+
+
 @dataclass(frozen=True)
 class OrientedBox:
     """Box obstacle of any orientation: full edge lengths ``size`` [m] along the columns of
@@ -100,6 +123,10 @@ class OrientedBox:
              (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
              (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
         return cls(center, size, R)
+
+    def quaternion(self) -> tuple:
+        """The box's orientation as a unit quaternion ``(x, y, z, w)``."""
+        return quaternion_of(self.rotation)
 
     def to_box_frame(self, X: ArrayLike) -> NDArray[np.float64]:
         """Points (..., 3) in the box frame."""
