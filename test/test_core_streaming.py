@@ -334,6 +334,18 @@ def test_plain_dmp_is_clamped_to_the_limits():
     assert flags & StreamFlags.CLAMPED and rs.y[3] == UPPER[3]
 
 
+def _free_ee_path(chain, text, n=1000):
+    """End-effector positions of the uncoupled stream, one per tick."""
+    from cdmp_ros.core.kinematics import PointOfInterest
+    free, prep_f = make_streamer(text, timeout=0.0)
+    free.activate(prep_f, 0.0)
+    path = []
+    for _ in range(n):
+        free.advance(1, 0.0)
+        path.append(chain.forward(np.array(free.y), [PointOfInterest('ee')])[0])
+    return path
+
+
 def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     import pybullet_data
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
@@ -342,12 +354,7 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     from cdmp_ros.core.fields import RepellerField
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     text = TEXT_CACHE['cdmp']
-    free, prep_f = make_streamer(text, timeout=0.0)
-    free.activate(prep_f, 0.0)
-    path = []
-    for _ in range(1000):
-        free.advance(1, 0.0)
-        path.append(chain.forward(np.array(free.y), [PointOfInterest('ee')])[0])
+    path = _free_ee_path(chain, text)
     mid = path[450]
     sphere = Sphere(tuple(mid), 0.04)
     source = CouplingSource(ObstacleCoupling(chain, sphere_field=RepellerField(gain=0.05)))
@@ -373,12 +380,7 @@ def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
     from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     text = TEXT_CACHE['cdmp']
-    free, prep_f = make_streamer(text, timeout=0.0)
-    free.activate(prep_f, 0.0)
-    path = []
-    for _ in range(1000):
-        free.advance(1, 0.0)
-        path.append(chain.forward(np.array(free.y), [PointOfInterest('ee')])[0])
+    path = _free_ee_path(chain, text)
     q = (0.0, 0.0, math.sin(math.pi / 12), math.cos(math.pi / 12))
     box = OrientedBox.from_quaternion(tuple(path[450]), (0.06, 0.06, 0.06), q)
     source = CouplingSource(ObstacleCoupling(chain, links=(),
