@@ -6,43 +6,14 @@ top-level parameters) and :class:`AdaptRequestConfig` (how obstacles, goals and 
 state become a constrained ProMP adaptation problem, paper 003; parameters ``adaptation.*``).
 Ranges and descriptions live in the field metadata (used for the parameter descriptors).
 """
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Tuple
 
-from cdmp_ros.core.config_fields import param as _param
-from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
+                                         max_obstacles_param, obstacle_distance_param,
+                                         obstacle_size_param, param as _param,
+                                         stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
-
-
-def _check_fields(cfg) -> None:
-    """Types and ranges of every field from its metadata (raises ValidationError)."""
-    for f in fields(cfg):
-        v = getattr(cfg, f.name)
-        lo, hi = f.metadata['range']
-        if isinstance(f.default, bool):
-            if not isinstance(v, bool):
-                raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
-            continue
-        if isinstance(f.default, str):
-            if not isinstance(v, str):
-                raise ValidationError(f'{f.name}: expected a string, got {v!r}')
-            continue
-        if lo is None:
-            continue
-        kind = int if isinstance(f.default, int) else float
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or (
-                kind is int and not float(v).is_integer()):
-            raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
-        if not (math.isfinite(v) and lo <= v <= hi):
-            raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
-
-
-def _check_names(name: str, names, allow_empty: bool = False) -> None:
-    if (not isinstance(names, tuple) or (not names and not allow_empty)
-            or len(set(names)) != len(names)
-            or not all(isinstance(n, str) and n for n in names)):
-        raise ValidationError(f'{name}: expected unique non-empty names, got {names!r}')
 
 
 @dataclass(frozen=True)
@@ -58,13 +29,9 @@ class AdapterConfig:
     base_frame: str = _param(
         'panda_link0', 'Robot base frame: obstacles and goal_point must be given in it (or '
         'with an empty frame_id).', read_only=True)
-    max_stamp_age: float = _param(
-        5.0, 'Input messages stamped more than this [s] in the past are rejected.', 0.001, 3600.0)
-    max_stamp_lead: float = _param(
-        1.0, 'Input messages stamped more than this [s] in the future are rejected.',
-        0.001, 3600.0)
-    accept_unstamped: bool = _param(
-        True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+    max_stamp_age: float = stamp_age_param()
+    max_stamp_lead: float = stamp_lead_param()
+    accept_unstamped: bool = accept_unstamped_param()
     max_input_rate: float = _param(
         20.0, 'Messages per second accepted on each of primitive, obstacles, goal, goal_point '
         'and constraints; the excess is dropped and reported (flooding).', 0.1, 10000.0)
@@ -74,11 +41,9 @@ class AdapterConfig:
     max_json_bytes: int = _param(
         4_000_000, 'Largest accepted primitive / constraints JSON payload [bytes].',
         100, 100_000_000)
-    max_obstacles: int = _param(64, 'Largest number of obstacles kept.', 0, 10000)
-    max_obstacle_size: float = _param(
-        10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].', 1e-6, 1000.0)
-    max_obstacle_distance: float = _param(
-        100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+    max_obstacles: int = max_obstacles_param()
+    max_obstacle_size: float = obstacle_size_param()
+    max_obstacle_distance: float = obstacle_distance_param()
     goal_margin: float = _param(
         1e-3, 'Goals outside the limits are clipped to centre +- (1 - goal_margin) * half '
         'range (the CDMP margin).', 1e-9, 0.5)
@@ -108,8 +73,8 @@ class AdapterConfig:
         0.1, 10.0)
 
     def __post_init__(self):
-        _check_fields(self)
-        _check_names('joint_names', self.joint_names)
+        check_fields(self)
+        check_names('joint_names', self.joint_names)
 
 
 @dataclass(frozen=True)
@@ -142,5 +107,5 @@ class AdaptRequestConfig:
     lambda0: float = _param(20.0, 'Initial Lagrange multiplier.', 1e-6, 1e6)
 
     def __post_init__(self):
-        _check_fields(self)
-        _check_names('avoid_links', self.avoid_links, allow_empty=True)
+        check_fields(self)
+        check_names('avoid_links', self.avoid_links, allow_empty=True)

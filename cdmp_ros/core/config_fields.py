@@ -6,7 +6,9 @@ from dataclasses import MISSING, field, fields
 
 from cdmp_ros.core.errors import ValidationError
 
-__all__ = ['param', 'check_fields']
+__all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lead_param',
+           'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
+           'obstacle_distance_param']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -45,3 +47,39 @@ def check_fields(cfg) -> None:
             raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
         if not (math.isfinite(v) and lo <= v <= hi):
             raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+
+
+def check_names(name: str, names, allow_empty: bool = False) -> None:
+    """``names`` is a tuple of unique non-empty strings (empty only with ``allow_empty``)."""
+    if (not isinstance(names, tuple) or (not names and not allow_empty)
+            or len(set(names)) != len(names)
+            or not all(isinstance(n, str) and n for n in names)):
+        raise ValidationError(f'{name}: expected unique non-empty names, got {names!r}')
+
+
+# -- the input checks shared by the nodes (same names, defaults and ranges in every node) ---
+def stamp_age_param():
+    return param(5.0, 'Input messages stamped more than this [s] in the past are rejected.',
+                 0.001, 3600.0)
+
+
+def stamp_lead_param():
+    return param(1.0, 'Input messages stamped more than this [s] in the future are rejected.',
+                 0.001, 3600.0)
+
+
+def accept_unstamped_param():
+    return param(True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+
+
+def max_obstacles_param():
+    return param(64, 'Largest number of obstacles kept.', 0, 10000)
+
+
+def obstacle_size_param():
+    return param(10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].',
+                 1e-6, 1000.0)
+
+
+def obstacle_distance_param():
+    return param(100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)

@@ -16,7 +16,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.config_fields import check_fields, param
+from cdmp_ros.core.config_fields import check_fields, check_names, param
 from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -27,12 +27,6 @@ KINDS = ('cdmp', 'dmp', 'promp')
 #: The sample demonstrations of the package (bags/README.md), relative to the source tree or
 #: to ``<prefix>/share/cdmp_ros``.
 DEFAULT_BAGS = ('bags/panda_reach',)
-
-
-def check_names(name: str, names) -> None:
-    if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
-            or not all(isinstance(n, str) and n for n in names)):
-        raise ValidationError(f'{name}: expected unique non-empty names, got {names!r}')
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,12 @@
 """The streamer's parameters (:class:`StreamerConfig`), mirrored 1:1 by the ROS parameters of
 the streamer node; ranges and descriptions live in the field metadata."""
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Tuple
 
-from cdmp_ros.core.config_fields import param as _param
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
+                                         max_obstacles_param, obstacle_distance_param,
+                                         obstacle_size_param, param as _param,
+                                         stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 
@@ -38,24 +40,18 @@ class StreamerConfig:
     base_frame: str = _param(
         'panda_link0', 'Robot base frame: obstacles must be given in it (or with an empty '
         'frame_id).', read_only=True)
-    max_stamp_age: float = _param(
-        5.0, 'Input messages stamped more than this [s] in the past are rejected.', 0.001, 3600.0)
-    max_stamp_lead: float = _param(
-        1.0, 'Input messages stamped more than this [s] in the future are rejected.',
-        0.001, 3600.0)
-    accept_unstamped: bool = _param(
-        True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+    max_stamp_age: float = stamp_age_param()
+    max_stamp_lead: float = stamp_lead_param()
+    accept_unstamped: bool = accept_unstamped_param()
     max_input_rate: float = _param(
         100.0, 'Messages per second accepted on goal, obstacles, primitive and '
         'adapted_primitive; the excess is dropped and reported (flooding).', 1.0, 100000.0)
     max_joint_states_rate: float = _param(
         2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
         1.0, 100000.0)
-    max_obstacles: int = _param(64, 'Largest number of obstacles kept.', 0, 10000)
-    max_obstacle_size: float = _param(
-        10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].', 1e-6, 1000.0)
-    max_obstacle_distance: float = _param(
-        100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+    max_obstacles: int = max_obstacles_param()
+    max_obstacle_size: float = obstacle_size_param()
+    max_obstacle_distance: float = obstacle_distance_param()
     diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
                                        0.01, 60.0)
     coupling_enabled: bool = _param(
@@ -91,28 +87,11 @@ class StreamerConfig:
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
 
     def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            lo, hi = f.metadata['range']
-            if isinstance(f.default, bool):
-                if not isinstance(v, bool):
-                    raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
-                continue
-            if lo is None:
-                continue
-            kind = int if isinstance(f.default, int) else float
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
-                    kind is int and not float(v).is_integer()):
-                raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
-            if not (math.isfinite(v) and lo <= v <= hi):
-                raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+        check_fields(self)
         if self.realtime_threads not in ('all', 'tick'):
             raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
                                   f'{self.realtime_threads!r}')
-        names = self.joint_names
-        if (not isinstance(names, tuple) or not names or len(set(names)) != len(names)
-                or not all(isinstance(n, str) and n for n in names)):
-            raise ValidationError(f'joint_names: expected unique non-empty names, got {names!r}')
+        check_names('joint_names', self.joint_names)
 
     @property
     def dt(self) -> float:

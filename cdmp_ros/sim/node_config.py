@@ -5,11 +5,13 @@ field metadata carries the description, the range and ``read_only`` used for the
 descriptors), except ``initial_positions``, a float array that the node declares itself
 (its length depends on ``robot``).
 """
-import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Optional, Tuple
 
-from cdmp_ros.core.config_fields import param as _param
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields,
+                                         max_obstacles_param, obstacle_distance_param,
+                                         obstacle_size_param, param as _param,
+                                         stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array
 
@@ -90,55 +92,24 @@ class SimConfig:
     limit_tolerance: float = _param(
         1e-4, 'A physics step counts as a limit violation when a measured joint is more '
         'than this [rad or m] outside its URDF limits.', 0.0, 0.1)
-    max_stamp_age: float = _param(
-        5.0, 'Input messages stamped more than this [s] in the past are rejected.',
-        0.001, 3600.0)
-    max_stamp_lead: float = _param(
-        1.0, 'Input messages stamped more than this [s] in the future are rejected.',
-        0.001, 3600.0)
-    accept_unstamped: bool = _param(
-        True, 'Accept input messages with a zero stamp (e.g. from the command line).')
+    max_stamp_age: float = stamp_age_param()
+    max_stamp_lead: float = stamp_lead_param()
+    accept_unstamped: bool = accept_unstamped_param()
     max_reference_rate: float = _param(
         2000.0, 'joint_reference messages per second accepted; the excess is dropped and '
         'reported (flooding).', 1.0, 100000.0)
     max_input_rate: float = _param(
         100.0, 'obstacles messages per second accepted; the excess is dropped and reported.',
         1.0, 100000.0)
-    max_obstacles: int = _param(64, 'Largest number of obstacles kept.', 0, 10000)
-    max_obstacle_size: float = _param(
-        10.0, 'Largest accepted marker scale (sphere diameter, box edge) [m].', 1e-6, 1000.0)
-    max_obstacle_distance: float = _param(
-        100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+    max_obstacles: int = max_obstacles_param()
+    max_obstacle_size: float = obstacle_size_param()
+    max_obstacle_distance: float = obstacle_distance_param()
     initial_positions: Optional[Tuple[float, ...]] = field(
         default=None, metadata={'description': 'Initial joint positions (and the pose of '
                                 '~/reset), in joint_states order; default: the robot home.'})
 
     def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            meta = f.metadata
-            if f.name == 'initial_positions':
-                continue
-            if 'choices' in meta:
-                if v not in meta['choices']:
-                    raise ValidationError(f'{f.name}: expected one of {list(meta["choices"])}, '
-                                          f'got {v!r}')
-                continue
-            if isinstance(f.default, bool):
-                if not isinstance(v, bool):
-                    raise ValidationError(f'{f.name}: expected a bool, got {v!r}')
-                continue
-            if isinstance(f.default, str):
-                if not isinstance(v, str):
-                    raise ValidationError(f'{f.name}: expected a string, got {v!r}')
-                continue
-            lo, hi = meta['range']
-            kind = int if isinstance(f.default, int) else float
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
-                    kind is int and not float(v).is_integer()):
-                raise ValidationError(f'{f.name}: expected {kind.__name__}, got {v!r}')
-            if not (math.isfinite(v) and lo <= v <= hi):
-                raise ValidationError(f'{f.name}: expected a value in [{lo}, {hi}], got {v!r}')
+        check_fields(self)
         ratio = self.physics_rate / self.publish_rate
         if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6 * ratio:
             raise ValidationError(f'publish_rate: expected physics_rate ({self.physics_rate:g})'
