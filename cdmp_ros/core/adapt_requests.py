@@ -142,8 +142,9 @@ def obstacle_distance(obstacle: Obstacle, X: ArrayLike) -> NDArray[np.float64]:
     X = np.asarray(X, dtype=float)
     if isinstance(obstacle, Sphere):
         return np.linalg.norm(X - np.asarray(obstacle.center), axis=-1) - obstacle.radius
-    R, c, lo, hi = _box_frame(obstacle)
-    return box_signed_distance((X - c) @ R, lo, hi)[0]
+    if isinstance(obstacle, OrientedBox):
+        return obstacle.signed_distance(X)[0]
+    return box_signed_distance(X, obstacle.lower, obstacle.upper)[0]
 
 
 def _box_frame(box: Union[Box, OrientedBox]):

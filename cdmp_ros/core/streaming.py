@@ -28,7 +28,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.obstacle_coupling import SATURATION_FLOOR
-from cdmp_ros.core.rate_limit import RateLimiter  # noqa: F401 (re-exported)
 from cdmp_ros.core.stream_primitives import PreparedPrimitive
 from cdmp_ros.core.streamer_config import StreamerConfig
 from cdmp_ros.core.transform import SAT_MARGIN, XI_SAT, TanhTransform

@@ -38,8 +38,9 @@ from cdmp_ros.core.coupling import DampingConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.core.stream_primitives import prepare_primitive
-from cdmp_ros.core.streaming import (CouplingSource, RateLimiter, ReferenceStreamer,
+from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer,
                                      StreamerConfig, StreamFlags, StreamState)
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSet,

@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 import pybullet
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere, quaternion_of
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 from cdmp_ros.core.validation import as_array
 from cdmp_ros.sim.camera import CameraConfig, snapshot
 from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
@@ -327,7 +327,7 @@ class LiveSim:
                 shape, size, pos = 'sphere', (float(item.radius),), item.center
             elif isinstance(item, OrientedBox):
                 shape, size, pos = 'box', tuple(item.half), item.center
-                orn = quaternion_of(item.rotation)
+                orn = item.quaternion()
             else:
                 lo, hi = np.asarray(item.lower), np.asarray(item.upper)
                 shape, size, pos = 'box', tuple((0.5 * (hi - lo)).tolist()), 0.5 * (lo + hi)
