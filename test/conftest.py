@@ -15,6 +15,16 @@ os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
 
+def module_domain(offset: int) -> int:
+    """A private domain id for one test module: the session's ``ROS_DOMAIN_ID`` plus ``offset``.
+
+    Modules that keep processes running get their own offset so that a process left over from
+    one module never talks to the next; sessions started with different ``ROS_DOMAIN_ID`` values
+    (parallel checkouts, soak runs) never share a domain as long as their ids are 10 apart.
+    """
+    return (int(os.environ['ROS_DOMAIN_ID']) + int(offset)) % 233
+
+
 def ros_env(domain_id=None) -> dict:
     """Environment for a ROS child process: localhost discovery, private domain id."""
     env = dict(os.environ)

@@ -193,7 +193,8 @@ def test_obstacle_limit_and_lifetime():
 def node():
     import rclpy
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=169)
+    from conftest import module_domain
+    rclpy.init(context=ctx, domain_id=module_domain(1))
     n = rclpy.create_node('params_test', context=ctx)
     yield n
     n.destroy_node()

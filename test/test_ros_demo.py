@@ -8,10 +8,10 @@ import sys
 
 import pytest
 
-from conftest import ros_env
+from conftest import ros_env, module_domain
 
 pytestmark = pytest.mark.ros
-DOMAIN = 173
+DOMAIN = module_domain(2)
 KEYS = ('min_obstacle_distance_m', 'max_limit_usage', 'latency_ms_p50', 'latency_ms_p99',
         'tracking_error_rad', 'messages_recorded', 'bag', 'plots', 'snapshot')
 

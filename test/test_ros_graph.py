@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from cdmp_ros.cli.bringup import Bringup, parse_graph
-from conftest import ros_env
+from conftest import ros_env, module_domain
 from streamer_harness import Harness, max_acceleration
 from streamer_util import LOWER, PANDA_JOINTS, UPPER
 
 pytestmark = pytest.mark.ros
-DOMAIN = 171
+DOMAIN = module_domain(3)
 STARTUP = 60.0   # s; five interpreters with rclpy and pybullet on a loaded 2-core machine
 MAX_ACC = 100.0  # rad/s^2 between consecutive references at 500 Hz: no jump
 

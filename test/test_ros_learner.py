@@ -1,6 +1,6 @@
 """The learner as a real process (``python -m cdmp_ros.nodes.learner``), driven over DDS.
 
-One learner process serves the module (domain 172, localhost only), started from
+One learner process serves the module (its own private domain, localhost only), started from
 config/learner.yaml with narrow explicit limits around the sample demonstrations (so that
 exploration noise would leave them for a plain DMP). The test process publishes
 demonstrations, calls ``~/refit``, ``~/save`` and ``~/improve``, and reads ``primitive`` and
@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, module_domain
 from learner_harness import PANDA_JOINTS, LearnerHarness, start_learner
 from streamer_util import stop_process
 
 pytestmark = pytest.mark.ros
-DOMAIN = 172
+DOMAIN = module_domain(4)
 STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
 BAGS = os.path.join(REPO_ROOT, 'bags', 'panda_reach')
 

@@ -1,7 +1,8 @@
 """The sim node as a real process (``python -m cdmp_ros.nodes.sim``), driven over DDS.
 
 One sim process (Panda, position control, real time, started from config/sim.yaml) serves the
-module on domain 131 (localhost only); start-up failures and other configurations are in
+module on its own private domain (localhost
+only); start-up failures and other configurations are in
 test_ros_sim_startup.py. Each bad-input case publishes its input,
 waits for the matching ``diagnostics`` entry and checks that the node keeps publishing. The
 module teardown stops the sim with SIGINT and requires exit code 0.
@@ -12,11 +13,12 @@ import time
 import numpy as np
 import pytest
 
+from conftest import module_domain
 from sim_harness import (LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, stop_process,
                          UPPER)
 
 pytestmark = pytest.mark.ros
-DOMAIN = 131
+DOMAIN = module_domain(5)
 STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
 RATE_TOL = 0.2  # relative tolerance of the joint_states rate
 TRACK_TOL = 0.005  # rad; settled position error after a reference ramp (position control)

@@ -11,9 +11,10 @@ import pytest
 import yaml
 
 from sim_harness import SimHarness, start_sim, stop_process
+from conftest import module_domain
 
 pytestmark = pytest.mark.ros
-DOMAIN = 131
+DOMAIN = module_domain(6)
 STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
 
 

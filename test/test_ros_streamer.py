@@ -1,10 +1,10 @@
 """The streamer as a real process (``python -m cdmp_ros.nodes.streamer``), driven over DDS.
 
-One streamer process serves the module (domain 162, localhost only); the test process runs a
-fake robot (joint_states echoing the reference) and a listener that checks EVERY reference it
-receives (names, size, finite, inside the limits). Each bad-input case publishes its input,
-waits for the matching ``diagnostics`` entry, and checks that the stream continued within the
-limits. Bounded: every wait has a timeout of a few seconds.
+One streamer process serves the module (its own private domain, localhost only); the test
+process runs a fake robot (joint_states echoing the reference) and a listener that checks EVERY
+reference it receives (names, size, finite, inside the limits). Each bad-input case publishes
+its input, waits for the matching ``diagnostics`` entry, and checks that the stream continued
+within the limits. Bounded: every wait has a timeout of a few seconds.
 """
 import json
 import time
@@ -12,13 +12,14 @@ import time
 import numpy as np
 import pytest
 
+from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import Harness, max_acceleration
 from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, reach_cdmp,
                            start_streamer, stop_process)
 
 pytestmark = pytest.mark.ros
-DOMAIN = 162
+DOMAIN = module_domain(7)
 MAX_ACC = 100.0  # rad/s^2; a velocity jump of 0.2 rad/s at 500 Hz would be 100
 STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
 

@@ -20,9 +20,10 @@ import pytest
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import Harness
 from streamer_util import reach_cdmp, start_streamer, stop_process, wait_for
+from conftest import module_domain
 
 pytestmark = pytest.mark.ros
-DOMAIN = 164
+DOMAIN = module_domain(8)
 STARTUP = 30.0
 
 
