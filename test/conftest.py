@@ -5,6 +5,13 @@ import random
 import sys
 
 import pytest
+from hypothesis import settings
+
+# Property tests draw the same examples on every run (a CI run never fails on a draw that the
+# previous one did not make), keep no example database between runs, and have no per-example
+# deadline (a loaded machine is slow, not wrong).
+settings.register_profile('cdmp', derandomize=True, database=None, deadline=None)
+settings.load_profile('cdmp')
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
