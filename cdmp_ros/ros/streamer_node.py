@@ -113,7 +113,8 @@ class StreamerNode(Node):
         self.worker = PrimitiveWorker(self._prepare)
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
-                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0}
+                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
+                       'late_ticks': 0}
         self.active_text = None
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
@@ -274,7 +275,10 @@ class StreamerNode(Node):
             try:
                 with lock:
                     if not woken:  # deadline -> tick running (sleep, GIL and lock)
-                        timing('tick_wake_late', clock() - deadline)
+                        late = clock() - deadline
+                        timing('tick_wake_late', late)
+                        if late > dt:  # the slot went out after the next slot's deadline
+                            self.counts['late_ticks'] += 1
                     elif clock() < deadline:  # the next slot goes out now, stamped on the grid
                         self.counts['early_ticks'] += 1
                     self._tick()
