@@ -205,7 +205,7 @@ def test_gate_rejects_oversize_before_deserializing_and_counts_by_topic_and_reas
     assert status['gate: input obstacles']['rejected_oversize'] == '1'
     assert status['gate: input obstacles']['rejected_malformed'] == '1'
     assert gate.values() == {'rejected_total': 2, 'rejected_oversize': 1,
-                             'rejected_malformed': 1}
+                             'rejected_malformed': 1, 'received_obstacles': 3}
 
 
 def test_gate_applies_the_rate_limit_before_the_size_check():

@@ -177,7 +177,7 @@ class InputGate:
         self.lock = lock if lock is not None else threading.Lock()
         self.limiters: Dict[str, RateLimiter] = {}
         self.by_reason: Dict[str, int] = {}
-        self.accepted: Dict[str, int] = {}
+        self.received: Dict[str, int] = {}
 
     # -- configuration -----------------------------------------------------------------------
     def set_rates(self, rates: Dict[str, float]) -> None:
@@ -193,6 +193,7 @@ class InputGate:
         stamp_name = f'{topic}.header.stamp'
 
         def on_raw(data: bytes) -> None:
+            self.received[topic] = self.received.get(topic, 0) + 1
             if not self.admit(topic):
                 return
             if size is not None:
@@ -207,7 +208,6 @@ class InputGate:
                 return
             if stamped and not self.stamp_ok(topic, stamp_name, msg.header.stamp):
                 return
-            self.accepted[topic] = self.accepted.get(topic, 0) + 1
             callback(msg)
 
         return self.node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
@@ -259,7 +259,9 @@ class InputGate:
             self.reject(topic, str(exc))
 
     def values(self) -> Dict[str, int]:
-        """``rejected_total`` and ``rejected_<category>`` over every topic."""
-        out = {f'rejected_{k}': v for k, v in self.by_reason.items()}
+        """``rejected_total`` and ``rejected_<category>`` over every topic, and
+        ``received_<topic>`` (messages that reached the gate, before any check)."""
+        out = {f'received_{k}': v for k, v in self.received.items()}
+        out.update({f'rejected_{k}': v for k, v in self.by_reason.items()})
         out['rejected_total'] = sum(self.by_reason.values())
         return out
