@@ -10,7 +10,8 @@ from dataclasses import dataclass
 from typing import Tuple
 
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
-                                         max_obstacles_param, obstacle_distance_param,
+                                         max_json_bytes_param, max_obstacles_param,
+                                         obstacle_distance_param,
                                          obstacle_size_param, param as _param,
                                          stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -38,9 +39,7 @@ class AdapterConfig:
     max_joint_states_rate: float = _param(
         2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
         1.0, 100000.0)
-    max_json_bytes: int = _param(
-        4_000_000, 'Largest accepted primitive / constraints JSON payload [bytes].',
-        100, 100_000_000)
+    max_json_bytes: int = max_json_bytes_param()
     max_obstacles: int = max_obstacles_param()
     max_obstacle_size: float = obstacle_size_param()
     max_obstacle_distance: float = obstacle_distance_param()

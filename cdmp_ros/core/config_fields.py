@@ -8,7 +8,7 @@ from cdmp_ros.core.errors import ValidationError
 
 __all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lead_param',
            'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
-           'obstacle_distance_param']
+           'obstacle_distance_param', 'max_json_bytes_param']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -73,7 +73,8 @@ def accept_unstamped_param():
 
 
 def max_obstacles_param():
-    return param(64, 'Largest number of obstacles kept.', 0, 10000)
+    return param(64, 'Largest number of obstacles kept; a MarkerArray of more than '
+                 'max_obstacles + 1 markers is rejected before it is parsed.', 0, 10000)
 
 
 def obstacle_size_param():
@@ -83,3 +84,8 @@ def obstacle_size_param():
 
 def obstacle_distance_param():
     return param(100.0, 'Largest accepted distance of a marker from the base [m].', 1e-3, 1e6)
+
+
+def max_json_bytes_param():
+    return param(4_000_000, 'Largest accepted JSON payload (primitive, constraints) [bytes]; '
+                 'a longer message is rejected before it is parsed.', 100, 100_000_000)

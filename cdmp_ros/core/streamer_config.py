@@ -4,7 +4,8 @@ from dataclasses import dataclass
 from typing import Tuple
 
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
-                                         max_obstacles_param, obstacle_distance_param,
+                                         max_json_bytes_param, max_obstacles_param,
+                                         obstacle_distance_param,
                                          obstacle_size_param, param as _param,
                                          stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
@@ -49,6 +50,7 @@ class StreamerConfig:
     max_joint_states_rate: float = _param(
         2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
         1.0, 100000.0)
+    max_json_bytes: int = max_json_bytes_param()
     max_obstacles: int = max_obstacles_param()
     max_obstacle_size: float = obstacle_size_param()
     max_obstacle_distance: float = obstacle_distance_param()

@@ -21,8 +21,10 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   current joint_states).
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 
-Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
-each rejection is logged and counted on ``diagnostics``.
+Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
+size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
+joint count), then the per-element validation (:mod:`cdmp_ros.ros.convert`,
+:mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``diagnostics``.
 
 QoS (:mod:`cdmp_ros.ros.qos_profiles`): ``primitive`` subscribed and ``adapted_primitive``
 published transient-local (a restarted adapter gets the latched primitive; a restarted
@@ -50,15 +52,16 @@ from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_clip
 from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.primitive_io import primitive_from_dict
-from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros import qos_profiles
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints,
                                          parse_primitive, primitive_goal)
 from cdmp_ros.ros.adapter_viz import build_markers
 from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
                                          violated)
-from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp, stamp_to_ns
+from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate,
+                                     joint_names, json_bytes, marker_count, message_bytes)
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
 
@@ -87,8 +90,6 @@ class AdapterNode(Node):
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
-        self._limiters = {}
-        self._make_limiters(cfg)
         # state
         self.primitive = None        # dict: kind, d (validated dict), prim, perm
         self.primitive_id = 0
@@ -108,16 +109,22 @@ class AdapterNode(Node):
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
         self.reporter.set_state(OK, 'waiting for a primitive', outcome='none')
-        self.create_subscription(String, 'primitive', self._on_primitive, qos_profiles.LATCHED)
-        self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
-                                 qos_profiles.COMMAND)
-        self.create_subscription(JointState, 'goal', self._on_goal, qos_profiles.COMMAND)
-        self.create_subscription(PointStamped, 'goal_point', self._on_goal_point,
-                                 qos_profiles.COMMAND)
-        self.create_subscription(String, 'constraints', self._on_constraints,
-                                 qos_profiles.COMMAND)
-        self.create_subscription(JointState, 'joint_states', self._on_joint_states,
-                                 qos_profiles.SENSOR)
+        self.gate = InputGate(self, self.reporter, lambda: self.config)
+        self._set_rates(cfg)
+        gate, n = self.gate, len(self.joint_names)
+        json_size = json_bytes(lambda: self.config.max_json_bytes)
+        gate.subscribe(String, 'primitive', self._on_primitive, qos_profiles.LATCHED,
+                       size=json_size)
+        gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+                       size=marker_count(lambda: self.config.max_obstacles))
+        gate.subscribe(JointState, 'goal', self._on_goal, qos_profiles.COMMAND,
+                       size=joint_names(lambda: n), stamped=True)
+        gate.subscribe(PointStamped, 'goal_point', self._on_goal_point, qos_profiles.COMMAND,
+                       size=message_bytes(lambda: SMALL_MESSAGE_BYTES), stamped=True)
+        gate.subscribe(String, 'constraints', self._on_constraints, qos_profiles.COMMAND,
+                       size=json_size)
+        gate.subscribe(JointState, 'joint_states', self._on_joint_states, qos_profiles.SENSOR,
+                       size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
         self._results_ready = self.create_guard_condition(self._on_results)
         self.worker = SolveWorker(lambda job: solve_job(job, self.chain),
                                   self._results_ready.trigger)
@@ -136,10 +143,9 @@ class AdapterNode(Node):
             raise ValidationError(f'adaptation.avoid_links: {bad} are not links of the robot '
                                   f'{list(self.chain.link_names)}')
 
-    def _make_limiters(self, cfg: AdapterConfig) -> None:
-        for topic in INPUT_TOPICS:
-            self._limiters[topic] = RateLimiter(cfg.max_input_rate)
-        self._limiters['joint_states'] = RateLimiter(cfg.max_joint_states_rate)
+    def _set_rates(self, cfg: AdapterConfig) -> None:
+        rates = {t: cfg.max_input_rate for t in INPUT_TOPICS}
+        self.gate.set_rates(dict(rates, joint_states=cfg.max_joint_states_rate))
 
     def _on_params(self, configs) -> None:
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
@@ -148,7 +154,7 @@ class AdapterNode(Node):
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
-        self._make_limiters(cfg)
+        self._set_rates(cfg)
         if abs(cfg.diagnostics_period - self.diag_timer.timer_period_ns * 1e-9) > 1e-9:
             self.diag_timer.cancel()
             self.destroy_timer(self.diag_timer)
@@ -159,56 +165,29 @@ class AdapterNode(Node):
     def config(self) -> AdapterConfig:
         return self.params['']
 
-    # -- input checks ------------------------------------------------------------------------
-    def _admit(self, topic: str, stamps=()) -> bool:
-        """Flooding and stamp checks shared by the subscriptions."""
-        lim = self._limiters[topic]
-        if not lim.allow(time.monotonic()):
-            if lim.dropped == 1 or lim.dropped % 100 == 0:
-                self._reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
-                                    f'{lim.dropped} dropped so far')
-            return False
-        cfg = self.config
-        now_ns = self.get_clock().now().nanoseconds
-        try:
-            for name, stamp in stamps:
-                check_stamp(name, stamp, now_ns, cfg.max_stamp_age, cfg.max_stamp_lead,
-                            cfg.accept_unstamped)
-        except ValidationError as exc:
-            self._reject(topic, str(exc))
-            return False
-        return True
-
-    def _reject(self, topic: str, reason: str) -> None:
-        self.reporter.reject(topic, reason)
-        self.reporter.publish_if_due(self.get_clock().now().to_msg())
-
     # -- subscriptions -----------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
-        if not self._admit('joint_states', [('joint_states.header.stamp', msg.header.stamp)]):
-            return
         try:
             q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
         except ValidationError as exc:
-            self._reject('joint_states', str(exc))
+            self.gate.reject('joint_states', str(exc))
             return
         lo, hi, tol = self.chain.lower, self.chain.upper, self.config.joint_states_tolerance
         out = np.flatnonzero((q < lo - tol) | (q > hi + tol))
         if out.size:
             j = int(out[0])
-            self._reject('joint_states', f'joint_states.position of {self.joint_names[j]!r}: '
-                                         f'{q[j]:.4g} is outside the limits [{lo[j]}, {hi[j]}]')
+            self.gate.reject('joint_states', f'joint_states.position of '
+                                             f'{self.joint_names[j]!r}: {q[j]:.4g} is outside '
+                                             f'the limits [{lo[j]}, {hi[j]}]')
             return
         self.q = np.clip(q, lo, hi)
         self.q_time = time.monotonic()
 
     def _on_primitive(self, msg: String) -> None:
-        if not self._admit('primitive'):
-            return
         try:
             prim = parse_primitive(msg.data, self.joint_names, self.config.max_json_bytes)
         except CdmpError as exc:
-            self._reject('primitive', str(exc))
+            self.gate.reject('primitive', str(exc))
             return
         self.primitive_id += 1
         self.primitive = prim
@@ -217,14 +196,12 @@ class AdapterNode(Node):
         self._trigger('primitive', 0)
 
     def _on_constraints(self, msg: String) -> None:
-        if not self._admit('constraints'):
-            return
         p = self.primitive
         try:
             doc = parse_constraints(msg.data, p['prim'] if p and p['kind'] == 'promp' else None,
                                     self.chain, self.config.max_json_bytes)
         except CdmpError as exc:
-            self._reject('constraints', str(exc))
+            self.gate.reject('constraints', str(exc))
             return
         self.constraint_doc = doc
         self.get_logger().info(f'constraint set with '
@@ -232,25 +209,21 @@ class AdapterNode(Node):
         self._trigger('constraints', 0)
 
     def _on_goal(self, msg: JointState) -> None:
-        if not self._admit('goal', [('goal.header.stamp', msg.header.stamp)]):
-            return
         try:
             g, _ = self.goal_mapper.to_arrays(msg, 'goal')
         except ValidationError as exc:
-            self._reject('goal', str(exc))
+            self.gate.reject('goal', str(exc))
             return
         self._set_goal('goal', g, None, stamp_to_ns(msg.header.stamp))
 
     def _on_goal_point(self, msg: PointStamped) -> None:
-        if not self._admit('goal_point', [('goal_point.header.stamp', msg.header.stamp)]):
-            return
         cfg = self.config
         try:
             target = goal_point_target(msg, cfg.base_frame)
             res = solve_goal_point(self.chain, target, self._ik_seeds(), cfg.ik_tolerance,
                                    cfg.ik_max_iter, margin=cfg.goal_margin)
         except ValidationError as exc:
-            self._reject('goal_point', str(exc))
+            self.gate.reject('goal_point', str(exc))
             return
         self._set_goal('goal_point', res.q, target, stamp_to_ns(msg.header.stamp))
 
@@ -266,31 +239,16 @@ class AdapterNode(Node):
         if clipped:
             changes = ', '.join(f'{self.joint_names[j]} {g[j]:.4g} -> {gc[j]:.4g}'
                                 for j in clipped)
-            self._reject(topic, f'{topic} outside the limits, clipped with the CDMP margin: '
-                                f'{changes}')
+            self.gate.reject(topic, f'{topic} outside the limits, clipped with the CDMP margin: '
+                                    f'{changes}')
         self.goal_y, self.goal_point = gc, point
         self.get_logger().info(f'new goal from {topic}: {np.round(gc, 4).tolist()}',
                                throttle_duration_sec=1.0)
         self._trigger(topic, stamp_ns)
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
-        if not self._admit('obstacles'):
-            return
-        good, stamp_ns = [], 0
-        cfg = self.config
-        now_ns = self.get_clock().now().nanoseconds
-        for i, m in enumerate(msg.markers):
-            if m.action != 3:  # DELETEALL needs no stamp
-                try:
-                    check_stamp(f'obstacles.markers[{i}].header.stamp', m.header.stamp, now_ns,
-                                cfg.max_stamp_age, cfg.max_stamp_lead, cfg.accept_unstamped)
-                except ValidationError as exc:
-                    self._reject('obstacles', str(exc))
-                    continue
-                stamp_ns = max(stamp_ns, stamp_to_ns(m.header.stamp))
-            good.append(m)
-        for exc in self.obstacles.apply(good, time.monotonic()):
-            self._reject('obstacles', str(exc))
+        good, stamp_ns = self.gate.markers('obstacles', msg)
+        self.gate.reject_all('obstacles', self.obstacles.apply(good, time.monotonic()))
         self._obstacles_changed('obstacles', stamp_ns)
 
     def _obstacles_changed(self, topic: str, stamp_ns: int) -> None:
@@ -338,8 +296,8 @@ class AdapterNode(Node):
         d, clipped = retarget_clipped(p['d'], self.goal_y, self.joint_names,
                                       self.config.goal_margin)
         if clipped:
-            self._reject(topic, f'{topic} outside the primitive limits, clipped: '
-                                + ', '.join(self.joint_names[j] for j in clipped))
+            self.gate.reject(topic, f'{topic} outside the primitive limits, clipped: '
+                                    + ', '.join(self.joint_names[j] for j in clipped))
         d['metadata'] = dict(d.get('metadata') or {})
         d['metadata']['adapter'] = {'trigger': topic, 'outcome': 'retargeted',
                                     'source_sha1': p['sha1']}
@@ -382,7 +340,7 @@ class AdapterNode(Node):
         self._clear_result_values()
         kv = result_values(res)
         if res.outcome == 'rejected':
-            self._reject(res.error_topic or job.trigger, res.error)
+            self.gate.reject(res.error_topic or job.trigger, res.error)
             self.reporter.set_state(ERROR, f'request {job.id} ({job.trigger}) rejected: '
                                            f'{res.error}', **kv)
             self._publish_now()
@@ -414,7 +372,7 @@ class AdapterNode(Node):
 
     def _publish_now(self) -> None:
         self.reporter.set_state(self.reporter.level, self.reporter.message,
-                                **self.worker.summary(), **self.counts)
+                                **self.worker.summary(), **self.counts, **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def _publish_diagnostics(self) -> None:

@@ -9,7 +9,9 @@
 - the node's state: level (OK/WARN/ERROR), a message and key/values set by the node.
 
 ``publish(now)`` sends one ``DiagnosticArray`` with a status ``<node>: state``, one
-``<node>: input <topic>`` per topic that ever had a rejection and one ``<node>: timing``.
+``<node>: input <topic>`` per topic that ever had a rejection (``rejected_total``,
+``rejected_since_last_report``, ``last_reason`` and ``rejected_<category>`` per reason
+category given) and one ``<node>: timing``.
 ``publish_if_due`` also publishes early (at most every ``min_interval``) when something was
 rejected, so a rejection shows on ``diagnostics`` promptly but a flood is summarised.
 """
@@ -77,6 +79,7 @@ class DiagnosticsReporter:
         self.message = 'starting'
         self.values: Dict[str, str] = {}
         self._rejected: Dict[str, List] = {}  # topic -> [total, since_report, reason, last_log]
+        self._categories: Dict[str, Dict[str, int]] = {}  # topic -> {category: count}
         self._timings: Dict[str, _Timing] = {}
         self._dirty = False
         self._last_publish = -math.inf
@@ -89,8 +92,12 @@ class DiagnosticsReporter:
         for k, v in values.items():
             self.values[k] = str(v)
 
-    def reject(self, topic: str, reason: str) -> None:
-        """Record (and log, throttled) a rejected or sanitised input on ``topic``."""
+    def reject(self, topic: str, reason: str, category: Optional[str] = None) -> None:
+        """Record (and log, throttled) a rejected or sanitised input on ``topic``; with a
+        ``category``, also counted as ``rejected_<category>`` of the topic."""
+        if category is not None:
+            cats = self._categories.setdefault(topic, {})
+            cats[category] = cats.get(category, 0) + 1
         entry = self._rejected.get(topic)
         now = time.monotonic()
         if entry is None:
@@ -139,7 +146,9 @@ class DiagnosticsReporter:
                 message=f'rejected: {reason}' if since else 'ok', hardware_id=hw,
                 values=[KeyValue(key='rejected_total', value=str(total)),
                         KeyValue(key='rejected_since_last_report', value=str(since)),
-                        KeyValue(key='last_reason', value=reason)]))
+                        KeyValue(key='last_reason', value=reason)]
+                + [KeyValue(key=f'rejected_{c}', value=str(n))
+                   for c, n in sorted(self._categories.get(topic, {}).items())]))
         if self._timings:
             values = []
             for name, t in sorted(self._timings.items()):

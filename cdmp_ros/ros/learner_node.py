@@ -3,9 +3,11 @@
 - Demonstrations come from bags (``demonstration_bags``, topic ``demonstration_topic``) and
   from the ``demonstration`` topic (sensor_msgs/JointState), segmented as described in
   :mod:`cdmp_ros.core.demonstrations` (a gap of ``demonstration_gap`` seconds, or an empty
-  JointState as end marker). Every sample is validated (names mapped in any order, NaN/inf,
-  lengths, unknown/missing/duplicate joints, stamps, non-monotonic time, limits, flooding);
-  every rejection is logged and counted on ``diagnostics``; bad bags are reported the same way.
+  JointState as end marker). Every sample passes :class:`cdmp_ros.ros.input_gate.InputGate`
+  (rate limit, then more names than joints rejected before deserialisation) and is validated
+  (names mapped in any order, NaN/inf, lengths, unknown/missing/duplicate joints, stamps,
+  non-monotonic time, limits); every rejection is logged and counted on ``diagnostics``; bad
+  bags are reported the same way.
 - ``primitive`` (std_msgs/String JSON, transient-local): published at start (fit from the
   bags when ``fit_on_start``), after ``~/refit`` and after ``~/improve``.
 - Services (std_srvs/Trigger): ``~/refit`` (bags + topic demonstrations so far), ``~/save``
@@ -40,11 +42,11 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.improve import CostConfig, ImproveConfig
 from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig, fit_primitive
 from cdmp_ros.core.primitive_io import primitive_to_dict, save_primitive
-from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.core.validation import check_limits
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.convert import JointStateMapper, check_stamp, stamp_to_ns
+from cdmp_ros.ros.convert import JointStateMapper, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.input_gate import InputGate, joint_names
 from cdmp_ros.ros.learner_improve import ImproveWorker, load_bag_demonstrations
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.robot_model import default_urdf_path
@@ -73,13 +75,15 @@ class LearnerNode(Node):
                                                 cfg.demonstration_gap, cfg.min_samples,
                                                 cfg.max_samples, cfg.limit_tolerance)
         self.topic_demos = collections.deque(maxlen=cfg.max_demonstrations)
-        self.limiter = RateLimiter(cfg.max_input_rate)
         self.pub = self.create_publisher(String, 'primitive', qos_profiles.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'learner')
-        self.create_subscription(JointState, 'demonstration', self._on_demonstration,
-                                 DEMONSTRATION_QOS)
+        self.gate = InputGate(self, self.reporter, lambda: self.config)
+        self.gate.set_rates({'demonstration': cfg.max_input_rate})
+        n = len(cfg.joint_names)
+        self.gate.subscribe(JointState, 'demonstration', self._on_demonstration,
+                            DEMONSTRATION_QOS, size=joint_names(lambda: n))
         self.create_service(Trigger, '~/refit', self._srv_refit)
         self.create_service(Trigger, '~/save', self._srv_save)
         self.create_service(Trigger, '~/improve', self._srv_improve)
@@ -148,8 +152,8 @@ class LearnerNode(Node):
         if cfg.max_demonstrations != self.topic_demos.maxlen:
             self.topic_demos = collections.deque(self.topic_demos,
                                                  maxlen=cfg.max_demonstrations)
-        if cfg.max_input_rate != self.limiter.rate:
-            self.limiter = RateLimiter(cfg.max_input_rate)
+        if cfg.max_input_rate != self.gate.limiters['demonstration'].rate:
+            self.gate.set_rates({'demonstration': cfg.max_input_rate})
         if abs(cfg.diagnostics_period - self.diag_timer.timer_period_ns * 1e-9) > 1e-9:
             self.destroy_timer(self.diag_timer)
             self.diag_timer = self.create_timer(cfg.diagnostics_period,
@@ -160,31 +164,21 @@ class LearnerNode(Node):
         return self.params['']
 
     # -- demonstrations ----------------------------------------------------------------------
-    def _reject(self, topic: str, reason: str) -> None:
-        self.reporter.reject(topic, reason)
-        self.reporter.publish_if_due(self.get_clock().now().to_msg())
-
     def _on_demonstration(self, msg: JointState) -> None:
         now = time.monotonic()
-        if not self.limiter.allow(now):
-            d = self.limiter.dropped
-            if d == 1 or d % 100 == 0:
-                self._reject('demonstration', f'flooding: more than {self.limiter.rate:g} '
-                                              f'messages/s, {d} dropped so far')
-            return
         if len(msg.name) == 0 and len(msg.position) == 0:
             self._handle(self.segmenter.end('end marker (empty JointState)'))
             return
-        cfg = self.config
+        if not self.gate.stamp_ok('demonstration', 'demonstration.header.stamp',
+                                  msg.header.stamp):
+            return
         now_ns = self.get_clock().now().nanoseconds
         try:
-            check_stamp('demonstration.header.stamp', msg.header.stamp, now_ns,
-                        cfg.max_stamp_age, cfg.max_stamp_lead, cfg.accept_unstamped)
             q, _ = self.mapper.to_arrays(msg, 'demonstration')
             stamp_ns = stamp_to_ns(msg.header.stamp) or now_ns
             events = self.segmenter.add(stamp_ns * 1e-9, q, now)
         except ValidationError as exc:
-            self._reject('demonstration', str(exc))
+            self.gate.reject('demonstration', str(exc))
             return
         self.counts['samples'] += 1
         self._handle(events)
@@ -192,7 +186,7 @@ class LearnerNode(Node):
     def _handle(self, events) -> None:
         for ev in events:
             if ev.demo is None:
-                self._reject('demonstration', ev.message)
+                self.gate.reject('demonstration', ev.message)
                 continue
             self.topic_demos.append(ev.demo)
             self.get_logger().info(f'{ev.message}; {len(self.topic_demos)} topic '
@@ -212,9 +206,9 @@ class LearnerNode(Node):
             cfg.demonstration_bags, cfg.demonstration_topic, cfg.joint_names, self.lower,
             self.upper, cfg.min_samples, cfg.limit_tolerance)
         if errors:  # one entry, every reason (the reporter keeps the last reason only)
-            self._reject('demonstration_bags', f'{len(errors)} of '
-                                               f'{len(cfg.demonstration_bags)} entries '
-                                               f'rejected: ' + '; '.join(errors))
+            self.gate.reject('demonstration_bags', f'{len(errors)} of '
+                                                   f'{len(cfg.demonstration_bags)} entries '
+                                                   f'rejected: ' + '; '.join(errors))
         self.counts['bag_demonstrations'] = len(demos)
         n_bag = len(demos)
         demos = demos + list(self.topic_demos)
@@ -230,7 +224,7 @@ class LearnerNode(Node):
                                                'from_topic': len(demos) - n_bag}
             text = self._publish(prim, f'fit ({reason})')
         except (CdmpError, ValueError, np.linalg.LinAlgError) as exc:
-            self._reject('demonstration', f'fit failed: {exc}')
+            self.gate.reject('demonstration', f'fit failed: {exc}')
             return False, f'refit ({reason}) failed: {exc}'
         dt = time.perf_counter() - t0
         self.reporter.timing('fit', dt)
@@ -315,7 +309,7 @@ class LearnerNode(Node):
         self.worker = None
         if error is not None:
             self.improve_values = {'improve': f'failed: {error}'}
-            self._reject('improve', f'improvement failed: {error}')
+            self.gate.reject('improve', f'improvement failed: {error}')
         else:
             self._finish_improve(result, w.elapsed)
         self._publish_diagnostics()
@@ -344,7 +338,8 @@ class LearnerNode(Node):
             self.reporter.level, self.reporter.message, kind=self.config.kind,
             primitive=(f'{prim.kind} ({self.source})' if prim is not None else 'none'),
             topic_demonstrations=len(self.topic_demos),
-            pending_samples=self.segmenter.n_pending, **self.counts, **values)
+            pending_samples=self.segmenter.n_pending, **self.counts, **values,
+            **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

@@ -23,10 +23,13 @@ simulation slips and the slip is counted); without it, each tick steps for a sli
 of simulated time gets its own joint_states / ee_pose message, stamped with the wall time of
 its slot (simulated time with ``publish_clock``).
 
-Every input is validated (:mod:`cdmp_ros.ros.convert`), rate-limited against flooding, and
-each rejection or sanitisation is logged and counted per topic and per reason on
-``diagnostics``; the node keeps running. A reference outside the joint limits is clipped into
-them, a velocity above the URDF velocity limit is clipped (both reported).
+Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
+size checks: a MarkerArray of more than ``max_obstacles + 1`` markers, a joint_reference of more
+names than the robot has joints, is rejected before it is deserialised), then the per-element
+validation (:mod:`cdmp_ros.ros.convert`); each rejection or sanitisation is logged and counted
+per topic and per reason on ``diagnostics``; the node keeps running. A reference outside the
+joint limits is clipped into them, a velocity above the URDF velocity limit is clipped (both
+reported).
 
 Diagnostics: status ``sim: state`` (level WARN while holding a stale reference or in contact)
 with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
@@ -36,7 +39,7 @@ with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_dista
 ``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
 ``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
 ``resets``, ``rejected_total`` and ``rejected_<reason>`` per category of
-:data:`cdmp_ros.ros.sim_support.REASONS`; ``sim: input <topic>`` per topic with rejections
+:data:`cdmp_ros.ros.input_gate.REASONS`; ``sim: input <topic>`` per topic with rejections
 (``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
 """
 import math
@@ -54,12 +57,12 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, check_stamp
+from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.sim_support import CLOCK_QOS, reason_category, STATE_QOS
+from cdmp_ros.ros.sim_support import CLOCK_QOS, STATE_QOS
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
 
@@ -127,8 +130,6 @@ class SimNode(Node):
         self.mapper = JointStateMapper(sim.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(sim.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
-        self._limiters = {}
-        self._make_limiters(cfg)
         self.js_pub = self.create_publisher(JointState, 'joint_states', STATE_QOS)
         self.pose_pub = self.create_publisher(PoseStamped, 'ee_pose', STATE_QOS)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
@@ -139,10 +140,13 @@ class SimNode(Node):
             self._clock_msg = ClockMsg()
             self.clock_pub = self.create_publisher(ClockMsg, '/clock', CLOCK_QOS)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
-        self.create_subscription(JointState, 'joint_reference', self._on_reference,
-                                 qos_profiles.REFERENCE)
-        self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
-                                 qos_profiles.COMMAND)
+        self.gate = InputGate(self, self.reporter, lambda: self.config, now_ns=self._now_ns)
+        self._set_rates(cfg)
+        self.gate.subscribe(JointState, 'joint_reference', self._on_reference,
+                            qos_profiles.REFERENCE, size=joint_names(lambda: len(sim.joint_names)),
+                            stamped=True)
+        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+                            size=marker_count(lambda: self.config.max_obstacles))
         self.create_service(Trigger, '~/snapshot', self._on_snapshot)
         self.create_service(Trigger, '~/reset', self._on_reset)
 
@@ -152,7 +156,6 @@ class SimNode(Node):
         self._pose.header.frame_id = sim.base_frame
         self.counts = {'references_received': 0, 'joint_states_published': 0,
                        'slipped_steps': 0, 'snapshots': 0, 'resets': 0}
-        self.rejected_by_reason = {}
         self._ref_time = None   # steady time of the last accepted reference
         self._holding = False
         self._n_published = 0
@@ -174,9 +177,9 @@ class SimNode(Node):
     def config(self) -> SimConfig:
         return self.params['']
 
-    def _make_limiters(self, cfg: SimConfig) -> None:
-        self._limiters['joint_reference'] = RateLimiter(cfg.max_reference_rate)
-        self._limiters['obstacles'] = RateLimiter(cfg.max_input_rate)
+    def _set_rates(self, cfg: SimConfig) -> None:
+        self.gate.set_rates({'joint_reference': cfg.max_reference_rate,
+                             'obstacles': cfg.max_input_rate})
 
     def _make_timer(self, cfg: SimConfig) -> None:
         if self.timer is not None:
@@ -198,7 +201,7 @@ class SimNode(Node):
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
-        self._make_limiters(cfg)
+        self._set_rates(cfg)
         if cfg.obstacles_collide != old.obstacles_collide:
             self._sync_obstacles()
         if cfg.real_time != old.real_time:
@@ -217,73 +220,37 @@ class SimNode(Node):
             return int(round(self.sim.n_steps * 1e9 / self.config.physics_rate))
         return self.get_clock().now().nanoseconds
 
-    def _reject(self, topic: str, reason: str) -> None:
-        cat = reason_category(reason)
-        self.rejected_by_reason[cat] = self.rejected_by_reason.get(cat, 0) + 1
-        self.reporter.reject(topic, reason)
-        self.reporter.publish_if_due(self.get_clock().now().to_msg())
-
-    def _admit(self, topic: str, now: float) -> bool:
-        lim = self._limiters[topic]
-        if lim.allow(now):
-            return True
-        if lim.dropped == 1 or lim.dropped % 100 == 0:
-            self._reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
-                                f'{lim.dropped} dropped so far')
-        else:
-            self.rejected_by_reason['flooding'] = self.rejected_by_reason.get('flooding', 0) + 1
-        return False
-
-    def _stamp_ok(self, topic: str, name: str, stamp) -> bool:
-        cfg = self.config
-        try:
-            check_stamp(name, stamp, self._now_ns(), cfg.max_stamp_age, cfg.max_stamp_lead,
-                        cfg.accept_unstamped)
-        except ValidationError as exc:
-            self._reject(topic, str(exc))
-            return False
-        return True
-
     def _on_reference(self, msg: JointState) -> None:
         topic = 'joint_reference'
-        now = time.monotonic()
-        if not self._admit(topic, now) or not self._stamp_ok(
-                topic, 'joint_reference.header.stamp', msg.header.stamp):
-            return
         try:
             q, qd = self.mapper.to_arrays(msg, topic)
         except ValidationError as exc:
-            self._reject(topic, str(exc))
+            self.gate.reject(topic, str(exc))
             return
         sim = self.sim
         names = sim.joint_names
         q, bad = limit_clip(q, sim.lower, sim.upper)
         if bad:
             j = bad[0]
-            self._reject(topic, f'joint_reference.position of {names[j]!r} is outside the '
-                                f'limits [{sim.lower[j]}, {sim.upper[j]}], clipped to {q[j]:.6g}'
-                                f' ({len(bad)} joint(s))')
+            self.gate.reject(topic, f'joint_reference.position of {names[j]!r} is outside '
+                                    f'the limits [{sim.lower[j]}, {sim.upper[j]}], clipped to '
+                                    f'{q[j]:.6g} ({len(bad)} joint(s))')
         if qd is not None:
             vmax = sim.velocity_limits
             qd, bad = limit_clip(qd, -vmax, vmax)
             if bad:
                 j = bad[0]
-                self._reject(topic, f'joint_reference.velocity of {names[j]!r} exceeds the '
-                                    f'velocity limit {vmax[j]}, clipped ({len(bad)} joint(s))')
+                self.gate.reject(topic, f'joint_reference.velocity of {names[j]!r} exceeds '
+                                        f'the velocity limit {vmax[j]}, clipped '
+                                        f'({len(bad)} joint(s))')
         sim.set_reference(q, qd)
         self.counts['references_received'] += 1
-        self._ref_time = now
+        self._ref_time = time.monotonic()
         self._holding = False
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
-        now = time.monotonic()
-        if not self._admit('obstacles', now):
-            return
-        good = [m for i, m in enumerate(msg.markers)
-                if m.action == 3 or self._stamp_ok(  # DELETEALL needs no stamp
-                    'obstacles', f'obstacles.markers[{i}].header.stamp', m.header.stamp)]
-        for exc in self.obstacles.apply(good, now):
-            self._reject('obstacles', str(exc))
+        good, _ = self.gate.markers('obstacles', msg)
+        self.gate.reject_all('obstacles', self.obstacles.apply(good, time.monotonic()))
         self._sync_obstacles()
 
     def _sync_obstacles(self) -> None:
@@ -292,7 +259,7 @@ class SimNode(Node):
             self.sim.sync_obstacles({f'{ns}/{i}': item for (ns, i), item in
                                      zip(snap.keys, snap.items)})
         except Exception as exc:  # noqa: BLE001 -- pybullet refused a shape: keep running
-            self._reject('obstacles', f'cannot be simulated: {exc}')
+            self.gate.reject('obstacles', f'cannot be simulated: {exc}')
         self.sim.monitor()
 
     # -- services ----------------------------------------------------------------------------
@@ -413,13 +380,11 @@ class SimNode(Node):
             rtf = (sim.t - s0) / (now - t0)
         self._rtf = (now, sim.t, rtf)
         level, text, state = self._state()
-        rejected = {f'rejected_{k}': v for k, v in self.rejected_by_reason.items()}
-        rejected['rejected_total'] = sum(self.rejected_by_reason.values())
         self.reporter.set_state(
             level, text, state=state, robot=self.config.robot, control=self.config.control,
             obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}',
             real_time_factor=f'{rtf:.3f}' if math.isfinite(rtf) else 'nan',
-            **sim.stats.as_values(), **self.counts, **rejected)
+            **sim.stats.as_values(), **self.counts, **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

@@ -4,8 +4,11 @@ Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer
 subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``
 and ``obstacles``; reports on ``diagnostics``. Primitive messages are parsed and prepared in a
 worker thread (the latest one wins), so a large primitive never delays a tick; the tick only
-switches the prepared stepper in. Every input is validated (:mod:`cdmp_ros.ros.convert`),
-rate-limited against flooding, and each rejection is logged and counted on ``diagnostics``.
+switches the prepared stepper in. Every input passes
+:class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time size checks before
+deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint count), then the
+per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
+``diagnostics``.
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
 deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
@@ -38,14 +41,14 @@ from cdmp_ros.core.coupling import DampingConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
-from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.core.stream_primitives import prepare_primitive
 from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer,
                                      StreamerConfig, StreamFlags, StreamState)
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSet,
-                                  check_stamp)
+from cdmp_ros.ros.convert import JointStateMapper, JointStateWriter, ObstacleSet
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
+                                     marker_count)
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
 from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
@@ -81,27 +84,37 @@ class StreamerNode(Node):
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
-        self._limiters = {}
-        self._make_limiters(cfg)
 
         self.pub = self.create_publisher(JointState, 'joint_reference', qos_profiles.REFERENCE)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
+        # the reporter's own lock: building and publishing diagnostics (milliseconds on a
+        # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
+        # writes without a lock
+        self._report_lock = threading.Lock()
+        self.gate = InputGate(self, self.reporter, lambda: self.config, lock=self._report_lock)
+        self._set_rates(cfg)
         self.writer = JointStateWriter(JointState(), cfg.joint_names, cfg.base_frame)
+        n = len(cfg.joint_names)
+        cfg_now = lambda: self.config  # noqa: E731
         for topic in PRIMITIVE_TOPICS:
-            self.create_subscription(String, topic, lambda m, t=topic: self._on_primitive(t, m),
-                                     qos_profiles.LATCHED)
-        self.create_subscription(JointState, 'goal', self._on_goal, qos_profiles.COMMAND)
-        self.create_subscription(JointState, 'joint_states', self._on_joint_states,
-                                 qos_profiles.SENSOR)
-        self.create_subscription(MarkerArray, 'obstacles', self._on_obstacles,
-                                 qos_profiles.COMMAND)
+            self.gate.subscribe(String, topic, lambda m, t=topic: self._on_primitive(t, m),
+                                qos_profiles.LATCHED,
+                                size=json_bytes(lambda: cfg_now().max_json_bytes))
+        self.gate.subscribe(JointState, 'goal', self._on_goal, qos_profiles.COMMAND,
+                            size=joint_names(lambda: n), stamped=True)
+        self.gate.subscribe(JointState, 'joint_states', self._on_joint_states,
+                            qos_profiles.SENSOR, size=joint_names(lambda: n + EXTRA_JOINTS),
+                            stamped=True)
+        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+                            size=marker_count(lambda: cfg_now().max_obstacles))
 
         self.worker = PrimitiveWorker(self._prepare)
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
-                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0}
+                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
+                       'late_ticks': 0}
         self.active_text = None
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
@@ -110,10 +123,6 @@ class StreamerNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._dt = cfg.dt
         self._lock = threading.RLock()  # the tick reports rejections while holding it
-        # the reporter's own lock: building and publishing diagnostics (milliseconds on a
-        # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
-        # writes without a lock
-        self._report_lock = threading.Lock()
         self._tick_errors = 0
         self._t0 = time.monotonic()
         # stamps: slot j is stamped stamp0 + j / rate exactly (ROS clock = steady clock +
@@ -157,10 +166,9 @@ class StreamerNode(Node):
                                 sphere_field=configs['repeller'],
                                 box_field=configs['box_field'], config=cc)
 
-    def _make_limiters(self, cfg: StreamerConfig) -> None:
-        for topic in PRIMITIVE_TOPICS + ('goal', 'obstacles'):
-            self._limiters[topic] = RateLimiter(cfg.max_input_rate)
-        self._limiters['joint_states'] = RateLimiter(cfg.max_joint_states_rate)
+    def _set_rates(self, cfg: StreamerConfig) -> None:
+        rates = {t: cfg.max_input_rate for t in PRIMITIVE_TOPICS + ('goal', 'obstacles')}
+        self.gate.set_rates(dict(rates, joint_states=cfg.max_joint_states_rate))
 
     def _on_params(self, configs) -> None:
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
@@ -181,66 +189,34 @@ class StreamerNode(Node):
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
-        self._make_limiters(cfg)
+        self._set_rates(cfg)
 
     @property
     def config(self) -> StreamerConfig:
         return self.params['']
 
     # -- inputs ------------------------------------------------------------------------------
-    def _admit(self, topic: str, now: float, stamps=()) -> bool:
-        """Flooding and stamp checks shared by the subscriptions."""
-        if not self._limiters[topic].allow(now):
-            lim = self._limiters[topic]
-            if lim.dropped == 1 or lim.dropped % 100 == 0:
-                self._reject(topic, f'flooding: more than {lim.rate:g} messages/s, '
-                                    f'{lim.dropped} dropped so far')
-            return False
-        cfg = self.config
-        if stamps:
-            now_ns = self.get_clock().now().nanoseconds
-            try:
-                for name, stamp in stamps:
-                    check_stamp(name, stamp, now_ns, cfg.max_stamp_age, cfg.max_stamp_lead,
-                                cfg.accept_unstamped)
-            except ValidationError as exc:
-                self._reject(topic, str(exc))
-                return False
-        return True
-
-    def _reject(self, topic: str, reason: str) -> None:
-        with self._report_lock:
-            self.reporter.reject(topic, reason)
-            self.reporter.publish_if_due(self.get_clock().now().to_msg())
-
     def _on_joint_states(self, msg: JointState) -> None:
-        now = time.monotonic()
-        if not self._admit('joint_states', now, [('joint_states.header.stamp',
-                                                  msg.header.stamp)]):
-            return
         try:
             q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
         except ValidationError as exc:
-            self._reject('joint_states', str(exc))
+            self.gate.reject('joint_states', str(exc))
             return
         lo, hi = self.streamer.lower, self.streamer.upper
         if np.any(q < lo - 0.05) or np.any(q > hi + 0.05):  # measured noise tolerance
             j = int(np.flatnonzero((q < lo - 0.05) | (q > hi + 0.05))[0])
-            self._reject('joint_states', f'joint_states.position of '
-                                         f'{self.streamer.joint_names[j]!r}: {q[j]:.4g} is '
-                                         f'outside the limits [{lo[j]}, {hi[j]}]')
+            self.gate.reject('joint_states', f'joint_states.position of '
+                                             f'{self.streamer.joint_names[j]!r}: {q[j]:.4g} is '
+                                             f'outside the limits [{lo[j]}, {hi[j]}]')
             return
         with self._lock:
-            self.streamer.note_joint_states(q, now)
+            self.streamer.note_joint_states(q, time.monotonic())
 
     def _on_goal(self, msg: JointState) -> None:
-        now = time.monotonic()
-        if not self._admit('goal', now, [('goal.header.stamp', msg.header.stamp)]):
-            return
         try:
             g, _ = self.goal_mapper.to_arrays(msg, 'goal')
         except ValidationError as exc:
-            self._reject('goal', str(exc))
+            self.gate.reject('goal', str(exc))
             return
         with self._lock:
             clipped = self.streamer.set_goal(g)
@@ -248,25 +224,14 @@ class StreamerNode(Node):
             gc = self.streamer.goal_override
             names = self.streamer.joint_names
             changes = ', '.join(f'{names[j]} {g[j]:.4g} -> {gc[j]:.4g}' for j in clipped)
-            self._reject('goal', f'goal.position outside the limits, clipped with the CDMP '
-                                 f'margin: {changes}')
+            self.gate.reject('goal', f'goal.position outside the limits, clipped with the '
+                                     f'CDMP margin: {changes}')
         self.get_logger().info(f'new goal {np.round(self.streamer.goal_override, 4).tolist()}',
                                throttle_duration_sec=1.0)
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
         now = time.monotonic()
-        if not self._admit('obstacles', now):
-            return
-        good = []
-        newest = 0
-        for i, m in enumerate(msg.markers):
-            newest = max(newest, m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
-            if m.action == 3:  # DELETEALL needs no stamp
-                good.append(m)
-                continue
-            if self._admit_stamp('obstacles', f'obstacles.markers[{i}].header.stamp',
-                                 m.header.stamp):
-                good.append(m)
+        good, newest = self.gate.markers('obstacles', msg)
         with self._lock:
             errors = self.obstacles.apply(good, now)
             self.coupling_source.obstacles = self.obstacles.snapshot.items
@@ -275,22 +240,9 @@ class StreamerNode(Node):
             self._latency_pending_ns = newest or self.get_clock().now().nanoseconds
         if self.tick_thread is not None and self.config.obstacle_wakeup:
             self._sleeper.wake()
-        for exc in errors:
-            self._reject('obstacles', str(exc))
-
-    def _admit_stamp(self, topic, name, stamp) -> bool:
-        cfg = self.config
-        try:
-            check_stamp(name, stamp, self.get_clock().now().nanoseconds, cfg.max_stamp_age,
-                        cfg.max_stamp_lead, cfg.accept_unstamped)
-        except ValidationError as exc:
-            self._reject(topic, str(exc))
-            return False
-        return True
+        self.gate.reject_all('obstacles', errors)
 
     def _on_primitive(self, topic: str, msg: String) -> None:
-        if not self._admit(topic, time.monotonic()):
-            return
         self.worker.submit(topic, msg.data)
 
     def _prepare(self, topic: str, text: str):
@@ -323,7 +275,10 @@ class StreamerNode(Node):
             try:
                 with lock:
                     if not woken:  # deadline -> tick running (sleep, GIL and lock)
-                        timing('tick_wake_late', clock() - deadline)
+                        late = clock() - deadline
+                        timing('tick_wake_late', late)
+                        if late > dt:  # the slot went out after the next slot's deadline
+                            self.counts['late_ticks'] += 1
                     elif clock() < deadline:  # the next slot goes out now, stamped on the grid
                         self.counts['early_ticks'] += 1
                     self._tick()
@@ -351,7 +306,7 @@ class StreamerNode(Node):
         now = time.monotonic()
         for topic, prepared, error in self.worker.take():
             if prepared is None:
-                self._reject(topic, error)
+                self.gate.reject(topic, error)
             else:
                 text = self.streamer.activate(prepared, now)
                 self.get_logger().info(text + ('; ' + '; '.join(prepared.notes)
@@ -425,7 +380,7 @@ class StreamerNode(Node):
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
                 rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
-                **counts)
+                **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

@@ -1,0 +1,353 @@
+"""The input gate (cdmp_ros/ros/input_gate.py): oversize input is rejected in constant time,
+before it is deserialised, by every node; the rejection is counted by topic and reason on
+diagnostics, and a following valid input is still accepted.
+
+Unit tests of the CDR peeks and of the gate's order (rate limit, size, deserialisation) run
+without processes; one process test per node (sim, streamer, adapter, learner).
+"""
+import json
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from conftest import module_domain
+
+DOMAIN = module_domain(17)
+STARTUP = 60.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
+EVIDENCE = 30.0  # s; diagnostics arrive every 0.2-0.5 s, generous on a loaded machine
+JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
+Q_HOME = np.array([0.0, -0.785398163, 0.0, -2.35619449, 0.0, 1.570796327, 0.785398163])
+
+
+# -- helpers -----------------------------------------------------------------------------------
+def marker_array(n, frame='panda_link0', stamp=None, start_id=0):
+    """``n`` SPHERE markers of 5 cm radius in front of the robot."""
+    from visualization_msgs.msg import Marker, MarkerArray
+    out = MarkerArray()
+    for i in range(n):
+        m = Marker(ns='gate', id=start_id + i, type=Marker.SPHERE, action=Marker.ADD)
+        m.header.frame_id = frame
+        if stamp is not None:
+            m.header.stamp = stamp
+        m.pose.position.x, m.pose.position.z = 0.6, 0.5
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = 0.1
+        out.markers.append(m)
+    return out
+
+
+def joint_state(n_names, positions=None):
+    from sensor_msgs.msg import JointState
+    msg = JointState()
+    msg.name = [f'j{i}' for i in range(n_names)] if positions is None else list(JOINTS)
+    msg.position = [0.0] * n_names if positions is None else [float(v) for v in positions]
+    return msg
+
+
+def last_kv(h, name):
+    """The key/values of the latest diagnostics status called ``name`` ({} if none)."""
+    with h.lock:
+        for rec in reversed(h.diag_messages):
+            if rec[1] == name:
+                return rec[-1]
+    return {}
+
+
+def count(h, name, key):
+    return int(last_kv(h, name).get(key, 0))
+
+
+def wait_for(pred, timeout=EVIDENCE):
+    from streamer_util import wait_for as _wait_for
+    return _wait_for(pred, timeout)
+
+
+def until(pred, publish, period=0.5, timeout=EVIDENCE):
+    """Publish every ``period`` (a message may go out before discovery completes, and stays
+    far below every rate limit) until ``pred()``."""
+    last = [-1e9]
+
+    def check():
+        if pred():
+            return True
+        if time.monotonic() - last[0] >= period:
+            last[0] = time.monotonic()
+            publish()
+        return False
+    return wait_for(check, timeout)
+
+
+def expect_oversize(h, node, topic, text, publish):
+    """Publish until ``node: input topic`` shows one more oversize rejection, whose reason
+    contains ``text``; returns that reason."""
+    name = f'{node}: input {topic}'
+    before = count(h, name, 'rejected_oversize')
+    assert until(lambda: count(h, name, 'rejected_oversize') > before, publish), \
+        (name, last_kv(h, name))
+    reason = last_kv(h, name)['last_reason']
+    assert text in reason and 'rejected unparsed' in reason, reason
+    return reason
+
+
+# -- unit tests of the CDR peeks and of the gate -------------------------------------------------
+def test_cdr_peeks_read_the_counts_of_serialized_messages():
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from cdmp_ros.ros.input_gate import cdr_first_count, cdr_joint_state_names
+    for n in (0, 1, 7, 123):
+        assert cdr_first_count(serialize_message(marker_array(n))) == n
+    for frame in ('', 'a', 'ab', 'abc', 'abcd', 'base_link_0'):
+        for n in (0, 1, 7, 10000):
+            msg = joint_state(n)
+            msg.header.frame_id = frame
+            assert cdr_joint_state_names(serialize_message(msg)) == n, (frame, n)
+    text = 'ü' * 10
+    assert cdr_first_count(serialize_message(String(data=text))) == len(text.encode()) + 1
+    # big-endian CDR (encapsulation 0x0000) and truncated messages
+    assert cdr_first_count(b'\x00\x00\x00\x00' + struct.pack('>I', 5000)) == 5000
+    assert cdr_first_count(b'\x00\x01\x00') is None
+    assert cdr_joint_state_names(b'\x00\x01\x00\x00' + b'\x00' * 8) is None
+
+
+def test_size_checks_name_what_is_too_large():
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from cdmp_ros.ros.input_gate import joint_names, json_bytes, marker_count, message_bytes
+    check = marker_count(lambda: 64)
+    reason = check('obstacles', serialize_message(marker_array(640)))
+    assert 'obstacles.markers: 640 markers exceed max_obstacles + 1 = 65' in reason
+    assert check('obstacles', serialize_message(marker_array(65))) is None
+    check = json_bytes(lambda: 1000)
+    reason = check('constraints', serialize_message(String(data='x' * 1001)))
+    assert 'constraints: payload of 1001 bytes exceeds max_json_bytes = 1000' in reason
+    assert check('constraints', serialize_message(String(data='x' * 1000))) is None
+    check = joint_names(lambda: 7)
+    reason = check('goal', serialize_message(joint_state(10000)))
+    assert 'goal.name: 10000 names exceed the limit of 7' in reason
+    assert check('goal', serialize_message(joint_state(7, Q_HOME))) is None
+    long_positions = joint_state(7, Q_HOME)
+    long_positions.position = [0.0] * 100000  # 7 names, an oversize array
+    assert 'bytes per joint' in check('goal', serialize_message(long_positions))
+    assert 'exceeds 10 bytes' in message_bytes(lambda: 10)('goal_point', b'x' * 11)
+
+
+class _Node:
+    """The parts of rclpy.node.Node the gate and the reporter use."""
+
+    def __init__(self):
+        import rclpy.clock
+        self.subscriptions = {}
+        self.clock = rclpy.clock.Clock()
+        self.logged = []
+
+    def create_subscription(self, msg_type, topic, callback, qos, raw=False):
+        assert raw, 'the gate must subscribe serialized messages'
+        self.subscriptions[topic] = callback
+
+    def get_clock(self):
+        return self.clock
+
+    def get_logger(self):
+        node = self
+
+        class Logger:
+            def warning(self, text):
+                node.logged.append(text)
+        return Logger()
+
+    def get_fully_qualified_name(self):
+        return '/gate_test'
+
+
+class _Config:
+    max_stamp_age, max_stamp_lead, accept_unstamped = 5.0, 1.0, True
+
+
+def _gate():
+    from cdmp_ros.ros.diagnostics import DiagnosticsReporter
+    from cdmp_ros.ros.input_gate import InputGate
+
+    class Pub:
+        def __init__(self):
+            self.sent = []
+
+        def publish(self, msg):
+            self.sent.append(msg)
+    node = _Node()
+    reporter = DiagnosticsReporter(node, Pub(), 'gate')
+    return node, reporter, InputGate(node, reporter, lambda: _Config())
+
+
+def test_gate_rejects_oversize_before_deserializing_and_counts_by_topic_and_reason():
+    from rclpy.serialization import serialize_message
+    from visualization_msgs.msg import MarkerArray
+
+    from cdmp_ros.ros.input_gate import marker_count
+    node, reporter, gate = _gate()
+    gate.set_rates({'obstacles': 1000.0})
+    got = []
+    gate.subscribe(MarkerArray, 'obstacles', got.append, 10, size=marker_count(lambda: 4))
+    deliver = node.subscriptions['obstacles']
+    # only the CDR header of a 5,000-marker array: rejected by its count, never parsed
+    deliver(b'\x00\x01\x00\x00' + struct.pack('<I', 5000))
+    assert got == [] and gate.by_reason == {'oversize': 1}
+    deliver(b'\x00\x01\x00\x00' + struct.pack('<I', 2) + b'garbage')  # not 2 markers
+    assert got == [] and gate.by_reason == {'oversize': 1, 'malformed': 1}
+    deliver(serialize_message(marker_array(3)))
+    assert len(got) == 1 and len(got[0].markers) == 3
+    status = {s.name: {kv.key: kv.value for kv in s.values}
+              for s in reporter.build(node.clock.now().to_msg()).status}
+    assert status['gate: input obstacles']['rejected_total'] == '2'
+    assert status['gate: input obstacles']['rejected_oversize'] == '1'
+    assert status['gate: input obstacles']['rejected_malformed'] == '1'
+    assert gate.values() == {'rejected_total': 2, 'rejected_oversize': 1,
+                             'rejected_malformed': 1, 'received_obstacles': 3}
+
+
+def test_gate_applies_the_rate_limit_before_the_size_check():
+    from std_msgs.msg import String
+    node, reporter, gate = _gate()
+    gate.set_rates({'primitive': 1.0})  # burst of 10, then 1/s
+    sizes = []
+
+    def size(topic, data):
+        sizes.append(len(data))
+        return None
+    got = []
+    gate.subscribe(String, 'primitive', got.append, 10, size=size)
+    from rclpy.serialization import serialize_message
+    data = serialize_message(String(data='{}'))
+    for _ in range(30):
+        node.subscriptions['primitive'](data)
+    assert len(got) == len(sizes) and 10 <= len(got) < 30
+    assert gate.by_reason['flooding'] == 30 - len(got)
+    assert reporter.rejected_count('primitive') == 30 - len(got)
+    assert 'flooding: more than 1 messages/s' in node.logged[0]
+
+
+def test_gate_checks_stamps_after_deserializing():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    node, reporter, gate = _gate()
+    gate.set_rates({'goal': 1000.0})
+    got = []
+    gate.subscribe(JointState, 'goal', got.append, 10, stamped=True)
+    msg = joint_state(7, Q_HOME)
+    msg.header.stamp.sec = int(time.time()) + 100
+    node.subscriptions['goal'](serialize_message(msg))
+    assert got == [] and gate.by_reason == {'stamp': 1}
+    msg.header.stamp.sec = 0
+    node.subscriptions['goal'](serialize_message(msg))
+    assert len(got) == 1
+
+
+# -- one process test per node -----------------------------------------------------------------
+@pytest.mark.ros
+def test_sim_rejects_oversize_input_and_accepts_the_next(tmp_path):
+    from sim_harness import SimHarness, start_sim, stop_process
+    log = tmp_path / 'sim.log'
+    proc = start_sim(DOMAIN, ['diagnostics_period:=0.2'], log_path=str(log),
+                     params_file='config/sim.yaml')
+    h = SimHarness(DOMAIN)
+    try:
+        assert wait_for(lambda: h.n_states() > 0 or proc.poll() is not None, STARTUP)
+        assert proc.poll() is None, log.read_text()
+        reason = expect_oversize(h, 'sim', 'obstacles', '640 markers exceed',
+                                 lambda: h.publish('obstacles', marker_array(640)))
+        assert 'max_obstacles + 1 = 65' in reason
+        expect_oversize(h, 'sim', 'joint_reference', '10000 names exceed the limit of 7',
+                        lambda: h.publish('joint_reference', joint_state(10000)))
+        assert wait_for(lambda: count(h, 'sim: state', 'rejected_oversize') >= 2)
+        n0 = count(h, 'sim: state', 'references_received')
+        assert until(lambda: count(h, 'sim: state', 'references_received') > n0,
+                     lambda: h.publish('joint_reference', h.reference(Q_HOME)))
+        assert until(lambda: count(h, 'sim: state', 'obstacles') == 1,
+                     lambda: h.publish('obstacles', marker_array(1)))
+        assert proc.poll() is None
+    finally:
+        h.close()
+        stop_process(proc)
+
+
+@pytest.mark.ros
+def test_streamer_rejects_oversize_input_and_accepts_the_next(tmp_path):
+    from std_msgs.msg import String
+    from streamer_harness import Harness
+    from streamer_util import start_streamer, stop_process
+    log = tmp_path / 'streamer.log'
+    proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
+                          log_path=str(log), params_file='config/streamer.yaml')
+    h = Harness(DOMAIN)
+    try:
+        assert wait_for(lambda: h.n_refs() > 0 or proc.poll() is not None, STARTUP)
+        assert proc.poll() is None, log.read_text()
+        expect_oversize(h, 'streamer', 'obstacles', '640 markers exceed',
+                        lambda: h.publish('obstacles', marker_array(640)))
+        expect_oversize(h, 'streamer', 'goal', '10000 names exceed the limit of 7',
+                        lambda: h.publish('goal', joint_state(10000)))
+        expect_oversize(h, 'streamer', 'adapted_primitive',
+                        'payload of 2000 bytes exceeds max_json_bytes = 1000',
+                        lambda: h.publish('adapted_primitive', String(data='x' * 2000)))
+        assert wait_for(lambda: count(h, 'streamer: state', 'rejected_oversize') >= 3)
+        assert until(lambda: count(h, 'streamer: state', 'obstacles') == 1,
+                     lambda: h.publish('obstacles', marker_array(1)))
+        assert proc.poll() is None
+    finally:
+        h.close()
+        stop_process(proc)
+
+
+@pytest.mark.ros
+def test_adapter_rejects_oversize_input_and_accepts_the_next(tmp_path):
+    from std_msgs.msg import String
+    from adapter_harness import Harness, start_adapter, stop_process
+    log = tmp_path / 'adapter.log'
+    proc = start_adapter(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
+                         log_path=str(log))
+    h = Harness(DOMAIN)
+    try:
+        assert wait_for(lambda: bool(last_kv(h, 'adapter: state')) or proc.poll() is not None,
+                        STARTUP)
+        assert proc.poll() is None, log.read_text()
+        big = json.dumps({'constraints': [], 'pad': 'x' * 5000})
+        expect_oversize(h, 'adapter', 'constraints', 'exceeds max_json_bytes = 1000',
+                        lambda: h.publish('constraints', String(data=big)))
+        expect_oversize(h, 'adapter', 'obstacles', '640 markers exceed',
+                        lambda: h.publish('obstacles', marker_array(640)))
+        expect_oversize(h, 'adapter', 'goal', '10000 names exceed the limit of 7',
+                        lambda: h.publish('goal', joint_state(10000)))
+        assert wait_for(lambda: count(h, 'adapter: state', 'rejected_oversize') >= 3)
+        assert until(lambda: count(h, 'adapter: state', 'obstacles') == 1,
+                     lambda: h.publish('obstacles', marker_array(1)))
+        assert proc.poll() is None
+    finally:
+        h.close()
+        stop_process(proc)
+
+
+@pytest.mark.ros
+def test_learner_rejects_oversize_input_and_accepts_the_next(tmp_path):
+    from learner_harness import LearnerHarness, start_learner
+    from sim_harness import stop_process
+    log = tmp_path / 'learner.log'
+    proc = start_learner(DOMAIN, ['diagnostics_period:=0.2', 'fit_on_start:=false'],
+                         log_path=str(log))
+    h = LearnerHarness(DOMAIN)
+    try:
+        assert wait_for(lambda: bool(last_kv(h, 'learner: state')) or proc.poll() is not None,
+                        STARTUP)
+        assert proc.poll() is None, log.read_text()
+        expect_oversize(h, 'learner', 'demonstration', '10000 names exceed the limit of 7',
+                        lambda: h.demo_pub.publish(joint_state(10000)))
+        n0 = count(h, 'learner: state', 'samples')
+        assert until(lambda: count(h, 'learner: state', 'samples') > n0,
+                     lambda: h.demo_pub.publish(joint_state(7, Q_HOME)))
+        assert count(h, 'learner: state', 'rejected_oversize') >= 1
+        assert proc.poll() is None
+    finally:
+        h.close()
+        stop_process(proc)
