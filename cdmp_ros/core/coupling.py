@@ -55,7 +55,7 @@ the potential fields.
 import math
 from operator import mul
 from dataclasses import dataclass
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -194,6 +194,12 @@ class LimitScale:
     """
 
     __slots__ = ('onset', '_bounds', '_centre', '_inv_delta', '_inv_width')
+
+    @property
+    def bounds(self) -> List[Tuple[float, float]]:
+        """Per joint ``(q_o - u_on y_delta, q_o + u_on y_delta)``: ``s = 1`` within (``-inf,
+        inf`` for a joint without finite limits)."""
+        return list(self._bounds)
 
     def __init__(self, lower: Sequence[float], upper: Sequence[float], onset: float,
                  lock: float):

@@ -167,7 +167,8 @@ def _emit_links(em: _Emitter, Rs, ps, prismatic, segments, SJ, J, sn: Optional[L
 
 
 def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
-                     segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]]
+                     segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]],
+                     limit_bounds: Optional[Sequence[Tuple[float, float]]] = None
                      ) -> Callable:
     """Generate ``coupled(q, gate, obstacles, eps2, lam2, limit=None) -> list of n_dofs floats
     or None``.
@@ -180,6 +181,9 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         Internal frame and coordinates of the end-effector point.
     segments : sequence of (frame, start, end)
         Internal frame of each link segment and its end points in that frame.
+    limit_bounds : sequence of n_dofs (low, high), optional
+        ``LimitScale.bounds`` of the ``limit`` that will be passed: ``limit(q)`` is then only
+        called when some ``q_i`` is outside its bounds (the comparison is generated inline).
 
     Returns
     -------
@@ -224,7 +228,16 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
     em.lines += _indented(_EE_TEMPLATE, '    ')
     # limit-aware Eq. (12): S = diag(s), J S J^T rebinds a, h, damped (Eq. 7 is in c0..c2)
     top = em.cache
-    em.lines.append('    s = limit(q) if limit is not None else None')
+    outside = ' or '.join(
+        part for k, (lo_k, hi_k) in enumerate(limit_bounds or ())
+        for part in ((f'q{k} < {lo_k!r}' if math.isfinite(lo_k) else ''),
+                     (f'q{k} > {hi_k!r}' if math.isfinite(hi_k) else '')) if part)
+    if limit_bounds is None:
+        em.lines.append('    s = limit(q) if limit is not None else None')
+    elif outside:
+        em.lines.append(f'    s = limit(q) if limit is not None and ({outside}) else None')
+    else:
+        em.lines.append('    s = None')
     em.lines.append('    if s is not None:')
     em.indent = '        '
     em.cache = dict(top)

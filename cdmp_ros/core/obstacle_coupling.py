@@ -141,12 +141,12 @@ class ObstacleCoupling:
         self.last_distances: List[float] = []
         self._eps2 = config.damping.epsilon ** 2
         self._lam2 = config.damping.lambda_max ** 2
+        # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
+        # generic path below handles the rest and serves as its reference in the tests.
         # limit-aware Eq. (12): None when off (or no link)
         self._limit = (LimitScale(chain.lower, chain.upper, config.limit_onset,
                                   config.limit_lock)
                        if self.segments and config.limit_aware else None)
-        # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
-        # generic path below handles the rest and serves as its reference in the tests.
         self._coupled = self._gate = None
         if self._axes == (0, 1, 2) and not self._needs_velocity:
             self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
@@ -154,7 +154,8 @@ class ObstacleCoupling:
                 chain.B, chain.base_transform, chain.prismatic,
                 (int(frames[0]), coords[0]),
                 [(int(frames[1 + 2 * i]), coords[1 + 2 * i], coords[2 + 2 * i])
-                 for i in range(len(self.segments))])
+                 for i in range(len(self.segments))],
+                self._limit.bounds if self._limit is not None else None)
 
     def _field(self, obstacle) -> Field:
         if isinstance(obstacle, Sphere):
