@@ -13,26 +13,25 @@ joint into its limit: the CDMP keeps it strictly inside, but the exogenous map d
 joint acceleration by ``y_delta (1 - tanh(xi)^2)``, so a null-space push that keeps pointing at
 a limit grows as the joint approaches it and holds the joint saturated. The link term is
 therefore the weighted least-norm solution (Chan and Dubey, IEEE T-RA 11(2), 1995) in the null
-space of the end-effector task, with weights that are 1 away from the limits and grow without
-bound at them::
+space of the end-effector task, with weights that are 1 away from the limits and infinite near
+them::
 
     u_i = (q_i - q_o,i) / y_delta_i                                  (limit usage, signed)
-    rho_i = clip((|u_i| - u_on) / (1 - u_on), 0, 1)
+    rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
     s_i = 1 / w_i = (1 - rho_i)^2 (1 + 2 rho_i),     D = diag(sqrt(s_i)) = W^(-1/2)
     dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l                  (Eq. 12, weighted)
 
 ``dq_dd_l`` is, among the least-squares solutions of ``J_o dq_dd = dx_dd_l`` with
 ``J dq_dd = 0``, the one of least ``dq_dd^T W dq_dd``: the null-space task still leaves the end
 effector alone (``J D z = 0`` implies ``J (D z) = 0``) and is steered away from the joints near
-a limit. Where every ``|u_i| <= u_on`` (``u_on`` = ``CouplingConfig.limit_onset``, 0.9) ``D = I``
-and this is Eq. (12) unchanged. ``s`` is C^1 (``s = 1``, ``s' = 0`` at the onset) and falls
-as ``(1 - |u|)^2`` at a limit, faster than ``1 - u^2``, so the null-space contribution to the
-exogenous coupling of a joint at its limit vanishes instead of growing (the joint's acceleration
-from the link term is ``O(s_i)``: its column of ``J_o D`` scales as ``sqrt(s_i)`` and so does
-``D``). The weights are the same for both directions of motion (Chan and Dubey switch them off
-when the joint moves away from the limit): the coupling stays a continuous function of ``q``,
-and the primitive's own motion, not the null-space task, is what takes a joint away from a
-limit. Eq. (7) is never weighted.
+a limit. Where every ``|u_i| <= u_on`` (``CouplingConfig.limit_onset``, 0.9) ``D = I`` and this
+is Eq. (12) unchanged. ``s`` is C^1 (``s' = 0`` at both ends of the band) and is 0 from
+``u_lock`` (``CouplingConfig.limit_lock``, 0.95) on: the link term does not move a joint there
+at all (its column of ``J_o D`` and its entry of ``D`` vanish), so it can no longer hold the
+joint against its limit; in the band its contribution is ``O(s_i)``. The weights are the same
+for both directions of motion (Chan and Dubey switch them off when the joint moves away from
+the limit): the coupling stays a continuous function of ``q``, and the primitive's own motion,
+not the null-space task, is what takes a joint away from a limit. Eq. (7) is never weighted.
 
 Damped pseudo-inverse (selective damping of small singular values)::
 

@@ -16,9 +16,10 @@ joint limit (usage above ``CouplingConfig.limit_onset``) the link terms are the 
 weighted form of Eq. (12) (:mod:`cdmp_ros.core.coupling`)::
 
     dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l,   D = diag(sqrt(s_i)),
-    s_i = (1 - rho_i)^2 (1 + 2 rho_i),   rho_i = clip((|u_i| - u_on) / (1 - u_on), 0, 1)
+    s_i = (1 - rho_i)^2 (1 + 2 rho_i),   rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
 
-with ``u_i`` the limit usage of joint i (``D = I`` below the onset: Eq. 12 unchanged).
+with ``u_i`` the limit usage of joint i, ``u_on``/``u_lock`` = ``limit_onset``/``limit_lock``
+(``D = I`` below the onset: Eq. 12 unchanged).
 
 With three task rows and velocity-independent fields the whole evaluation runs in one
 generated function (:mod:`cdmp_ros.core.coupling_kernel`; no Jacobian at all when no field is
