@@ -47,12 +47,12 @@ def timed(fn, reps, number=1):
     return samples
 
 
-def coupling_setup(chain, rng):
+def coupling_setup(chain, rng, q=(0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7)):
     """Panda, 3 spheres placed so that the end-effector and both link terms are active."""
     coupling = ObstacleCoupling(chain, ['panda_link3', 'panda_link5'],
                                 RepellerField(gain=0.02, influence_distance=0.3,
                                               min_distance=0.01))
-    q = np.array([0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7])
+    q = np.array(q, dtype=float)
     ends = [PointOfInterest(s[0], s[2]) for s in coupling.segments]
     X = chain.forward(q, [PointOfInterest('ee')] + ends)
     obstacles = [Sphere(tuple(x + [0.08, 0.05, 0.0]), 0.05) for x in X]
@@ -164,6 +164,13 @@ def main():
         ('joint coupling, 3 spheres, EE + 2 links, all active (us)',
          timed(lambda: coupling.joint_acceleration(qcl, qd, obstacles), args.reps), ''),
     ]
+    # issue 10.4: panda_joint4 at limit usage 0.94, the limit-aware Eq. 12 is evaluated
+    near, qn, obstacles_n = coupling_setup(chain, rng, (0.2, -0.4, 0.1, -3.0472, 0.1, 1.8, 0.7))
+    qnl = qn.tolist()
+    assert near._limit(qnl) is not None and any(near.joint_acceleration(qnl, qd, obstacles_n))
+    rows.append(('joint coupling, same, panda_joint4 at limit usage 0.94 (limit-aware Eq. 12) '
+                 '(us)', timed(lambda: near.joint_acceleration(qnl, qd, obstacles_n), args.reps),
+                 ''))
     coupled, alone = bench_coupled_step(chain, coupling, obstacles, args.reps)
     rows.append(('coupled CDMP step: coupling + exogenous map + stepper.update (us)', coupled,
                  'median <= 60'))

@@ -6,9 +6,9 @@ import numpy as np
 import pybullet_data
 import pytest
 
-from cdmp_ros.core.coupling import (DampingConfig, coupling_3d, damped_pinv,
-                                    damped_pinv_apply, end_effector_term, link_term,
-                                    null_space_projector, scalar_coupling)
+from cdmp_ros.core.coupling import (DampingConfig, LimitScale, coupling_3d, damped_pinv,
+                                    damped_pinv_apply, end_effector_term, limit_scale,
+                                    link_term, null_space_projector, scalar_coupling)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain, planar_chain
@@ -220,9 +220,12 @@ def test_board_field_eq30_eq31():
 
 
 # ------------------------------------------------------------------ assembly
-def _reference_coupling(chain, q, obstacles, segments, sphere_field, box_field, link_radius):
+def _reference_coupling(chain, q, obstacles, segments, sphere_field, box_field, link_radius,
+                        limits=(0.9, 0.95)):
     """Numpy reference: closest points from cdmp_ros.core.kinematics.closest, Jacobians from
-    the batched path, Eq. 7 and Eq. 12 from the SVD pseudo-inverse."""
+    the batched path, Eq. 7 and Eq. 12 from the SVD pseudo-inverse; ``limits = (onset,
+    lock)`` (the CouplingConfig defaults) gives the limit-aware Eq. 12, None Eq. 12 as is."""
+    scale = None if limits is None else limit_scale(q, chain.lower, chain.upper, *limits)
     ee = PointOfInterest('ee')
     x, J = chain.forward_and_jacobian(np.array([q]), [ee])
     x, J_e = x[0, 0], J[0, 0]
@@ -245,7 +248,7 @@ def _reference_coupling(chain, q, obstacles, segments, sphere_field, box_field, 
         f = sphere_field if isinstance(obs, Sphere) else box_field
         dx = np.array(f.acceleration(cp.point, (0, 0, 0), obs, cp.distance, cp.normal))
         _, J_o = chain.forward_and_jacobian(np.array([q]), [cp.poi])
-        dq += link_term(J_e[ax], J_o[0, 0][ax], dx[ax], DAMP)
+        dq += link_term(J_e[ax], J_o[0, 0][ax], dx[ax], DAMP, scale=scale)
     return dq
 
 
@@ -278,11 +281,13 @@ def test_obstacle_coupling_matches_reference_panda(panda, rng):
 
 
 def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, link_radius,
-                       damping, end_effector=True):
+                       damping, end_effector=True, limits=(0.9, 0.95)):
     """Numpy reference of the whole coupling through the batched paths only: closest points
     by segment_sphere / segment_box on a batch of one (the candidate enumeration), Jacobians
     of the closest points from the batched kinematics, Eq. 7 / Eq. 12 by SVD
-    (damped_pinv). Returns (dq, distances)."""
+    (damped_pinv); ``limits = (onset, lock)`` (the CouplingConfig defaults): the limit-aware
+    Eq. 12 with the weights of ``limit_scale``, None: Eq. 12 as is. Returns (dq, distances)."""
+    scale = None if limits is None else limit_scale(q, chain.lower, chain.upper, *limits)
     from cdmp_ros.core.kinematics.closest import box_signed_distance, segment_obstacle
     Q = np.array([q])
     x, J = chain.forward_and_jacobian(Q, [PointOfInterest('ee')])
@@ -317,7 +322,7 @@ def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, l
         dx = np.array(f.acceleration(point, (0, 0, 0), obs, d, n))
         local = tuple(np.asarray(start) + t * (np.asarray(end) - np.asarray(start)))
         _, J_o = chain.forward_and_jacobian(Q, [PointOfInterest(link, local)])
-        dq = dq + link_term(J_e, J_o[0, 0], dx, damping)
+        dq = dq + link_term(J_e, J_o[0, 0], dx, damping, scale=scale)
     return dq, dists
 
 
@@ -518,3 +523,215 @@ def test_coupled_cdmp_avoids_obstacle_and_holds_limits_under_any_field(panda):
     assert np.all(np.isfinite(Y_cdmp))
     assert limit_usage(Y_cdmp, panda.lower, panda.upper) < 1.0
     assert limit_usage(Y_dmp, panda.lower, panda.upper) > 1.0
+
+
+# ------------------------------------------------------------------ limit-aware null space
+def _near_limits_q(panda, rng, joints=(3, 4), low=0.85, high=0.995):
+    """A random Panda configuration with the given joints at limit usages in [low, high]."""
+    q = rng.uniform(panda.lower, panda.upper)
+    centre, delta = (panda.lower + panda.upper) / 2, (panda.upper - panda.lower) / 2
+    for j in joints:
+        q[j] = centre[j] + rng.choice([-1.0, 1.0]) * rng.uniform(low, high) * delta[j]
+    return q
+
+
+def test_limit_scale_is_one_below_the_onset_c1_and_zero_from_the_lock(panda, rng):
+    """s = 1 up to the onset, (1 - rho)^2 (1 + 2 rho) in the band, 0 from the lock on; its
+    derivative (-6 rho (1 - rho) / (lock - onset) / y_delta) matches central differences and
+    vanishes at both ends of the band (C^1); the scalar LimitScale equals the numpy one and
+    is None (Eq. 12 untouched) while every joint is below the onset."""
+    onset, lock = 0.9, 0.95
+    lo, hi = panda.lower, panda.upper
+    centre, delta = (lo + hi) / 2, (hi - lo) / 2
+    scale = LimitScale(lo, hi, onset, lock)
+    U = np.linspace(-1.0, 1.0, 2001)
+    Q = centre + np.outer(U, delta)
+    S = limit_scale(Q, lo, hi, onset, lock)
+    band = (np.abs(U) > onset + 1e-9) & (np.abs(U) < lock - 1e-9)     # (rounding of u)
+    assert np.all(S[np.abs(U) < onset - 1e-9] == 1.0)
+    assert np.all(S[np.abs(U) > lock + 1e-9] == 0.0)
+    rho = (np.abs(U[band]) - onset) / (lock - onset)
+    np.testing.assert_allclose(S[band], np.tile(((1 - rho) ** 2 * (1 + 2 * rho))[:, None],
+                                                (1, 7)), rtol=1e-9)
+    for u, q in zip(U, Q):
+        got = scale(q.tolist())
+        if abs(u) < onset - 1e-9:
+            assert got is None
+        elif abs(u) > onset + 1e-9:
+            np.testing.assert_allclose(got, limit_scale(q, lo, hi, onset, lock), atol=1e-15)
+    h = 1e-7
+    for u in np.r_[np.linspace(onset - 0.01, lock + 0.01, 23), -np.linspace(0.91, 0.94, 4)]:
+        r = min(max((abs(u) - onset) / (lock - onset), 0.0), 1.0)
+        ds_du = -6 * r * (1 - r) / (lock - onset) * np.sign(u)
+        fd = (limit_scale(centre + (u + h) * delta, lo, hi, onset, lock)
+              - limit_scale(centre + (u - h) * delta, lo, hi, onset, lock)) / (2 * h)
+        np.testing.assert_allclose(fd, ds_du, atol=1e-6)
+    # a joint without finite limits is never weighted
+    inf = np.array([-np.inf, -1.0]), np.array([np.inf, 1.0])
+    np.testing.assert_array_equal(limit_scale([1e6, 0.99], *inf, onset, lock), [1.0, 0.0])
+    assert LimitScale(*inf, onset, lock)([1e6, 0.99]) == [1.0, 0.0]
+    assert LimitScale(*inf, onset, lock)([1e6, 0.5]) is None
+
+
+def test_limit_aware_link_term_is_the_weighted_least_norm_null_space_motion(panda, rng):
+    """Undamped, the limit-aware Eq. 12 is the solution of min dq^T W dq subject to
+    J dq = 0 and J_o dq = dx (KKT system), W = diag(1 / s): it keeps the end effector still,
+    reaches the link acceleration, and moves a joint with s = 0 not at all."""
+    exact = DampingConfig(epsilon=1e-5, lambda_max=1e-5)
+    n_checked = 0
+    for _ in range(40):
+        q = _near_limits_q(panda, rng)
+        _, J = panda.forward_and_jacobian(q, [PointOfInterest('ee'),
+                                              PointOfInterest('panda_link4', (-0.04, 0.2, 0.0))])
+        J_e, J_o = J[0], J[1]
+        if np.linalg.svd(np.r_[J_e, J_o], compute_uv=False).min() < 0.01:
+            continue                                 # the KKT system needs rank 6
+        dx = rng.normal(size=3)
+        s = np.clip(limit_scale(q, panda.lower, panda.upper, 0.9, 0.95), 1e-3, 1.0)
+        dq = link_term(J_e, J_o, dx, exact, scale=s)
+        A = np.r_[J_e, J_o]
+        K = np.block([[np.diag(1.0 / s), A.T], [A, np.zeros((6, 6))]])
+        ref = np.linalg.solve(K, np.r_[np.zeros(7), np.zeros(3), dx])[:7]
+        np.testing.assert_allclose(dq, ref, atol=1e-8 * max(1.0, np.abs(ref).max()))
+        np.testing.assert_allclose(J_e @ dq, 0.0, atol=1e-9 * np.abs(dq).max())
+        np.testing.assert_allclose(J_o @ dq, dx, atol=1e-8 * np.abs(dx).max())
+        s[3] = 0.0                                          # joint 4 locked
+        assert link_term(J_e, J_o, dx, exact, scale=s)[3] == 0.0
+        n_checked += 1
+    assert n_checked >= 10
+
+
+@pytest.mark.parametrize('epsilon', [0.02, 0.3])
+def test_generated_limit_aware_coupling_matches_batched_reference(panda, rng, epsilon):
+    """Near the limits of joints 4 and 5 (and of random others) the generated path, the
+    generic path and the numpy reference agree on the limit-aware Eq. 12; without the
+    weighting they agree on Eq. 12, and the two differ (the weighting is active)."""
+    damping = DampingConfig(epsilon=epsilon, lambda_max=0.05)
+    sphere_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
+    box_field = ConstantField(magnitude=2.0, influence_distance=0.3)
+    links = ['panda_link3', 'panda_link5', ('panda_link6', (0.0, 0.0, -0.05), (0.08, 0.0, 0.0))]
+    aware = ObstacleCoupling(panda, links, sphere_field, box_field,
+                             CouplingConfig(damping=damping, link_radius=0.04))
+    plain = ObstacleCoupling(panda, links, sphere_field, box_field,
+                             CouplingConfig(damping=damping, link_radius=0.04,
+                                            limit_aware=False))
+    ends = [PointOfInterest(s[0], s[2]) for s in aware.segments]
+    n_weighted = n_locked = 0
+    for trial in range(30):
+        joints = (3, 4) + tuple(rng.choice(7, size=trial % 3, replace=False))
+        q = _near_limits_q(panda, rng, joints, 0.88, 0.97)
+        X = panda.forward(q, [PointOfInterest('ee')] + ends)
+        obstacles = [Sphere(tuple(p + rng.normal(size=3) * 0.12), 0.05) for p in X]
+        if trial % 2:
+            obstacles.append(Box.from_center(X[int(rng.integers(4))] + rng.normal(size=3) * 0.15,
+                                             (0.05, 0.4, 0.3)))
+        got = aware.joint_acceleration(q, None, obstacles)
+        generic = aware.joint_acceleration_generic(q, None, obstacles)
+        ref, _ = _batched_reference(panda, q, obstacles, aware.segments, sphere_field,
+                                    box_field, 0.04, damping, limits=(0.9, 0.95))
+        scale = max(1.0, np.abs(ref).max())
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(generic, got, rtol=0, atol=1e-11 * scale)
+        unweighted = plain.joint_acceleration(q, None, obstacles)
+        ref0, _ = _batched_reference(panda, q, obstacles, aware.segments, sphere_field,
+                                     box_field, 0.04, damping, limits=None)
+        np.testing.assert_allclose(unweighted, ref0, rtol=0, atol=1e-9 * scale)
+        s = limit_scale(q, panda.lower, panda.upper, 0.9, 0.95)
+        if np.abs(np.subtract(got, unweighted)).max() > 1e-6 * scale:
+            n_weighted += 1
+        n_locked += bool(np.any(s == 0.0))
+    assert n_weighted >= 20 and n_locked >= 5
+
+
+def test_limit_aware_coupling_is_eq12_below_the_onset(panda, rng):
+    """Every joint below the onset (usage < 0.9): the limit-aware coupling is the plain one,
+    bit for bit, on the generated and the generic path; just above the onset it differs from
+    it by O(h^2) (s is C^1), so the coupling is continuous across the onset."""
+    field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
+    links = ['panda_link3', 'panda_link5']
+    aware = ObstacleCoupling(panda, links, field)
+    plain = ObstacleCoupling(panda, links, field, config=CouplingConfig(limit_aware=False))
+    centre, delta = (panda.lower + panda.upper) / 2, (panda.upper - panda.lower) / 2
+    n_active = 0
+    for _ in range(30):
+        q = centre + rng.uniform(-0.9, 0.9, size=7) * delta
+        j = int(rng.integers(7))
+        q[j] = centre[j] + rng.choice([-1.0, 1.0]) * 0.8999 * delta[j]     # just below
+        X = panda.forward(q, [PointOfInterest('ee'), PointOfInterest('panda_link5')])
+        obstacles = [Sphere(tuple(p + rng.normal(size=3) * 0.1), 0.05) for p in X]
+        a = aware.joint_acceleration(q, None, obstacles)
+        assert a == plain.joint_acceleration(q, None, obstacles)
+        assert (aware.joint_acceleration_generic(q, None, obstacles)
+                == plain.joint_acceleration_generic(q, None, obstacles))
+        n_active += any(a)
+    assert n_active >= 25
+    q = _well_conditioned_q(panda, rng)
+    X = panda.forward(q, [PointOfInterest('ee'), PointOfInterest('panda_link5')])
+    obstacles = [Sphere(tuple(X[1] + [0.05, 0.05, 0.0]), 0.05)]
+    gaps = []
+    for h in (1e-2, 1e-3):
+        q[3] = centre[3] + (0.9 + h * 0.05) * delta[3]
+        gaps.append(np.abs(np.subtract(aware.joint_acceleration(q, None, obstacles),
+                                       plain.joint_acceleration(q, None, obstacles))).max())
+    assert 0.0 < gaps[1] < 0.02 * gaps[0]                    # O(h^2): 100x for 10x
+
+
+def test_coupling_config_rejects_bad_limit_band():
+    for kw, name in [({'limit_onset': 0.0}, 'limit_onset'), ({'limit_onset': 1.0}, 'limit_onset'),
+                     ({'limit_onset': 0.95, 'limit_lock': 0.9}, 'limit_lock'),
+                     ({'limit_lock': 1.5}, 'limit_lock'),
+                     ({'limit_lock': float('nan')}, 'limit_lock')]:
+        with pytest.raises(ValidationError, match=f'CouplingConfig.{name}'):
+            CouplingConfig(**kw)
+
+
+#: Reaches (start, goal) and a sphere near a link where link avoidance through the null space
+#: (Eq. 12, default streamer fields) drove panda_joint5 (index 4) resp. panda_joint4 (index 3)
+#: onto its limit (found by a random search over reaches and spheres, then frozen).
+LIMIT_CASES = {
+    'panda_joint5': (4, [0.21, 0.52, -1.76, -1.3, -1.69, 1.25, -0.64],
+                     [0.55, 0.5, -1.46, -1.16, 2.13, 1.63, -0.75], (0.491, -0.198, 0.853)),
+    'panda_joint4': (3, [-0.3, 0.29, -0.01, -1.79, 0.89, 1.33, 0.51],
+                     [-0.53, 0.3, 0.41, -0.26, 0.29, 0.95, 0.34], (0.207, -0.084, 1.093)),
+}
+
+
+def _limit_rollout(panda, case, config, field, steps=1500, dt=0.002):
+    """Coupled CDMP rollout of a LIMIT_CASES reach: (largest limit usage per joint, smallest
+    link-obstacle distance)."""
+    from cdmp_ros.core.dmp import CDMP
+    _, start, goal, center = LIMIT_CASES[case]
+    T = np.linspace(0.0, 2.0, 401)
+    s = T / 2.0
+    s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+    prim = CDMP(panda.lower, panda.upper).fit(T, np.outer(1 - s, start) + np.outer(s, goal))
+    coupling = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], field, config=config)
+    y_delta = prim.transform.y_delta.tolist()
+    obstacles = [Sphere(center, 0.03)]
+    Y, dists = [], []
+    stepper = prim.stepper(dt)
+    inp, out = stepper.input, stepper.output
+    for _ in range(steps):
+        dq = coupling.joint_acceleration(out.y, out.yd, obstacles)
+        inp.coupling[:] = coupling.to_internal(dq, out.xi, stepper.tau, y_delta)
+        dists.append(min(coupling.last_distances[1:]))
+        stepper.update(inp)
+        Y.append(list(out.y))
+    centre, delta = (panda.lower + panda.upper) / 2, (panda.upper - panda.lower) / 2
+    return (np.abs(np.array(Y) - centre) / delta).max(axis=0), min(dists)
+
+
+@pytest.mark.parametrize('case', sorted(LIMIT_CASES))
+def test_limit_aware_null_space_keeps_the_joint_off_its_limit(panda, case):
+    """Issue 10.4: with Eq. 12 as is, link avoidance drives the joint onto its limit (usage
+    above 0.999: the CDMP holds it just inside, saturated); with the limit-aware Eq. 12 every
+    joint stays below 0.98, and the link still keeps clear of the sphere (closer than with
+    Eq. 12 as is by at most a few mm, farther than without coupling)."""
+    joint = LIMIT_CASES[case][0]
+    field = RepellerField(gain=0.01, influence_distance=0.2, min_distance=0.005)
+    u_old, d_old = _limit_rollout(panda, case, CouplingConfig(limit_aware=False), field)
+    u_new, d_new = _limit_rollout(panda, case, CouplingConfig(), field)
+    _, d_free = _limit_rollout(panda, case, CouplingConfig(), RepellerField(gain=0.0))
+    assert u_old[joint] > 0.999 and u_old.argmax() == joint
+    assert u_new.max() < 0.98
+    assert d_new > d_free + 0.01 and d_new > d_old - 0.005

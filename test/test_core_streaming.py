@@ -371,6 +371,44 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     assert math.isfinite(source.min_distance)
 
 
+def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
+    """Issue 10.4 through the streamer: the reach and sphere of test_core_coupling.LIMIT_CASES
+    where link avoidance (Eq. 12) drives panda_joint4 onto its limit (usage > 0.999); with the
+    limit-aware Eq. 12 (the default) every joint stays below 0.98 and the links keep clear of
+    the sphere (farther than without coupling)."""
+    import pybullet_data
+    from cdmp_ros.core.fields import RepellerField
+    from cdmp_ros.core.kinematics import panda_chain
+    from cdmp_ros.core.kinematics.closest import Sphere
+    from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
+    from test_core_coupling import LIMIT_CASES
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    joint, start, goal, center = LIMIT_CASES['panda_joint4']
+    text = dumps_primitive(reach_cdmp(np.array(start), np.array(goal)))
+    centre, delta = (LOWER + UPPER) / 2, (UPPER - LOWER) / 2
+
+    def stream(config, gain):
+        field = RepellerField(gain=gain, influence_distance=0.2, min_distance=0.005)
+        source = CouplingSource(ObstacleCoupling(chain, ['panda_link3', 'panda_link5'], field,
+                                                 config=config))
+        source.obstacles = (Sphere(center, 0.03),)
+        rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+        rs.activate(prep, 0.0)
+        usage, dist = np.zeros(7), math.inf
+        for _ in range(1500):
+            rs.advance(1, 0.0)
+            usage = np.maximum(usage, np.abs(np.array(rs.y) - centre) / delta)
+            dist = min(dist, min(source.coupling.last_distances[1:]))
+        return usage, dist
+
+    u_old, _ = stream(CouplingConfig(limit_aware=False), 0.01)
+    u_new, d_new = stream(CouplingConfig(), 0.01)
+    _, d_free = stream(CouplingConfig(), 0.0)
+    assert u_old[joint] > 0.999
+    assert u_new.max() < 0.98
+    assert d_new > d_free + 0.01
+
+
 def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
     """A box rotated 30 deg about z (an oriented CUBE marker) across the free path: the
     streamed end effector stays outside it (signed distance from OrientedBox)."""

@@ -8,6 +8,31 @@ Link avoidance through the null space of the end-effector task, Eq. (11) and (12
 
     dq_dd_l = (I - J^+ J) (J_o (I - J^+ J))^+ dx_dd_l = (J_o (I - J^+ J))^+ dx_dd_l
 
+Joint-limit-aware null space (issue 10.4, beyond paper 000). Eq. (12) can push a redundant
+joint into its limit: the CDMP keeps it strictly inside, but the exogenous map divides the
+joint acceleration by ``y_delta (1 - tanh(xi)^2)``, so a null-space push that keeps pointing at
+a limit grows as the joint approaches it and holds the joint saturated. The link term is
+therefore the weighted least-norm solution (Chan and Dubey, IEEE T-RA 11(2), 1995) in the null
+space of the end-effector task, with weights that are 1 away from the limits and infinite near
+them::
+
+    u_i = (q_i - q_o,i) / y_delta_i                                  (limit usage, signed)
+    rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
+    s_i = 1 / w_i = (1 - rho_i)^2 (1 + 2 rho_i),     D = diag(sqrt(s_i)) = W^(-1/2)
+    dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l                  (Eq. 12, weighted)
+
+``dq_dd_l`` is, among the least-squares solutions of ``J_o dq_dd = dx_dd_l`` with
+``J dq_dd = 0``, the one of least ``dq_dd^T W dq_dd``: the null-space task still leaves the end
+effector alone (``J D z = 0`` implies ``J (D z) = 0``) and is steered away from the joints near
+a limit. Where every ``|u_i| <= u_on`` (``CouplingConfig.limit_onset``, 0.9) ``D = I`` and this
+is Eq. (12) unchanged. ``s`` is C^1 (``s' = 0`` at both ends of the band) and is 0 from
+``u_lock`` (``CouplingConfig.limit_lock``, 0.95) on: the link term does not move a joint there
+at all (its column of ``J_o D`` and its entry of ``D`` vanish), so it can no longer hold the
+joint against its limit; in the band its contribution is ``O(s_i)``. The weights are the same
+for both directions of motion (Chan and Dubey switch them off when the joint moves away from
+the limit): the coupling stays a continuous function of ``q``, and the primitive's own motion,
+not the null-space task, is what takes a joint away from a limit. Eq. (7) is never weighted.
+
 Damped pseudo-inverse (selective damping of small singular values)::
 
     M^+ = sum_i sigma_i / (sigma_i^2 + lambda_i^2) v_i u_i^T,
@@ -29,7 +54,7 @@ the potential fields.
 import math
 from operator import mul
 from dataclasses import dataclass
-from typing import List, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -95,8 +120,37 @@ def end_effector_term(J: ArrayLike, dx_dd_e: ArrayLike,
                      np.asarray(dx_dd_e, dtype=np.float64))
 
 
+def limit_scale(Q: ArrayLike, lower: ArrayLike, upper: ArrayLike, onset: float,
+                lock: float) -> NDArray[np.float64]:
+    """Inverse weights ``s = 1 / w`` of the limit-aware null space (module docstring).
+
+    Parameters
+    ----------
+    Q : array-like (..., n)
+        Joint positions.
+    lower, upper : array-like (n,)
+        Joint limits; joints with a non-finite limit always get ``s = 1``.
+    onset, lock : float
+        Limit usages ``u_on < u_lock`` where the weighting starts and where ``s`` reaches 0.
+
+    Returns
+    -------
+    ndarray (..., n)
+        ``s_i = (1 - rho_i)^2 (1 + 2 rho_i)`` in [0, 1].
+    """
+    Q = np.asarray(Q, dtype=np.float64)
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    finite = np.isfinite(lo) & np.isfinite(hi)
+    lo, hi = np.where(finite, lo, -1.0), np.where(finite, hi, 1.0)
+    centre = np.where(finite, 0.5 * (lo + hi), 0.0)
+    delta = np.where(finite, 0.5 * (hi - lo), np.inf)
+    rho = np.clip((np.abs(Q - centre) / delta - onset) / (lock - onset), 0.0, 1.0)
+    return (1.0 - rho) ** 2 * (1.0 + 2.0 * rho)
+
+
 def link_term(J: ArrayLike, J_o: ArrayLike, dx_dd_l: ArrayLike,
-              damping: DampingConfig = DampingConfig(), form: int = 12) -> NDArray[np.float64]:
+              damping: DampingConfig = DampingConfig(), form: int = 12,
+              scale: Optional[ArrayLike] = None) -> NDArray[np.float64]:
     """Link avoidance in the null space of the end-effector task.
 
     Parameters
@@ -110,7 +164,15 @@ def link_term(J: ArrayLike, J_o: ArrayLike, dx_dd_l: ArrayLike,
     form : {11, 12}
         Eq. (11), ``(I - J^+ J) (J_o (I - J^+ J))^+ dx``, or its simplification Eq. (12),
         ``(J_o (I - J^+ J))^+ dx``.
+    scale : array-like (..., n), optional
+        Inverse joint weights ``s`` (:func:`limit_scale`): the weighted form
+        ``D (J_o D (I - (J D)^+ J D))^+ dx`` with ``D = diag(sqrt(s))`` (module docstring).
     """
+    if scale is not None:
+        D = np.sqrt(np.asarray(scale, dtype=np.float64))[..., None, :]
+        return D[..., 0, :] * link_term(np.asarray(J, dtype=np.float64) * D,
+                                        np.asarray(J_o, dtype=np.float64) * D, dx_dd_l,
+                                        damping, form)
     N = null_space_projector(J, damping)
     P = damped_pinv(np.asarray(J_o, dtype=np.float64) @ N, damping)
     if form == 11:
@@ -121,6 +183,68 @@ def link_term(J: ArrayLike, J_o: ArrayLike, dx_dd_l: ArrayLike,
 
 
 # ----------------------------------------------------------------------------- scalar
+class LimitScale:
+    """:func:`limit_scale` on plain floats for one configuration (the tick path).
+
+    ``LimitScale(lower, upper, onset, lock)(q)`` returns None when every joint is within the
+    onset
+    (``D = I``: Eq. 12 unchanged, checked against precomputed bounds) and the list of ``s_i``
+    otherwise.
+    """
+
+    __slots__ = ('onset', '_bounds', '_centre', '_inv_delta', '_inv_width')
+
+    @property
+    def bounds(self) -> List[Tuple[float, float]]:
+        """Per joint ``(q_o - u_on y_delta, q_o + u_on y_delta)``: ``s = 1`` within (``-inf,
+        inf`` for a joint without finite limits)."""
+        return list(self._bounds)
+
+    def __init__(self, lower: Sequence[float], upper: Sequence[float], onset: float,
+                 lock: float):
+        self.onset = float(onset)
+        self._bounds, self._centre, self._inv_delta = [], [], []
+        for lo, hi in zip(lower, upper):
+            lo, hi = float(lo), float(hi)
+            if math.isfinite(lo) and math.isfinite(hi):
+                c, d = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                self._bounds.append((c - self.onset * d, c + self.onset * d))
+                self._centre.append(c)
+                self._inv_delta.append(1.0 / d)
+            else:
+                self._bounds.append((-math.inf, math.inf))
+                self._centre.append(0.0)
+                self._inv_delta.append(0.0)
+        self._inv_width = 1.0 / (float(lock) - self.onset)
+
+    def __call__(self, q: Sequence[float]) -> Optional[List[float]]:
+        for x, (lo, hi) in zip(q, self._bounds):
+            if x < lo or x > hi:
+                break
+        else:
+            return None
+        onset, inv_width = self.onset, self._inv_width
+        out = []
+        for x, c, inv_d in zip(q, self._centre, self._inv_delta):
+            rho = (abs(x - c) * inv_d - onset) * inv_width
+            if rho <= 0.0:
+                out.append(1.0)
+            elif rho >= 1.0:
+                out.append(0.0)
+            else:
+                r = 1.0 - rho
+                out.append(r * r * (1.0 + 2.0 * rho))
+        return out
+
+
+def _scaled_links(J: Matrix, links: Sequence[tuple], scale: Sequence[float]):
+    """``(J D, [(J_o D, dx)], sqrt(s))`` of the weighted Eq. (12) (module docstring); the
+    rows of a ``J_o`` may be truncated to its first columns."""
+    d = [math.sqrt(x) for x in scale]
+    Jd = [[a * b for a, b in zip(row, d)] for row in J] if J is not None else None
+    return Jd, [([[a * b for a, b in zip(row, d)] for row in J_o], dx) for J_o, dx in links], d
+
+
 def _sym_eigenvalues(A: Matrix) -> List[float]:
     """Eigenvalues (ascending) of a symmetric 1x1, 2x2 or 3x3 matrix, closed form."""
     m = len(A)
@@ -298,15 +422,23 @@ def _inverse_h3(a00: float, a01: float, a02: float, a11: float, a12: float, a22:
 
 
 def coupling_3d(J: Matrix, dx_dd_e: Sequence[float], links: Sequence[tuple],
-                damping: DampingConfig) -> List[float]:
+                damping: DampingConfig, scale: Optional[Sequence[float]] = None
+                ) -> List[float]:
     """:func:`scalar_coupling` unrolled for 3 task rows (the usual Cartesian case).
 
     With ``H = h(J J^T)``, ``K = J J_o^T``, ``W = H^{-1} K``: ``J_o (I - J^+ J) = J_o - W^T J``,
     its Gram matrix is ``J_o J_o^T - K^T W - W^T K + W^T (J J^T) W`` and
     ``(J_o N)^+ dx = J_o^T w - J^T (W w)`` with ``w = h(Gram)^{-1} dx``; all joint-space
     vectors are accumulated as one combination of the rows of J and of the J_o. The rows of a
-    J_o may be truncated to the joints that move the point (the others are zero).
+    J_o may be truncated to the joints that move the point (the others are zero). ``scale``
+    (the ``s_i`` of :class:`LimitScale`, or None for all ones) gives the limit-aware Eq. (12)
+    (module docstring).
     """
+    if scale is not None and links:
+        Jd, links_d, d = _scaled_links(J, links, scale)
+        dq = coupling_3d(J, dx_dd_e, (), damping)                    # Eq. (7)
+        dq_l = coupling_3d(Jd, None, links_d, damping)               # Eq. (12), weighted
+        return [a + di * b for a, di, b in zip(dq, d, dq_l)]
     eps2 = damping.epsilon * damping.epsilon
     lam2 = damping.lambda_max * damping.lambda_max
     j0, j1, j2 = J
@@ -390,7 +522,8 @@ def coupling_3d(J: Matrix, dx_dd_e: Sequence[float], links: Sequence[tuple],
 
 
 def scalar_coupling(J: Matrix, dx_dd_e: Sequence[float], links: Sequence[tuple],
-                    damping: DampingConfig) -> List[float]:
+                    damping: DampingConfig, scale: Optional[Sequence[float]] = None
+                    ) -> List[float]:
     """Total joint acceleration coupling ``J^+ dx_e + sum_l (J_o,l (I - J^+ J))^+ dx_l``.
 
     Parameters
@@ -403,7 +536,14 @@ def scalar_coupling(J: Matrix, dx_dd_e: Sequence[float], links: Sequence[tuple],
     links : sequence of (J_o, dx_dd_l)
         Link-point Jacobians (rows) and accelerations (Eq. 12).
     damping : DampingConfig
+    scale : sequence of n floats, optional
+        ``s_i`` of :class:`LimitScale`: the limit-aware Eq. (12) (module docstring).
     """
+    if scale is not None and links:
+        Jd, links_d, d = _scaled_links(J, links, scale)
+        dq = scalar_coupling(J, dx_dd_e, (), damping) if J is not None else [0.0] * len(d)
+        dq_l = scalar_coupling(Jd, None, links_d, damping)
+        return [a + di * b for a, di, b in zip(dq, d, dq_l)]
     n = len(J[0]) if J is not None else len(links[0][0][0])
     out = [0.0] * n
     if J is not None:

@@ -15,7 +15,12 @@ ObstacleCoupling` for one configuration on plain floats:
    the others are zero and are folded away);
 4. Eq. (7) and Eq. (12) with the damped inverses of :func:`cdmp_ros.core.coupling.
    _inverse_h3`, exactly as :func:`cdmp_ros.core.coupling.coupling_3d` (same formulas, with
-   every 3-vector and 3x3 matrix held in local variables, and the dot products unrolled).
+   every 3-vector and 3x3 matrix held in local variables, and the dot products unrolled);
+5. near a joint limit (``limit(q)`` returns the inverse weights ``s``, module docstring of
+   :mod:`cdmp_ros.core.coupling`), Eq. (12) in its limit-aware form
+   ``D (J_o D (I - (J D)^+ J D))^+ dx`` with ``D^2 = diag(s)``: the same link block on the
+   weighted Gram matrices ``J S J^T``, ``J S J_o^T``, ``J_o S J_o^T`` (``S = diag(s)``), its
+   result ``S (J_o^T u - J^T W u)`` accumulated apart from Eq. (7).
 
 The arithmetic is that of the reference paths up to the order of floating-point summation
 (test/test_core_coupling.py compares it with the batched numpy reference and with
@@ -79,9 +84,9 @@ if damped:
 u0 = g00 * {d0} + g01 * {d1} + g02 * {d2}
 u1 = g01 * {d0} + g11 * {d1} + g12 * {d2}
 u2 = g02 * {d0} + g12 * {d1} + g22 * {d2}
-c0 -= w00 * u0 + w01 * u1 + w02 * u2
-c1 -= w10 * u0 + w11 * u1 + w12 * u2
-c2 -= w20 * u0 + w21 * u1 + w22 * u2
+{c}0 -= w00 * u0 + w01 * u1 + w02 * u2
+{c}1 -= w10 * u0 + w11 * u1 + w12 * u2
+{c}2 -= w20 * u0 + w21 * u1 + w22 * u2
 '''
 
 # _inverse_h3 with its undamped branch inlined (the same operations)
@@ -120,10 +125,53 @@ def _dot(em: _Emitter, u: Sequence, v: Sequence) -> str:
     return literal(em.sum([(1.0, a, b) for a, b in zip(u, v)]))
 
 
+def _emit_links(em: _Emitter, Rs, ps, prismatic, segments, SJ, J, sn: Optional[List[str]],
+                c: str, indent: str) -> int:
+    """Emit the link blocks of Eq. (12), one ``if l{i}:`` block per segment.
+
+    ``SJ``: the rows of ``J S`` (``J`` itself when unweighted), ``sn``: the names of the
+    ``s_i`` (None when unweighted), ``c``: prefix of the accumulators of ``-J^T W u``.
+    ``acc{k}`` accumulate ``J_o^T u`` (initialised here); returns their number."""
+    n = len(prismatic)
+    n_acc = min(max((k for k, _, _ in segments), default=0), n)
+    if n_acc:
+        em.lines.append(f'{indent}{" = ".join(f"acc{k}" for k in range(n_acc))} = 0.0')
+    top = em.cache
+    inner = indent + '    '
+    for i, (k, _, _) in enumerate(segments):
+        em.lines.append(f'{indent}if l{i}:')
+        em.indent = inner
+        em.cache = dict(top)                  # names of this block stay in this block
+        p = [f'p{i}_{r}' for r in range(3)]
+        ocols = emit_jacobian(em, Rs, ps, prismatic, k, p)[:min(k, n)]
+        Jo = [[col[r] for col in ocols] for r in range(3)]
+        SJo = Jo if sn is None else [[em.sum([(1.0, sn[j], v)]) for j, v in enumerate(row)]
+                                     for row in Jo]
+        fmt = {f'd{r}': f'd{i}_{r}' for r in range(3)}
+        fmt['c'] = c
+        for r in range(3):
+            for t in range(3):
+                fmt[f'k{r}{t}'] = _dot(em, SJ[r][:len(ocols)], Jo[t])
+        for r in range(3):
+            for t in range(r, 3):
+                fmt[f'g{r}{t}'] = _dot(em, SJo[r], Jo[t])
+        fmt['inverse_s'] = _INVERSE_TEMPLATE.format(a='s', h='g', damped='_')
+        em.lines += _indented(_LINK_TEMPLATE.format(**fmt), inner)
+        for j in range(len(ocols)):
+            term = em.sum([(1.0, f'u{r}', Jo[r][j]) for r in range(3)])
+            if not isinstance(term, float):
+                em.lines.append(f'{inner}acc{j} += {term}')
+        em.indent = indent
+    em.cache = top
+    return n_acc
+
+
 def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
-                     segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]]
+                     segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]],
+                     limit_bounds: Optional[Sequence[Tuple[float, float]]] = None
                      ) -> Callable:
-    """Generate ``coupled(q, gate, obstacles, eps2, lam2) -> list of n_dofs floats or None``.
+    """Generate ``coupled(q, gate, obstacles, eps2, lam2, limit=None) -> list of n_dofs floats
+    or None``.
 
     Parameters
     ----------
@@ -133,6 +181,9 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         Internal frame and coordinates of the end-effector point.
     segments : sequence of (frame, start, end)
         Internal frame of each link segment and its end points in that frame.
+    limit_bounds : sequence of n_dofs (low, high), optional
+        ``LimitScale.bounds`` of the ``limit`` that will be passed: ``limit(q)`` is then only
+        called when some ``q_i`` is outside its bounds (the comparison is generated inline).
 
     Returns
     -------
@@ -144,7 +195,10 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         end-effector acceleration ``e``, and per link a flag ``l_i`` (field active), the
         closest point ``p_i`` on the link (world) and its acceleration ``d_i``. ``eps2`` and
         ``lam2`` are ``epsilon^2`` and ``lambda_max^2`` of the damping. The result is
-        ``J^+ e + sum_i (J_o,i (I - J^+ J))^+ d_i`` (Eq. 7 + Eq. 12, paper 000).
+        ``J^+ e + sum_i (J_o,i (I - J^+ J))^+ d_i`` (Eq. 7 + Eq. 12, paper 000). ``limit``
+        (a :class:`~cdmp_ros.core.coupling.LimitScale`), called with ``q`` once a field is
+        active, returns None (Eq. 12 as is) or the inverse weights ``s`` of the limit-aware
+        Eq. (12), ``sum_i D (J_o,i D (I - (J D)^+ J D))^+ d_i`` with ``D^2 = diag(s)``.
     """
     n = len(prismatic)
     em = _Emitter()
@@ -172,34 +226,44 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
             A[f'a{i}{j}'] = _dot(em, J[i], J[j])
     em.lines += [f'    a{key[1:]} = {val}' for key, val in A.items()]
     em.lines += _indented(_EE_TEMPLATE, '    ')
-    n_acc = max((k for k, _, _ in segments), default=0)
-    n_acc = min(n_acc, n)
-    if n_acc:
-        em.lines.append(f'    {" = ".join(f"acc{c}" for c in range(n_acc))} = 0.0')
-    # Eq. (12), paper 000, per active link
+    # limit-aware Eq. (12): S = diag(s), J S J^T rebinds a, h, damped (Eq. 7 is in c0..c2)
     top = em.cache
-    for i, (k, _, _) in enumerate(segments):
-        em.lines.append(f'    if l{i}:')
-        em.indent = '        '
-        em.cache = dict(top)                  # names of this block stay in this block
-        p = [f'p{i}_{c}' for c in range(3)]
-        ocols = emit_jacobian(em, Rs, ps, prismatic, k, p)[:min(k, n)]
-        Jo = [[col[r] for col in ocols] for r in range(3)]
-        fmt = {f'd{c}': f'd{i}_{c}' for c in range(3)}
-        for r in range(3):
-            for s in range(3):
-                fmt[f'k{r}{s}'] = _dot(em, J[r][:len(ocols)], Jo[s])
-        for r in range(3):
-            for s in range(r, 3):
-                fmt[f'g{r}{s}'] = _dot(em, Jo[r], Jo[s])
-        fmt['inverse_s'] = _INVERSE_TEMPLATE.format(a='s', h='g', damped='_')
-        em.lines += _indented(_LINK_TEMPLATE.format(**fmt), '        ')
-        for c in range(len(ocols)):
-            term = em.sum([(1.0, f'u{r}', Jo[r][c]) for r in range(3)])
-            if not isinstance(term, float):
-                em.lines.append(f'        acc{c} += {term}')
-        em.indent = '    '
+    outside = ' or '.join(
+        part for k, (lo_k, hi_k) in enumerate(limit_bounds or ())
+        for part in ((f'q{k} < {lo_k!r}' if math.isfinite(lo_k) else ''),
+                     (f'q{k} > {hi_k!r}' if math.isfinite(hi_k) else '')) if part)
+    if limit_bounds is None:
+        em.lines.append('    s = limit(q) if limit is not None else None')
+    elif outside:
+        em.lines.append(f'    s = limit(q) if limit is not None and ({outside}) else None')
+    else:
+        em.lines.append('    s = None')
+    em.lines.append('    if s is not None:')
+    em.indent = '        '
+    em.cache = dict(top)
+    sn = [f'sw{c}' for c in range(n)]
+    em.lines.append(f'        {", ".join(sn)}, = s')
+    SJ = [[em.sum([(1.0, sn[c], J[i][c])]) for c in range(n)] for i in range(3)]
+    for i in range(3):
+        for j in range(i, 3):
+            em.lines.append(f'        a{i}{j} = {_dot(em, SJ[i], J[j])}')
+    em.lines += _indented(_EE_TEMPLATE.split('\nc0 = ')[0], '        ')
+    em.lines.append('        b0 = b1 = b2 = 0.0')
+    n_acc_w = _emit_links(em, Rs, ps, prismatic, segments, SJ, J, sn, 'b', '        ')
+    out = []
+    for c in range(n):
+        link = [(1.0, 'b0', J[0][c]), (1.0, 'b1', J[1][c]), (1.0, 'b2', J[2][c])]
+        if c < n_acc_w:
+            link.append((1.0, f'acc{c}', 1.0))
+        lw = em.sum(link)
+        terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c]),
+                 (1.0, sn[c], lw)]
+        out.append(literal(em.sum(terms)))
+    em.lines.append(f'        return [{", ".join(out)}]')
+    em.indent = '    '
     em.cache = top
+    # Eq. (12), paper 000, per active link
+    n_acc = _emit_links(em, Rs, ps, prismatic, segments, J, J, None, 'c', '    ')
     out = []
     for c in range(n):
         terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c])]
@@ -207,7 +271,7 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
             terms.append((1.0, f'acc{c}', 1.0))
         out.append(literal(em.sum(terms)))
     body = '\n'.join(prune(em.lines + [f'    return [{", ".join(out)}]']))
-    source = f'def coupled(q, gate, obstacles, eps2, lam2):\n{body}\n'
+    source = f'def coupled(q, gate, obstacles, eps2, lam2, limit=None):\n{body}\n'
     return build(source, 'coupled', {'cos': math.cos, 'sin': math.sin,
                                      'inverse_h3': _inverse_h3})
 

@@ -11,7 +11,15 @@ tick on plain floats::
 End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
 Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
 over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
-the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``.
+the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``. Near a
+joint limit (usage above ``CouplingConfig.limit_onset``) the link terms are the joint-limit
+weighted form of Eq. (12) (:mod:`cdmp_ros.core.coupling`)::
+
+    dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l,   D = diag(sqrt(s_i)),
+    s_i = (1 - rho_i)^2 (1 + 2 rho_i),   rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
+
+with ``u_i`` the limit usage of joint i, ``u_on``/``u_lock`` = ``limit_onset``/``limit_lock``
+(``D = I`` below the onset: Eq. 12 unchanged).
 
 With three task rows and velocity-independent fields the whole evaluation runs in one
 generated function (:mod:`cdmp_ros.core.coupling_kernel`; no Jacobian at all when no field is
@@ -27,7 +35,7 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.coupling import DampingConfig, coupling_3d, scalar_coupling
+from cdmp_ros.core.coupling import DampingConfig, LimitScale, coupling_3d, scalar_coupling
 from cdmp_ros.core.coupling_kernel import ClosestPointGate, compile_coupling
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
@@ -56,17 +64,36 @@ class CouplingConfig:
     end_effector : bool
         Apply the fields to the end-effector point (Eq. 7). The link terms always act in the
         null space of the end-effector task.
+    limit_aware : bool
+        Weight the link terms (Eq. 12) away from joints near their limits (weighted least
+        norm, module docstring of :mod:`cdmp_ros.core.coupling`); False: Eq. (12) as is.
+    limit_onset : float
+        Joint limit usage ``|q - q_o| / y_delta`` above which that weighting starts.
+    limit_lock : float
+        Limit usage from which the link terms no longer move that joint (its weight is
+        infinite); ``0 < limit_onset < limit_lock <= 1``.
     """
 
     damping: DampingConfig = field(default_factory=DampingConfig)
     link_radius: float = 0.0
     end_effector: bool = True
+    limit_aware: bool = True
+    limit_onset: float = 0.9
+    limit_lock: float = 0.95
 
     def __post_init__(self):
         if not isinstance(self.damping, DampingConfig):
             raise ValidationError(f'CouplingConfig.damping: expected DampingConfig, got '
                                   f'{type(self.damping).__name__}')
         check_positive('CouplingConfig.link_radius', self.link_radius, allow_zero=True)
+        onset = check_positive('CouplingConfig.limit_onset', self.limit_onset)
+        lock = check_positive('CouplingConfig.limit_lock', self.limit_lock)
+        if onset >= 1.0:
+            raise ValidationError(f'CouplingConfig.limit_onset: expected a number in (0, 1), '
+                                  f'got {self.limit_onset!r}')
+        if not onset < lock <= 1.0:
+            raise ValidationError(f'CouplingConfig.limit_lock: expected a number in '
+                                  f'(limit_onset, 1] = ({onset!r}, 1], got {self.limit_lock!r}')
 
 
 class ObstacleCoupling:
@@ -117,6 +144,10 @@ class ObstacleCoupling:
         self._lam2 = config.damping.lambda_max ** 2
         # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
         # generic path below handles the rest and serves as its reference in the tests.
+        # limit-aware Eq. (12): None when off (or no link)
+        self._limit = (LimitScale(chain.lower, chain.upper, config.limit_onset,
+                                  config.limit_lock)
+                       if self.segments and config.limit_aware else None)
         self._coupled = self._gate = None
         if self._axes == (0, 1, 2) and not self._needs_velocity:
             self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
@@ -124,7 +155,8 @@ class ObstacleCoupling:
                 chain.B, chain.base_transform, chain.prismatic,
                 (int(frames[0]), coords[0]),
                 [(int(frames[1 + 2 * i]), coords[1 + 2 * i], coords[2 + 2 * i])
-                 for i in range(len(self.segments))])
+                 for i in range(len(self.segments))],
+                self._limit.bounds if self._limit is not None else None)
 
     def _field(self, obstacle) -> Field:
         if isinstance(obstacle, Sphere):
@@ -142,7 +174,8 @@ class ObstacleCoupling:
 
     def joint_acceleration(self, q: Sequence[float], qd: Optional[Sequence[float]],
                            obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
-        """Total joint acceleration coupling ``J^+ dx_e + sum_l (J_o,l N)^+ dx_l``.
+        """Total joint acceleration coupling ``J^+ dx_e + sum_l (J_o,l N)^+ dx_l`` (near a
+        joint limit the link terms in their limit-aware form, module docstring).
 
         Parameters
         ----------
@@ -162,7 +195,7 @@ class ObstacleCoupling:
         if coupled is not None:
             gate = self._gate
             dq = coupled(q.tolist() if isinstance(q, np.ndarray) else q, gate, obstacles,
-                         self._eps2, self._lam2)
+                         self._eps2, self._lam2, self._limit)
             self.last_distances = gate.distances
             return [0.0] * self.chain.n_dofs if dq is None else dq
         return self.joint_acceleration_generic(q, qd, obstacles)
@@ -259,13 +292,14 @@ class ObstacleCoupling:
         self.last_distances = dists
         if not links and not any(dx_e):
             return [0.0] * n
+        scale = self._limit(ql) if self._limit is not None and links else None
         if self._axes == (0, 1, 2):
-            return coupling_3d(rows_e, dx_e, links, self.config.damping)
+            return coupling_3d(rows_e, dx_e, links, self.config.damping, scale)
         ax = self._axes
         rows = [rows_e[a] for a in ax]
         links = [([list(J_o[a]) + [0.0] * (n - len(J_o[a])) for a in ax], [dx[a] for a in ax])
                  for J_o, dx in links]
-        return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping)
+        return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping, scale)
 
     @staticmethod
     def to_internal(dq_dd: Sequence[float], xi: Optional[Sequence[float]], tau: float,

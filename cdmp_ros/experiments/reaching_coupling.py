@@ -13,7 +13,8 @@ Per tick, on plain floats (see :class:`BoardLinkCoupling`):
   ``link_radius``, gets its closest point to the board (the signed distance along a segment is
   convex, found by golden-section search); within ``field.influence_distance`` the constant
   field of IV-B gives the Cartesian acceleration ``dx_dd_l`` of that point, mapped by
-  ``(J_o (I - J^+ J))^+`` into the null space of the end-effector task;
+  ``(J_o (I - J^+ J))^+`` into the null space of the end-effector task (near a joint limit in
+  its limit-aware form, :mod:`cdmp_ros.core.coupling`, as the streamer's coupling);
 - end effector (Eq. 7, optional hold): ``dx_dd_e = k_p (x_ref - x) + k_d (xd_ref - xd)``
   towards the end-effector path of the unmodified motion (its forward kinematics, the "virtual
   trajectory" of paper 000, Fig. 4), mapped by ``J^+``. It keeps the end effector on its goal
@@ -30,11 +31,11 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.coupling import DampingConfig, coupling_3d
+from cdmp_ros.core.coupling import DampingConfig, LimitScale, coupling_3d
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
-from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.validation import as_array, check_positive
 
 Segment = Tuple[str, Tuple[float, float, float], Tuple[float, float, float]]
@@ -159,13 +160,17 @@ class BoardLinkCoupling:
         is held beyond it). Required when the hold is enabled.
     damping : DampingConfig
         Damping of the pseudo-inverses.
+    limits : CouplingConfig, optional
+        Its ``limit_aware``, ``limit_onset`` and ``limit_lock`` select the limit-aware
+        Eq. (12) (default: the ``CouplingConfig`` defaults); None: Eq. (12) as is.
     """
 
     def __init__(self, chain: Chain, half_extents: ArrayLike, field: ConstantField,
                  segments: Sequence[Segment] = PANDA_SEGMENTS,
                  link_radius: float = PANDA_LINK_RADIUS, hold: HoldGains = HoldGains(0.0, 0.0),
                  ee_ref: Optional[ArrayLike] = None, ee_ref_velocity: Optional[ArrayLike] = None,
-                 damping: DampingConfig = DampingConfig()):
+                 damping: DampingConfig = DampingConfig(),
+                 limits: Optional[CouplingConfig] = CouplingConfig()):
         self.chain = chain
         self.h = tuple(as_array('half_extents', half_extents, (3,)).tolist())
         self.field = field
@@ -190,6 +195,9 @@ class BoardLinkCoupling:
             self._ref = ref.tolist()
             self._ref_vel = vel.tolist()
         self.last_distances: List[float] = []
+        self._limit = (LimitScale(chain.lower, chain.upper, limits.limit_onset,
+                                  limits.limit_lock)
+                       if limits is not None and limits.limit_aware else None)
 
     def joint_acceleration(self, k: int, q: Sequence[float], qd: Sequence[float]
                            ) -> List[float]:
@@ -233,7 +241,8 @@ class BoardLinkCoupling:
         self.last_distances = dists
         if not links and dx_e is None:
             return [0.0] * n
-        return coupling_3d(rows_e, dx_e, links, self.damping)          # Eq. (7) + (12)
+        scale = self._limit(list(q)) if self._limit is not None and links else None
+        return coupling_3d(rows_e, dx_e, links, self.damping, scale)   # Eq. (7) + (12)
 
     @staticmethod
     def exogenous(dq_dd: Sequence[float], xi: Sequence[float], tau: float,

@@ -24,6 +24,7 @@ with its own scheduled stamp (at most one period early); the schedule and the st
 of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
 steady-clock executor timer.
 """
+import dataclasses
 import gc
 import sys
 import threading
@@ -160,8 +161,7 @@ class StreamerNode(Node):
     # -- setup -------------------------------------------------------------------------------
     def _make_coupling(self, configs) -> ObstacleCoupling:
         cc = configs['coupling']
-        cc = CouplingConfig(damping=configs['damping'], link_radius=cc.link_radius,
-                            end_effector=cc.end_effector)
+        cc = dataclasses.replace(cc, damping=configs['damping'])
         return ObstacleCoupling(self.chain, configs[''].coupling_links,
                                 sphere_field=configs['repeller'],
                                 box_field=configs['box_field'], config=cc)
