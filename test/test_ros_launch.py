@@ -15,6 +15,7 @@ module), so neither can change without the other.
 import ast
 import glob
 import os
+import re
 import runpy
 import sys
 import types
@@ -478,3 +479,176 @@ def test_graph_comparison_detects_a_difference(monkeypatch, tmp_path):
     graph['recorder']['remappings'] = {'joint_states': '/arm/joint_states'}
     with pytest.raises(AssertionError, match='remappings'):
         assert_same_graph(launched, graph)
+
+
+# -- the README topic table --------------------------------------------------------------------
+#: Node classes of cdmp_ros/ros -> executable. Classes creating topics that are not listed here
+#: fail the test (add them here and to the README table).
+NODE_CLASSES = {'SimNode': 'sim', 'StreamerNode': 'streamer', 'AdapterNode': 'adapter',
+                'LearnerNode': 'learner', 'RecorderNode': 'recorder', 'PlayerNode': 'player'}
+#: Not product executables: the scripted user of ``cdmp demo``.
+IGNORED_CLASSES = {'DemoDriver'}
+#: Nodes whose topics are only known at run time (the bag's or the graph's topics); the README
+#: describes their QoS rule in prose.
+DYNAMIC_NODES = {'recorder', 'player'}
+CREATE = {'create_publisher': 'publishes', 'create_subscription': 'subscribes',
+          'create_service': 'service'}
+
+
+def _message_name(cls):
+    """``sensor_msgs/JointState`` for the class ``sensor_msgs.msg.JointState``."""
+    return f'{cls.__module__.split(".")[0]}/{cls.__name__}'
+
+
+def _qos_tuple(qos):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+    assert qos.history == HistoryPolicy.KEEP_LAST, f'{qos}: expected keep last'
+    rel = {ReliabilityPolicy.RELIABLE: 'reliable',
+           ReliabilityPolicy.BEST_EFFORT: 'best effort'}[qos.reliability]
+    dur = {DurabilityPolicy.VOLATILE: 'volatile',
+           DurabilityPolicy.TRANSIENT_LOCAL: 'transient local'}[qos.durability]
+    return rel, dur, int(qos.depth)
+
+
+def local_imports(tree, known):
+    """Names bound by ``from X import Y [as Z]`` inside functions of ``tree``."""
+    out = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.col_offset > 0:
+            for alias in node.names:
+                name = alias.asname or alias.name
+                if name not in known:
+                    module = __import__(node.module, fromlist=[alias.name])
+                    out[name] = getattr(module, alias.name)
+    return out
+
+
+def code_endpoints():
+    """``(topics, services)`` the node classes of cdmp_ros/ros create.
+
+    topics: set of (topic, type, node, role, reliability, durability, depth); services: set of
+    (name, type, node). Topic names, types and QoS are evaluated in the module's namespace;
+    a name bound by a ``for`` loop over a module constant gives one entry per value.
+    """
+    topics, services = set(), set()
+    for path in sorted(glob.glob(os.path.join(ROOT, 'cdmp_ros', 'ros', '*.py'))):
+        tree = ast.parse(open(path).read())
+        calls = []
+        parents = {}
+        for node in ast.walk(tree):
+            for child in ast.iter_child_nodes(node):
+                parents[child] = node
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                    node.func.attr in CREATE:
+                calls.append(node)
+        if not calls:
+            continue
+        module = __import__(
+            'cdmp_ros.ros.' + os.path.basename(path)[:-3], fromlist=['_'])
+        namespace = dict(vars(module))
+        namespace.update(local_imports(tree, namespace))
+        for call in calls:
+            where = f'{os.path.relpath(path, ROOT)}:{call.lineno}'
+            enclosing, loops = call, {}
+            cls = None
+            while enclosing in parents:
+                enclosing = parents[enclosing]
+                if isinstance(enclosing, ast.For) and isinstance(enclosing.target, ast.Name):
+                    loops.setdefault(enclosing.target.id, enclosing.iter)
+                if isinstance(enclosing, ast.ClassDef):
+                    cls = enclosing.name
+                    break
+            if cls in IGNORED_CLASSES:
+                continue
+            assert cls in NODE_CLASSES, \
+                f'{where}: {call.func.attr} in {cls or "no class"}; add it to NODE_CLASSES'
+            node = NODE_CLASSES[cls]
+            role = CREATE[call.func.attr]
+
+            def value(expr):
+                if isinstance(expr, ast.Name) and expr.id in loops:
+                    return list(eval(compile(ast.Expression(loops[expr.id]), where, 'eval'),
+                                     namespace))
+                return [eval(compile(ast.Expression(expr), where, 'eval'), namespace)]
+            try:
+                types_ = value(call.args[0])
+                names = value(call.args[1])
+                qos_expr = None
+                if role != 'service':
+                    kw = {k.arg: k.value for k in call.keywords}
+                    qos_expr = call.args[2 if role == 'publishes' else 3] \
+                        if len(call.args) > (2 if role == 'publishes' else 3) \
+                        else kw['qos_profile']
+                    qos = value(qos_expr)
+            except NameError as exc:  # a local variable: known only at run time
+                assert node in DYNAMIC_NODES, (
+                    f'{where}: {node} {role} with a type, name or QoS known only at run time '
+                    f'({exc}); list it in the README table')
+                continue
+            for msg_type in types_:
+                for name in names:
+                    if role == 'service':
+                        services.add((name, _message_name(msg_type), node))
+                    else:
+                        for q in qos:
+                            topics.add((name, _message_name(msg_type), node, role,
+                                        *_qos_tuple(q)))
+    return topics, services
+
+
+def readme_tables():
+    """The topic and service tables of the README section "Topics and services"."""
+    text = open(os.path.join(ROOT, 'README.md')).read()
+    section = text.split('### Topics and services', 1)
+    assert len(section) == 2, 'README has no "### Topics and services" section'
+    section = section[1].split('\n#', 1)[0]
+    tables, current = [], None
+    for line in section.splitlines():
+        if line.startswith('|'):
+            cells = [c.strip().strip('`').strip() for c in line.strip().strip('|').split('|')]
+            if current is None:
+                current = {'header': cells, 'rows': []}
+                tables.append(current)
+            elif not set(''.join(cells)) <= set('-: '):
+                current['rows'].append(dict(zip(current['header'], cells)))
+        else:
+            current = None
+    by_first = {t['header'][0]: t for t in tables}
+    assert {'topic', 'service'} <= set(by_first), f'tables found: {list(by_first)}'
+    topics, services = set(), set()
+    for row in by_first['topic']['rows']:
+        depth = re.fullmatch(r'keep last (\d+)', row['history'])
+        assert depth, f'README topic {row["topic"]}: history {row["history"]!r}'
+        assert row['role'] in ('publishes', 'subscribes'), row
+        if row['role'] == 'publishes':
+            assert row['rate'], f'README topic {row["topic"]}: no rate for the publisher'
+        for node in row['node'].split(','):
+            topics.add((row['topic'], row['type'], node.strip(), row['role'],
+                        row['reliability'], row['durability'], int(depth.group(1))))
+    for row in by_first['service']['rows']:
+        for node in row['node'].split(','):
+            services.add((row['service'], row['type'].replace('/srv/', '/'), node.strip()))
+    return topics, services
+
+
+def test_readme_topic_table_matches_the_code():
+    code_topics, code_services = code_endpoints()
+    readme_topics, readme_services = readme_tables()
+    assert {t[2] for t in code_topics} >= {'sim', 'streamer', 'adapter', 'learner'}
+    missing = sorted(code_topics - readme_topics)
+    stale = sorted(readme_topics - code_topics)
+    assert not missing and not stale, (
+        f'README topic table out of date.\nIn the code, not in the README: {missing}\n'
+        f'In the README, not in the code: {stale}')
+    assert readme_services == code_services, (
+        f'README services: {sorted(readme_services ^ code_services)} differ from the code')
+
+
+def test_readme_table_check_detects_a_difference():
+    """The table parser really reads the QoS columns: a changed depth is seen."""
+    readme_topics, _ = readme_tables()
+    row = next(t for t in readme_topics if t[0] == 'joint_reference' and t[3] == 'publishes')
+    assert row[4:] == ('reliable', 'volatile', 10)
+    code_topics, _ = code_endpoints()
+    assert row in code_topics
+    assert (*row[:6], 11) not in code_topics
