@@ -30,9 +30,10 @@ def generate_launch_description():
     args = [
         DeclareLaunchArgument(
             'robot', default_value='panda', choices=['panda', 'dual_panda', 'planar4'],
-            description="Robot simulated by the sim node (its 'robot' parameter). The "
-                        'streamer, adapter and learner take joint_names and urdf_path from '
-                        'their parameter files (the Panda in config/).'),
+            description="Robot simulated by the sim node (its 'robot' parameter). The files "
+                        'in config/ are written for the Panda: another robot needs a '
+                        'sim_params file with its initial_positions, and streamer_params, '
+                        'adapter_params and learner_params with its joint_names and urdf_path.'),
         DeclareLaunchArgument(
             'rate', default_value='500.0',
             description='Hz at which the streamer publishes joint_reference (1 kHz supported).'),
