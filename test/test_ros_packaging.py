@@ -1,5 +1,6 @@
 """ROS packaging: package.xml parses with catkin_pkg, and `colcon build` installs every
-executable under lib/cdmp_ros, the ament index marker and share/cdmp_ros/package.xml."""
+executable under lib/cdmp_ros, the ament index marker, share/cdmp_ros/package.xml, the
+parameter files and the launch files (share/cdmp_ros/launch)."""
 import ast
 import os
 import shutil
@@ -68,7 +69,8 @@ def test_colcon_build_installs_package(tmp_path):
     assert schemas, 'msg_schemas/*.json not installed under share/cdmp_ros'
     share = prefix / 'share' / 'cdmp_ros'
     for f in ['config/streamer.yaml', 'config/sim.yaml', 'config/graphs/demo.yaml',
-              'config/recorder_fastdds.xml', 'bags/panda_reach/demo_00/metadata.yaml']:
+              'config/recorder_fastdds.xml', 'bags/panda_reach/demo_00/metadata.yaml',
+              'launch/cdmp.launch.py', 'launch/demo.launch.py']:
         assert (share / f).is_file(), f'{f} not installed under share/cdmp_ros'
     # every design executable is a console script
     assert set(console_scripts()) >= {'cdmp', 'learner', 'adapter', 'streamer', 'sim',

@@ -1,0 +1,69 @@
+"""The cdmp_ros node graph: sim (optional), streamer, adapter and learner.
+
+    ros2 launch cdmp_ros cdmp.launch.py robot:=panda rate:=500.0 use_sim:=true
+    ros2 launch cdmp_ros cdmp.launch.py use_sim:=false namespace:=/arm   # a real robot
+
+Every node reads its parameter file from ``share/cdmp_ros/config`` (override one with
+``<node>_params:=/path/to/file.yaml``); ``rate`` sets the streamer's ``rate`` and ``robot`` the
+sim's ``robot``. With ``use_sim:=false`` the sim node is not started: the streamer, the adapter
+and the learner read the measured state from the robot's own ``joint_states``. The graph
+without ROS is ``cdmp bringup``; ``demo.launch.py`` is the graph of ``cdmp demo``.
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, GroupAction
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node, PushRosNamespace
+from launch_ros.parameter_descriptions import ParameterValue
+
+PACKAGE = 'cdmp_ros'
+#: Node (and executable) name -> its parameter file in config/.
+PARAMS = {'sim': 'sim.yaml', 'streamer': 'streamer.yaml', 'adapter': 'adapter.yaml',
+          'learner': 'learner.yaml'}
+
+
+def generate_launch_description():
+    config = os.path.join(get_package_share_directory(PACKAGE), 'config')
+    args = [
+        DeclareLaunchArgument(
+            'robot', default_value='panda', choices=['panda', 'dual_panda', 'planar4'],
+            description="Robot simulated by the sim node (its 'robot' parameter). The files "
+                        'in config/ are written for the Panda: another robot needs a '
+                        'sim_params file with its initial_positions, and streamer_params, '
+                        'adapter_params and learner_params with its joint_names and urdf_path.'),
+        DeclareLaunchArgument(
+            'rate', default_value='500.0',
+            description='Hz at which the streamer publishes joint_reference (1 kHz supported).'),
+        DeclareLaunchArgument(
+            'namespace', default_value='',
+            description="Namespace of every node and topic, e.g. '/arm' ('' = none)."),
+        DeclareLaunchArgument(
+            'use_sim', default_value='true', choices=['true', 'false'],
+            description='Start the pybullet sim node (false: a real robot publishes '
+                        'joint_states and consumes the references).'),
+    ]
+    args += [DeclareLaunchArgument(
+        f'{node}_params', default_value=os.path.join(config, file),
+        description=f'Parameter file of the {node} node.') for node, file in PARAMS.items()]
+
+    def params(node):
+        return LaunchConfiguration(f'{node}_params')
+
+    nodes = [
+        Node(package=PACKAGE, executable='sim', name='sim', output='screen',
+             parameters=[params('sim'),
+                         {'robot': ParameterValue(LaunchConfiguration('robot'), value_type=str)}],
+             condition=IfCondition(LaunchConfiguration('use_sim'))),
+        Node(package=PACKAGE, executable='streamer', name='streamer', output='screen',
+             parameters=[params('streamer'),
+                         {'rate': ParameterValue(LaunchConfiguration('rate'), value_type=float)}]),
+        Node(package=PACKAGE, executable='adapter', name='adapter', output='screen',
+             parameters=[params('adapter')]),
+        Node(package=PACKAGE, executable='learner', name='learner', output='screen',
+             parameters=[params('learner')]),
+    ]
+    return LaunchDescription(
+        args + [GroupAction([PushRosNamespace(LaunchConfiguration('namespace')), *nodes])])
