@@ -34,7 +34,7 @@ test: $(STAMP)
 	$(PY) -m pytest test $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(PY) -m flake8 cdmp_ros test benchmarks scripts setup.py
+	$(PY) -m flake8 cdmp_ros test benchmarks scripts launch setup.py
 
 bench: $(STAMP)
 	$(PY) -m pytest test -m benchmark -p no:cacheprovider $(PYTEST_ARGS)

@@ -7,7 +7,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_flake8_clean():
-    targets = [p for p in ('cdmp_ros', 'test', 'benchmarks', 'scripts', 'setup.py')
+    targets = [p for p in ('cdmp_ros', 'test', 'benchmarks', 'scripts', 'launch', 'setup.py')
                if os.path.exists(os.path.join(ROOT, p))]
     proc = subprocess.run([sys.executable, '-m', 'flake8', *targets], cwd=ROOT,
                           capture_output=True, text=True)

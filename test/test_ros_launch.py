@@ -486,13 +486,14 @@ def test_graph_comparison_detects_a_difference(monkeypatch, tmp_path):
 #: fail the test (add them here and to the README table).
 NODE_CLASSES = {'SimNode': 'sim', 'StreamerNode': 'streamer', 'AdapterNode': 'adapter',
                 'LearnerNode': 'learner', 'RecorderNode': 'recorder', 'PlayerNode': 'player'}
-#: Not product executables: the scripted user of ``cdmp demo``.
-IGNORED_CLASSES = {'DemoDriver'}
+#: Not product executables: the scripted user of ``cdmp demo``; the input gate's generic
+#: subscription (its callers' ``gate.subscribe(type, topic, callback, qos)`` are read instead).
+IGNORED_CLASSES = {'DemoDriver', 'InputGate'}
 #: Nodes whose topics are only known at run time (the bag's or the graph's topics); the README
 #: describes their QoS rule in prose.
 DYNAMIC_NODES = {'recorder', 'player'}
 CREATE = {'create_publisher': 'publishes', 'create_subscription': 'subscribes',
-          'create_service': 'service'}
+          'subscribe': 'subscribes', 'create_service': 'service'}
 
 
 def _message_name(cls):
@@ -578,7 +579,7 @@ def code_endpoints():
                     kw = {k.arg: k.value for k in call.keywords}
                     qos_expr = call.args[2 if role == 'publishes' else 3] \
                         if len(call.args) > (2 if role == 'publishes' else 3) \
-                        else kw['qos_profile']
+                        else kw.get('qos_profile', kw.get('qos'))
                     qos = value(qos_expr)
             except NameError as exc:  # a local variable: known only at run time
                 assert node in DYNAMIC_NODES, (
