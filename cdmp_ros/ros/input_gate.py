@@ -44,7 +44,8 @@ REASONS = (('flooding', ('flooding',)),
            ('frame', ('frame_id',)), ('marker_scale', ('scale.',)),
            ('marker_type', ('.type:',)), ('marker_action', ('.action:', 'DELETE of unknown')),
            ('too_many', ('obstacle limit',)), ('marker_pose', ('pose.',)),
-           ('malformed', ('not valid JSON', 'cannot be deserialized')))
+           ('malformed', ('not valid JSON', 'cannot be deserialized')),
+           ('superseded', ('superseded by',)))
 
 #: Serialized bytes allowed per marker of a MarkerArray (a SPHERE / CUBE marker with short
 #: frame and namespace strings is about 220 bytes; points, colors, text, meshes and textures

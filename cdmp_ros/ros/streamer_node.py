@@ -243,7 +243,10 @@ class StreamerNode(Node):
         self.gate.reject_all('obstacles', errors)
 
     def _on_primitive(self, topic: str, msg: String) -> None:
-        self.worker.submit(topic, msg.data)
+        replaced = self.worker.submit(topic, msg.data)
+        if replaced is not None:  # dropped unparsed: counted, so that nothing goes unreported
+            self.gate.reject(replaced, f'{replaced}: superseded by a newer {topic} before it '
+                             'was parsed', 'superseded')
 
     def _prepare(self, topic: str, text: str):
         """Worker thread: parse and prepare (no ROS calls, no shared state)."""

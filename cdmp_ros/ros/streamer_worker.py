@@ -17,10 +17,14 @@ class PrimitiveWorker(threading.Thread):
         self._results = []
         self._stopping = False
 
-    def submit(self, topic: str, text: str) -> None:
+    def submit(self, topic: str, text: str) -> Optional[str]:
+        """Queue ``text``; returns the topic of a waiting message it replaced (never parsed),
+        or None."""
         with self._cv:
+            replaced = self._pending[0] if self._pending is not None else None
             self._pending = (topic, text)  # coalesce: only the newest counts
             self._cv.notify()
+        return replaced
 
     def take(self):
         """Results since the last call: list of (topic, prepared or None, error or None)."""
