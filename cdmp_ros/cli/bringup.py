@@ -20,9 +20,11 @@ package needs. A graph file::
 Each process is ``python -m cdmp_ros.nodes.<executable> --ros-args ...`` with the environment
 of the caller plus ``environment``. If ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset it is set
 to ``LOCALHOST`` (say ``SUBNET`` explicitly to reach other machines). Output lines are prefixed
-with the node name. Ctrl-C (SIGINT) or SIGTERM stops every process: SIGINT first, SIGKILL after
+with the node name. Ctrl-C (SIGINT) or SIGTERM stops every process: the same signal is
+forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL after
 ``stop_timeout``; the exit code is 0 when every process stopped cleanly (exit code 0, or ended
-by that SIGINT while it was still starting).
+by that signal in the first instants of the interpreter, before the node's entry point
+installed its handlers, see :mod:`cdmp_ros.ros.node_main`).
 """
 import os
 import signal
@@ -39,9 +41,9 @@ from cdmp_ros.core.errors import ValidationError
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
-#: Exit codes of a clean stop: 0, or killed by the SIGINT we sent before the process had
-#: installed its handlers (still importing).
-CLEAN_EXIT_CODES = (0, -signal.SIGINT)
+#: Exit codes of a clean stop: 0, or killed by the SIGINT / SIGTERM we sent before the process
+#: had installed its handlers (the interpreter still starting).
+CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
 _NODE_KEYS = {'name', 'executable', 'params_file', 'parameters', 'remappings', 'namespace',
               'required', 'delay', 'arguments'}
 _GRAPH_KEYS = {'environment', 'stop_timeout', 'nodes'}
@@ -254,13 +256,14 @@ class Bringup:
                 return None
             time.sleep(0.05)
 
-    def stop(self) -> Dict[str, int]:
-        """SIGINT every running process, SIGKILL the ones still alive after ``stop_timeout``;
-        return every exit code (negative = killed by that signal)."""
+    def stop(self, sig: int = signal.SIGINT) -> Dict[str, int]:
+        """Send ``sig`` (SIGINT or SIGTERM) to every running process, SIGKILL the ones still
+        alive after ``stop_timeout``; return every exit code (negative = killed by that
+        signal)."""
         for p in self.procs.values():
             if p.poll() is None:
                 try:
-                    os.killpg(p.pid, signal.SIGINT)
+                    os.killpg(p.pid, sig)
                 except ProcessLookupError:
                     pass
         end = time.monotonic() + self.graph.stop_timeout
@@ -291,8 +294,13 @@ def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
     stop; 0 when every process ended cleanly."""
     graph = load_graph(path)
     stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set())
-                for s in (signal.SIGINT, signal.SIGTERM)}
+    received = []  # the signal to forward
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     out = log if log is not None else sys.stdout
     try:
         b = Bringup(graph, log=out)
@@ -304,7 +312,7 @@ def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
         if ended is not None:
             out.write(f'bringup: required node {ended!r} exited with code '
                       f'{b.procs[ended].returncode}; stopping the graph\n')
-        codes = b.stop()
+        codes = b.stop(received[0] if received else signal.SIGINT)
     finally:
         for s, h in previous.items():
             signal.signal(s, h)

@@ -17,7 +17,7 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 import dataclasses
 import json
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -329,18 +329,21 @@ class AdaptResult:
     problem: BuiltProblem
 
 
-def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> AdaptResult:
+def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
+                should_stop: Optional[Callable[[], bool]] = None) -> AdaptResult:
     """Build and solve one request (paper 003, Algorithm 1).
 
     A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
     only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
     satisfaction probabilities without keeping the solver thread from newer requests.
+    ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.adapt` (raises
+    :class:`~cdmp_ros.core.errors.Cancelled` when it returns True).
     """
     prob = build_problem(req, chain, cfg)
     config = prob.config
     if prob.infeasible:
         config = dataclasses.replace(config, max_outer=1, max_inner=min(config.max_inner, 50))
-    adapted, report = adapt(prob.prior, prob.constraints, config)
+    adapted, report = adapt(prob.prior, prob.constraints, config, should_stop=should_stop)
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 
 

@@ -6,7 +6,7 @@ with p = N(mu, L L^T), L = L_tril + diag(exp(gamma)), solved by L-BFGS on the La
 lambda <- lambda * exp(eta * (alpha - F)) (outer loop).
 """
 import time
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,15 +16,26 @@ from cdmp_ros.core.adaptation_config import (AdaptationConfig, AdaptationReport,
                                              ConstraintReport)
 from cdmp_ros.core.adaptation_problem import Problem
 from cdmp_ros.core.constraints.base import WeightConstraint
+from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
            'sample_points', 'monte_carlo_satisfaction']
 
 
-def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None
-          ) -> Tuple[ProMP, AdaptationReport]:
+def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
+          should_stop: Optional[Callable[[], bool]] = None) -> Tuple[ProMP, AdaptationReport]:
     """Adapt ``prior`` to the constraints (Algorithm 1, paper 003).
+
+    Parameters
+    ----------
+    prior : ProMP
+    constraints : sequence of constraints
+    config : AdaptationConfig, optional
+    should_stop : callable, optional
+        Polled before every evaluation of the Lagrangian; when it returns True the solve is
+        abandoned with :class:`~cdmp_ros.core.errors.Cancelled` (a node shutting down stops
+        a long solve within one evaluation).
 
     Returns
     -------
@@ -36,6 +47,11 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     config = config or AdaptationConfig()
     t_start = time.perf_counter()
     prob = Problem(prior, constraints, config)
+
+    def fun(theta, lam):
+        if should_stop is not None and should_stop():
+            raise Cancelled('adaptation cancelled')
+        return prob.lagrangian(theta, lam)
     theta = prob.initial_theta()
     lam = np.concatenate([np.full(s.stop - s.start, c.lambda0 or config.lambda0)
                           for c, s in zip(prob.constraints, prob.slices)]) \
@@ -57,7 +73,7 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
         if config.lbfgs_ftol_first is not None:
             # inexact early inner loops: the multipliers are still far from their values
             ftol = max(ftol, config.lbfgs_ftol_first * config.lbfgs_ftol_decay ** (n_outer - 1))
-        res = minimize(prob.lagrangian, theta, args=(lam,), jac=True, method='L-BFGS-B',
+        res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
                        options={'maxiter': int(config.max_inner), 'ftol': ftol,
                                 'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
         if np.all(np.isfinite(res.x)):

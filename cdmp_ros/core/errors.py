@@ -15,3 +15,7 @@ class PrimitiveFileError(ValidationError):
 
 class ConstraintSetError(ValidationError):
     """A constraint set is malformed or violates its schema."""
+
+
+class Cancelled(CdmpError):
+    """A long computation was asked to stop (e.g. an adaptation at node shutdown)."""

@@ -15,10 +15,11 @@ sample demonstrations 8.0 s with the default threads, 0.44 s single-threaded).
 import os
 import sys
 
-from cdmp_ros.ros.node_main import run_node
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 
 
 def main(args=None) -> int:
+    catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy is imported
     from cdmp_ros.ros.learner_node import LearnerNode
     return run_node(LearnerNode, args, graceful=True)

@@ -7,11 +7,12 @@ A corrupted or truncated bag is refused before anything is published (exit code 
 """
 import sys
 
-from cdmp_ros.ros.bag_bridge import PlayerNode
-from cdmp_ros.ros.node_main import run_node
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 
 
 def main(args=None) -> int:
+    catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
+    from cdmp_ros.ros.bag_bridge import PlayerNode
     return run_node(PlayerNode, args, graceful=True)
 
 

@@ -10,12 +10,13 @@ disables it.
 """
 import sys
 
-from cdmp_ros.ros.bag_bridge import RecorderNode
-from cdmp_ros.ros.node_main import run_node
-from cdmp_ros.ros.recorder_take import apply_dds_profile
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 
 
 def main(args=None) -> int:
+    catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
+    from cdmp_ros.ros.bag_bridge import RecorderNode
+    from cdmp_ros.ros.recorder_take import apply_dds_profile
     apply_dds_profile()  # before rclpy.init: Fast DDS reads it when the participant is made
     return run_node(RecorderNode, args, graceful=True)
 

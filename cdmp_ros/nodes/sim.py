@@ -12,7 +12,7 @@ exit code 2 and the reason on stderr.
 """
 import sys
 
-from cdmp_ros.ros.node_main import run_node
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 
 
 def make_executor():
@@ -25,6 +25,7 @@ def make_executor():
 
 
 def main(args=None) -> int:
+    catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     from cdmp_ros.ros.sim_node import SimNode
     return run_node(SimNode, args, graceful=True, executor=make_executor())
 

@@ -16,7 +16,7 @@ stops the tick thread before the node is destroyed.
 """
 import sys
 
-from cdmp_ros.ros.node_main import run_node
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 
 
 def make_executor():
@@ -29,6 +29,7 @@ def make_executor():
 
 
 def main(args=None) -> int:
+    catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     from cdmp_ros.ros.streamer_node import StreamerNode
     return run_node(StreamerNode, args, graceful=True, executor=make_executor())
 

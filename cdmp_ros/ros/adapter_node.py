@@ -126,7 +126,7 @@ class AdapterNode(Node):
         gate.subscribe(JointState, 'joint_states', self._on_joint_states, qos_profiles.SENSOR,
                        size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
         self._results_ready = self.create_guard_condition(self._on_results)
-        self.worker = SolveWorker(lambda job: solve_job(job, self.chain),
+        self.worker = SolveWorker(lambda job: solve_job(job, self.chain, self.worker.stopping),
                                   self._results_ready.trigger)
         self.worker.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -393,5 +393,8 @@ class AdapterNode(Node):
         self._publish_now()
 
     def close(self) -> None:
+        """Stop the solver thread; a running solve is cancelled within one evaluation."""
         self.worker.stop()
-        self.worker.join(timeout=2.0)
+        self.worker.join(timeout=1.0)
+        if self.worker.is_alive():  # still building a problem: a daemon thread, left behind
+            print('[adapter] solver thread still busy at shutdown', flush=True)

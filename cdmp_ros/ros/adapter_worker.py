@@ -2,11 +2,13 @@
 
 :class:`SolveWorker` runs one request at a time; ``submit`` replaces a request that has not
 started yet (latest request wins: the replaced one is counted as *dropped*). A running solve is
-never interrupted. When it finishes while a newer request is already waiting, its result is
-marked *stale*; the node still publishes a stale result if it converged (a newer plan follows
-within one solve time, and publishing avoids starving the output while obstacles keep
-moving), and says so on ``diagnostics``. A result computed for a primitive that has been
-replaced in the meantime is discarded by the node (counted as ``requests_outdated``).
+never interrupted by a newer request; only :meth:`SolveWorker.stop` (node shutdown) cancels
+it, within one evaluation of the Lagrangian (``solve_job(job, chain, worker.stopping)``).
+When a solve finishes while a newer request is already waiting, its result is marked *stale*;
+the node still publishes a stale result if it converged (a newer plan follows within one solve
+time, and publishing avoids starving the output while obstacles keep moving), and says so on
+``diagnostics``. A result computed for a primitive that has been replaced in the meantime is
+discarded by the node (counted as ``requests_outdated``).
 
 The worker calls ``notify()`` (a ROS guard condition's ``trigger``) after each result, so the
 executor publishes it without polling. Everything computed here is plain data (JSON text,
@@ -58,11 +60,12 @@ class JobResult:
     solve_cpu: float = 0.0                # [s], CPU time of the solver thread (time.thread_time)
 
 
-def solve_job(job: Job, chain) -> JobResult:
-    """Build, solve and serialise one job (runs in the worker thread)."""
+def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None) -> JobResult:
+    """Build, solve and serialise one job (runs in the worker thread); ``should_stop``
+    cancels the solve (:class:`~cdmp_ros.core.errors.Cancelled`, reported as rejected)."""
     t0, c0 = time.perf_counter(), time.thread_time()
     try:
-        res = run_request(job.request, chain, job.config)
+        res = run_request(job.request, chain, job.config, should_stop)
     except ConstraintSetError as exc:
         return JobResult(job, 'rejected', time.perf_counter() - t0, error=str(exc),
                          error_topic='constraints')
@@ -108,6 +111,7 @@ class SolveWorker(threading.Thread):
         self._pending: Optional[Job] = None
         self._results: List[JobResult] = []
         self._stopping = False
+        self._stop_event = threading.Event()  # read without the lock by a running solve
         self.busy = False
         self.counts: Dict[str, int] = {'requests_received': 0, 'requests_dropped': 0,
                                        'requests_stale': 0, 'requests_solved': 0}
@@ -127,9 +131,16 @@ class SolveWorker(threading.Thread):
         return out
 
     def stop(self) -> None:
+        """Stop the thread: a waiting request is dropped, a running solve is cancelled (when
+        the solve polls :meth:`stopping`); join the thread afterwards."""
+        self._stop_event.set()
         with self._cv:
             self._stopping = True
             self._cv.notify()
+
+    def stopping(self) -> bool:
+        """True once :meth:`stop` was called (``should_stop`` of a running solve)."""
+        return self._stop_event.is_set()
 
     def run(self) -> None:
         while True:

@@ -3,7 +3,8 @@
 :class:`ImproveWorker` runs :class:`cdmp_ros.core.improve.Improver` in a daemon thread so the
 node keeps serving its topics and services; the node polls :meth:`ImproveWorker.progress` and
 :meth:`ImproveWorker.result` from its executor thread (all ROS calls stay there). The ``sim``
-cost builds its pybullet world inside the worker thread and closes it there.
+cost builds its pybullet world inside the worker thread and closes it there. Setting
+``stop_event`` (the node's shutdown) ends the run before its next rollout cost.
 
 :func:`resolve_bag_path` and :func:`load_bag_demonstrations` turn the ``demonstration_bags``
 parameter into validated demonstrations, one entry at a time, so that a missing or corrupted
@@ -12,10 +13,10 @@ bag is reported and the others are still used.
 import os
 import threading
 import time
-from typing import List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 from cdmp_ros.core.demonstrations import Demo, map_demonstration
-from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.errors import Cancelled, CdmpError, ValidationError
 from cdmp_ros.core.improve import (CostConfig, ImproveConfig, ImproveResult, Improver,
                                    ScriptedCost, UpdateReport)
 from cdmp_ros.core.resources import share_dirs
@@ -101,8 +102,8 @@ class ImproveWorker(threading.Thread):
         self.scripted = ScriptedCost(chain, cost_config, prim.goal_y_, config.dt)
         self.cost_config = cost_config
         self.joint_names = tuple(prim.joint_names)
-        self.improver = Improver(prim, config, self.scripted, lower, upper)  # validates kind
         self.stop_event = threading.Event()
+        self.improver = Improver(prim, config, self._stoppable(self.scripted), lower, upper)
         self._lock = threading.Lock()
         self._progress: Optional[UpdateReport] = None
         self._new_progress = False
@@ -118,7 +119,7 @@ class ImproveWorker(threading.Thread):
                 from cdmp_ros.sim.rollout_cost import SimRolloutCost
                 sim = SimRolloutCost(self.scripted, self.cost_config.torque_weight,
                                      self.joint_names)
-                self.improver.cost = sim
+                self.improver.cost = self._stoppable(sim)
             result = self.improver.run(self._on_progress, self.stop_event)
             with self._lock:
                 self._result = result
@@ -132,6 +133,15 @@ class ImproveWorker(threading.Thread):
             if sim is not None:
                 sim.close()
             self.elapsed = time.monotonic() - self.started_at
+
+    def _stoppable(self, cost: Callable) -> Callable:
+        """``cost`` that raises :class:`Cancelled` once ``stop_event`` is set (one rollout
+        cost, not one whole update, is the longest wait of a shutdown)."""
+        def stoppable_cost(traj):
+            if self.stop_event.is_set():
+                raise Cancelled('improvement cancelled')
+            return cost(traj)
+        return stoppable_cost
 
     def _on_progress(self, report: UpdateReport) -> None:
         with self._lock:

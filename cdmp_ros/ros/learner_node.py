@@ -344,6 +344,6 @@ class LearnerNode(Node):
 
     def close(self) -> None:
         w = self.worker
-        if w is not None:
+        if w is not None:  # a running ~/improve ends before its next rollout cost
             w.stop_event.set()
-            w.join(timeout=5.0)
+            w.join(timeout=1.0)

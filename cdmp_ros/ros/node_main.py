@@ -11,10 +11,21 @@ Two ways to run a node, both ending the same way (``close()`` hook, ``destroy_no
   a valid context while its ``close()`` runs, so it can still take pending messages or publish
   a last diagnostic (the recorder drains its subscriptions there).
 
+Every node executable is graceful and calls :func:`catch_stop_signals` first thing in its
+``main()``, before importing rclpy, numpy or the node class, so that a signal that arrives
+while the process is still starting (imports, ``rclpy.init``, the node's constructor) is
+remembered instead of raising ``KeyboardInterrupt`` (a traceback and exit code -2) or killing
+the process (SIGTERM's default, exit code -15, no ``close()``). Such a signal lets the node
+finish building, skips the spin loop and closes the node: exit code 0. A signal that arrives
+before Python runs the entry module at all (the first ~0.1 s of the interpreter) still gets
+Python's defaults; ``cdmp bringup`` counts that exit (-SIGINT) as a clean stop.
+
 Usage in ``cdmp_ros/nodes/<name>.py``::
 
     def main(args=None):
-        return run_node(MyNode, args)
+        catch_stop_signals()
+        from cdmp_ros.ros.my_node import MyNode   # the heavy imports come after
+        return run_node(MyNode, args, graceful=True)
 
 A node may define ``close(self)`` (called once at shutdown) and ``done(self) -> bool`` (the
 loop ends when it returns True, e.g. a player that finished its bag).  ``make_node`` errors
@@ -30,6 +41,30 @@ from cdmp_ros.core.errors import CdmpError
 
 #: How often the graceful loop checks the stop flag and ``done()`` (seconds).
 SPIN_PERIOD = 0.05
+#: Set by SIGINT / SIGTERM once :func:`catch_stop_signals` ran (one per process).
+STOP = threading.Event()
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _on_stop_signal(signum, frame) -> None:
+    STOP.set()
+
+
+def catch_stop_signals() -> None:
+    """Make SIGINT and SIGTERM set :data:`STOP` (idempotent; main thread only).
+
+    Call it before the slow imports of a node executable: from then on a signal never
+    interrupts the start-up, it ends the node once it is built (see the module docstring).
+    """
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not _on_stop_signal:
+            signal.signal(sig, _on_stop_signal)
+
+
+def stop_requested() -> bool:
+    """True once SIGINT or SIGTERM arrived (after :func:`catch_stop_signals`); long start-up
+    work in a node constructor may poll it to cut the start-up short."""
+    return STOP.is_set()
 
 
 def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
@@ -56,12 +91,11 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     except ImportError:  # pragma: no cover - other rclpy builds
         RCLError = RuntimeError
 
-    stop = threading.Event()
+    stop = STOP if graceful else threading.Event()
     try:
         if graceful:
+            catch_stop_signals()  # usually done already by the executable's main()
             rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, lambda *_: stop.set())
         else:
             rclpy.init(args=args)
     except RCLError as exc:  # e.g. a malformed --params-file or --ros-args
@@ -71,6 +105,8 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     code = 0
     executor = executor if executor is not None else SingleThreadedExecutor()
     try:
+        if stop.is_set():  # stopped while importing or initialising: nothing to build
+            return code
         node = make_node()
         executor.add_node(node)
         done = getattr(node, 'done', None)
