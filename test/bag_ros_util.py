@@ -45,6 +45,28 @@ def stop(proc, sig=signal.SIGINT, timeout=WAIT_S):
     return proc.returncode
 
 
+class Lines:
+    """The lines of a child's text stream, read by a background thread as they come."""
+
+    def __init__(self, stream):
+        self.lines = []
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream):
+        for line in iter(stream.readline, ''):
+            self.lines.append(line)
+
+    def seen(self, *needles):
+        """True when every needle occurs in some line read so far."""
+        return all(any(n in x for x in list(self.lines)) for n in needles)
+
+    def text(self, timeout=WAIT_S):
+        """Everything read; waits (bounded) for the end of the stream first."""
+        self._thread.join(timeout)
+        return ''.join(self.lines)
+
+
 class Peer:
     """An rclpy context + node in this process, spun by a background thread."""
 

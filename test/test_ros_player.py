@@ -93,7 +93,8 @@ def test_plays_the_selected_topic_remapped_in_order_with_clock(tmp_path, peer):
     got_clock = peer.collect(Clock, '/clock', raw=False)
     log = str(tmp_path / 'play.log')
     play = start_node('player', {'bag': bag, 'rate': 2.0, 'topics': ['/a'], 'clock': True,
-                                 'loop': True, 'wait_for_subscribers': 1},
+                                 'loop': True, 'wait_for_subscribers': 1,
+                                 'wait_timeout': WAIT_S},
                       remaps=['/a:=/c'], log_path=log)
     try:
         assert wait_for(lambda: len(got_c) >= 40 and len(got_clock) >= 21, WAIT_S), (
@@ -117,7 +118,8 @@ def test_loop_replays_in_order_until_stopped(tmp_path, peer):
     bag = str(tmp_path / 'loop')
     _bag(bag, n=5, dt_ns=10_000_000)
     got = peer.collect(String, '/a')
-    play = start_node('player', {'bag': bag, 'loop': True, 'wait_for_subscribers': 1},
+    play = start_node('player', {'bag': bag, 'loop': True, 'wait_for_subscribers': 1,
+                                 'wait_timeout': WAIT_S},
                       log_path=str(tmp_path / 'play.log'),
                       extra=['--params-file', os.path.join(ROOT, 'config', 'bag.yaml')])
     try:
@@ -169,19 +171,25 @@ def test_replay_determinism_record_play_rerecord(tmp_path, peer):
     generations = [src]
     for gen in range(2):
         out = str(tmp_path / f'gen{gen}')
+        rec_log = tmp_path / f'rec{gen}.log'
         rec = start_node('recorder', {'output': out, 'topics': ['/demonstration']},
-                         log_path=str(tmp_path / f'rec{gen}.log'))
-        play = start_node('player', {'bag': generations[-1], 'rate': 4.0,
-                                     'wait_for_subscribers': 1},
-                          log_path=str(tmp_path / f'play{gen}.log'))
+                         log_path=str(rec_log))
+        play = None
         try:
+            # the recorder runs (it subscribes when the player's publisher appears), then the
+            # player starts once it subscribed: a reliable writer then delivers every message
+            assert wait_for(lambda: 'recording to' in rec_log.read_text(), WAIT_S)
+            play = start_node('player', {'bag': generations[-1], 'rate': 4.0,
+                                         'wait_for_subscribers': 1, 'wait_timeout': WAIT_S},
+                              log_path=str(tmp_path / f'play{gen}.log'))
             assert play.wait(timeout=60) == 0
             # every message is on disk before the recorder is stopped
             probe = str(tmp_path / f'probe{gen}')
             assert wait_for(lambda: recoverable_count(out, probe) >= 201, WAIT_S, period=0.1)
             assert stop(rec) == 0
         finally:
-            stop(play, signal.SIGKILL)
+            if play is not None:
+                stop(play, signal.SIGKILL)
             stop(rec, signal.SIGKILL)
         generations.append(out)
     payloads = [[m.data for m in BagReader(g).messages()] for g in generations]
