@@ -109,7 +109,7 @@ class Peer:
 
     def close(self):
         self._stop = True
-        self._thread.join(timeout=2)
+        self._thread.join(timeout=WAIT_S)
         self.executor.shutdown()
         self.node.destroy_node()
         self.rclpy.try_shutdown(context=self.context)
