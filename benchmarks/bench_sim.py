@@ -5,6 +5,8 @@ Target (issue 4): the Panda at 1 kHz under torque control (computed torque, Eq. 
 ``--duration`` seconds tracking a moving joint reference (a new reference every step, as the
 streamer sends it); the real-time factor is simulated time / wall time, median over ``--runs``.
 The other control laws and a bare ``stepSimulation`` loop are measured for comparison.
+Then real-time pacing (``WorldConfig(real_time=True)``): wall time of ``--duration`` simulated
+seconds, and how far it lags behind (the tests only check it never runs ahead).
 
 Run: .venv/bin/python benchmarks/bench_sim.py
 """
@@ -61,6 +63,16 @@ def run_once(mode, duration, with_obstacles=False):
     return wall, err
 
 
+def pacing(duration):
+    """Wall time [s] of ``duration`` simulated seconds with real-time pacing."""
+    with World(WorldConfig(time_step=DT, real_time=True)) as world:
+        robot = world.add_robot(panda_spec())
+        robot.set_controller(make_controller('computed_torque'))
+        start = time.perf_counter()
+        world.run(duration)
+        return time.perf_counter() - start
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--runs', type=int, default=7, help='runs per measurement (median)')
@@ -88,6 +100,11 @@ def main():
         print(f'| {label} | {np.median(rtf):.1f}x | {rtf.min():.1f}x | '
               f'{np.median(walls) / args.duration * 1e3 * 1e3 * DT:.0f} | {err_text} | '
               f'{target} |')
+    walls = np.array([pacing(args.duration) for _ in range(min(args.runs, 3))])
+    lag = (walls - (args.duration - DT)) * 1e3  # the first step anchors the pacing
+    print(f'\nreal-time pacing, {args.duration} s simulated: wall {np.median(walls):.3f} s '
+          f'(median of {len(walls)}), lag behind the wall clock median {np.median(lag):.1f} ms, '
+          f'max {lag.max():.1f} ms')
 
 
 if __name__ == '__main__':

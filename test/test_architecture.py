@@ -126,5 +126,6 @@ def test_core_importable_without_ros(module):
             '    importlib.import_module("cdmp_ros.core." + m.name)\n'
             'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "pybullet")]\n'
             'assert not bad, bad\n')
-    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=300)
     assert proc.returncode == 0, proc.stderr

@@ -3,7 +3,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -55,20 +54,28 @@ def test_recover_command_reports_loss(tmp_path, capsys):
 
 @pytest.mark.ros
 def test_record_and_play_commands(tmp_path):
+    from bag_ros_util import WAIT_S, Lines, recoverable_count, wait_for
     from conftest import ros_env
     out = str(tmp_path / 'via_cli')
     cdmp = [sys.executable, '-m', 'cdmp_ros.cli.main', 'bag']
     rec = subprocess.Popen(cdmp + ['record', '-o', out, '/replayed'], env=ros_env(),
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    rec_lines = Lines(rec.stdout)
     try:
+        # the recorder runs (it subscribes as soon as the player's publisher appears) ...
+        assert wait_for(lambda: rec_lines.seen('recording to'), WAIT_S), rec_lines.text(0)
+        # ... and the player starts once it subscribed: a reliable writer then delivers all
         play = subprocess.run(cdmp + ['play', DEMO, '--rate', '4', '--remap',
                                       '/demonstration:=/replayed', '--wait-for-subscribers',
-                                      '1', '--start-delay', '0.3'],
-                              env=ros_env(), capture_output=True, text=True, timeout=60)
+                                      '1'],
+                              env=ros_env(), capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stdout + play.stderr
-        time.sleep(0.5)
+        # every message is on disk before the recorder is stopped
+        probe = str(tmp_path / 'probe')
+        assert wait_for(lambda: recoverable_count(out, probe) >= 201, WAIT_S, period=0.1)
         rec.send_signal(signal.SIGINT)  # the CLI forwards it to the recorder node
-        rec_out, _ = rec.communicate(timeout=20)
+        rec.wait(timeout=60)
+        rec_out = rec_lines.text()
     finally:
         if rec.poll() is None:
             rec.kill()

@@ -4,11 +4,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 import yaml
 
+from bag_ros_util import WAIT_S, Lines, recoverable_count, wait_for
+from cdmp_ros.bag import BagReader
 from cdmp_ros.cli.bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
 from cdmp_ros.core.errors import ValidationError
 from conftest import ros_env
@@ -60,7 +61,7 @@ def test_unreadable_graph_file(tmp_path):
 def _graph(tmp_path, bag):
     p = tmp_path / 'graph.yaml'
     p.write_text(yaml.safe_dump({
-        'stop_timeout': 10.0,
+        'stop_timeout': WAIT_S,
         'nodes': [{'name': 'streamer', 'executable': 'streamer', 'params_file': 'streamer.yaml',
                    'parameters': {'rate': 100.0}},
                   {'name': 'recorder', 'executable': 'recorder',
@@ -73,34 +74,37 @@ def test_a_graph_runs_and_ctrl_c_stops_every_node(tmp_path):
     proc = subprocess.Popen([sys.executable, '-m', 'cdmp_ros.cli.main', 'bringup',
                              _graph(tmp_path, bag)], env=ros_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    lines = []
+    out = Lines(proc.stdout)
     try:
-        t_end = time.monotonic() + 60
-        while time.monotonic() < t_end:
-            line = proc.stdout.readline()
-            lines.append(line)
-            if '[streamer' in line and 'streaming 7 joints' in line:
-                break
-        assert any('streaming 7 joints' in x for x in lines), ''.join(lines)
-        time.sleep(1.5)  # the recorder sees some diagnostics
+        # both nodes run: the streamer streams, the recorder found its diagnostics ...
+        assert wait_for(lambda: out.seen('streaming 7 joints', 'subscribed to /diagnostics'),
+                        WAIT_S), out.text(0)
+        # ... and some of them are already on disk
+        probe = str(tmp_path / 'probe')
+        assert wait_for(lambda: recoverable_count(str(bag), probe) > 0, WAIT_S, period=0.1)
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal reaches the whole group
-        out, _ = proc.communicate(timeout=30)
+        proc.wait(timeout=2 * WAIT_S)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    out = ''.join(lines) + out
-    assert proc.returncode == 0, out
-    assert 'all nodes stopped cleanly' in out
-    assert (bag / 'metadata.yaml').is_file(), out
+    text = out.text()
+    assert proc.returncode == 0, text
+    assert 'all nodes stopped cleanly' in text
+    assert (bag / 'metadata.yaml').is_file(), text
+    assert {m.topic for m in BagReader(str(bag)).messages()} == {'/diagnostics'}
 
 
 def test_sigterm_and_duration_stop_the_graph(tmp_path):
     graph = load_graph(_graph(tmp_path, tmp_path / 'bag2'))
-    b = Bringup(graph, log=open(os.devnull, 'w'), extra_env=ros_env())
+    log = tmp_path / 'graph.log'
+    b = Bringup(graph, log=open(log, 'w'), extra_env=ros_env())
     b.start()
     try:
-        assert b.wait(timeout=2.0) is None  # nothing required exited
+        # positive evidence that both nodes run, then that none of them exited meanwhile
+        assert wait_for(lambda: 'streaming 7 joints' in log.read_text()
+                        and 'recording to' in log.read_text(), WAIT_S), log.read_text()
+        assert b.wait(timeout=0.0) is None  # nothing required exited
         assert not b.exited()
     finally:
         codes = b.stop()
@@ -115,7 +119,7 @@ def test_a_required_node_that_fails_stops_the_graph(tmp_path):
         {'name': 'bad', 'executable': 'streamer', 'parameters': {'rate': -5.0}},
         {'name': 'ok', 'executable': 'streamer', 'required': False}]}))
     proc = subprocess.run([sys.executable, '-m', 'cdmp_ros.cli.main', 'bringup', str(p)],
-                          env=ros_env(), capture_output=True, text=True, timeout=90)
+                          env=ros_env(), capture_output=True, text=True, timeout=180)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "required node 'bad' exited" in proc.stdout
     assert 'rate' in proc.stdout

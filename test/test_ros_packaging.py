@@ -39,7 +39,8 @@ def test_console_scripts_are_real_and_named_in_design():
         assert name in DESIGN_EXECUTABLES, f'{name} is not an executable of the design'
         module, func = target.split(':')
         code = f'import {module} as m; assert callable(m.{func})'
-        proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                              timeout=300)
         assert proc.returncode == 0, f'entry point {name} -> {target} broken: {proc.stderr}'
 
 

@@ -26,7 +26,8 @@ def in_thread(fn):
             out['error'] = exc
     t = threading.Thread(target=run)
     t.start()
-    t.join(10)
+    t.join(60)
+    assert not t.is_alive(), f'{fn} did not return within 60 s'
     if 'error' in out:
         raise out['error']
     return out['value']
@@ -73,15 +74,15 @@ def test_other_threads_are_lifted_by_native_id():
     def idle():
         seen['tid'] = threading.get_native_id()
         started.set()
-        release.wait(10)
+        release.wait(60)
         seen['policy'] = thread_policy()
     t = threading.Thread(target=idle)
     t.start()
-    started.wait(10)
+    assert started.wait(60)
     assert seen['tid'] in realtime.process_thread_ids()
     done, problems = realtime.set_threads_fifo(3, [seen['tid'], 2 ** 22 + 12345])
     release.set()
-    t.join(10)
+    t.join(60)
     assert (done, problems) == (1, '')  # the id of no thread is skipped
     assert seen['policy'] == (os.SCHED_FIFO, 3)
     assert thread_policy()[0] == os.SCHED_OTHER
@@ -119,15 +120,31 @@ def test_timer_slack_is_set_for_the_calling_thread():
     assert libc.prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0) != 2000  # main thread unchanged
 
 
-def test_sleeper_reaches_the_deadline_and_not_much_later():
+def test_sleeper_never_wakes_before_the_deadline():
+    """How late it wakes is a figure of the machine's load (benchmarks/bench_streamer.py);
+    that it never wakes early is exact."""
     s = DeadlineSleeper()
     for _ in range(5):
         deadline = time.monotonic() + 0.01
         assert s.sleep_until(deadline) is False
-        now = time.monotonic()
-        assert now >= deadline - 1e-6
-        assert now < deadline + 0.5  # generous: the machine is shared
+        assert time.monotonic() >= deadline - 1e-6
     assert s.sleep_until(time.monotonic() - 1.0) is False  # past deadline: returns at once
+
+
+def test_sleeper_does_not_sleep_for_a_past_deadline():
+    """A deadline already passed (a late tick) returns without blocking: the clock is a fake
+    one far beyond the deadline, and a blocking wait would use the real time-out."""
+    s = DeadlineSleeper(clock=lambda: 1e9)
+    s._wake = _NoBlockLock()
+    assert s.sleep_until(1.0) is False
+
+
+class _NoBlockLock:
+    """Stands in for the sleeper's wake lock: any blocking acquire is a test failure."""
+
+    def acquire(self, blocking=True, timeout=-1):
+        assert not blocking, f'blocking acquire (timeout {timeout})'
+        return False
 
 
 def test_sleeper_spin_ends_exactly_after_the_deadline():
@@ -140,10 +157,10 @@ def test_sleeper_spin_ends_exactly_after_the_deadline():
 def test_wake_ends_the_current_sleep_early():
     s = DeadlineSleeper()
     t = threading.Timer(0.05, s.wake)
-    t0 = time.monotonic()
     t.start()
-    assert s.sleep_until(t0 + 5.0) is True
-    assert time.monotonic() - t0 < 2.5
+    # True only when woken (a sleep that ran to its deadline returns False); the deadline is
+    # far enough that a loaded machine still wakes it first
+    assert s.sleep_until(time.monotonic() + 120.0) is True
     t.join()
     # a wake before the sleep ends the next sleep at once; several wakes count once
     s.wake()

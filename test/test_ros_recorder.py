@@ -1,21 +1,23 @@
 """Recorder node as a real process: clean-stop exactness (SIGINT and SIGTERM; take thread and
 executor callbacks), recording of all discovered topics, QoS and type hash in the bag."""
 import os
-import time
 
 import numpy as np
 import pytest
 
-from bag_ros_util import Peer, start_node, stop, wait_for
+from bag_ros_util import Peer, start_node, stop, wait_acked, wait_matched
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.metadata import read_metadata
+from conftest import module_domain
 
 pytestmark = pytest.mark.ros
+# own domain: "every discovered topic" must not see a topic of another module's processes
+DOMAIN = module_domain(9)
 
 
 @pytest.fixture
 def peer():
-    p = Peer()
+    p = Peer(domain_id=DOMAIN)
     yield p
     p.close()
 
@@ -30,22 +32,20 @@ def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name,
     bag = str(tmp_path / 'rec')
     rec = start_node('recorder', {'output': bag, 'topics': ['/exact'],
                                   'take_period': take_period, 'realtime_priority': rt},
-                     log_path=str(tmp_path / 'rec.log'))
+                     log_path=str(tmp_path / 'rec.log'), domain_id=DOMAIN)
     try:
-        pub = peer.publisher(String, '/exact')
-        assert wait_for(lambda: pub.get_subscription_count() >= 1, 20), 'recorder never matched'
-        time.sleep(0.3)  # let the recorder's reader side finish matching too
+        pub = peer.publisher(String, '/exact')  # depth 1000 >= 500: nothing is replaced
+        assert wait_matched(pub), 'recorder never matched'
         rng = np.random.default_rng(3)
         # DDS pads a serialized payload to a multiple of 4 bytes; choose lengths that need no
         # padding so that 'byte-identical' is exact (CDR string: 4 + 4 + len + NUL bytes)
         texts = [f'{i:04d}' + 'x' * int(4 * rng.integers(0, 80) + 3) for i in range(500)]
         sent = [encode_string(t) for t in texts]
         assert all(len(d) % 4 == 0 for d in sent)
-        for i, data in enumerate(sent):
+        for data in sent:
             pub.publish(data)
-            if i % 50 == 0:
-                time.sleep(0.005)
-        time.sleep(0.5)
+        # every message is in the recorder's queue; the clean stop must take and write them
+        assert wait_acked(pub), 'the recorder never acknowledged every message'
         assert stop(rec, getattr(signal, sig_name)) == 0
     finally:
         stop(rec, signal.SIGKILL)
@@ -71,16 +71,16 @@ def test_records_all_discovered_topics_but_not_rosout(tmp_path, peer):
     params_file = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                'config', 'bag.yaml')
     rec = start_node('recorder', {'output': bag, 'discovery_period': 0.1},
-                     log_path=str(tmp_path / 'rec.log'), extra=['--params-file', params_file])
+                     log_path=str(tmp_path / 'rec.log'), extra=['--params-file', params_file],
+                     domain_id=DOMAIN)
     try:
         pa = peer.publisher(String, '/topic_a')
         pb = peer.publisher(JointState, '/topic_b')
-        assert wait_for(lambda: pa.get_subscription_count() and pb.get_subscription_count(), 20)
-        time.sleep(0.3)
+        assert wait_matched(pa) and wait_matched(pb), 'the recorder never subscribed to both'
         for i in range(10):
             pa.publish(String(data=str(i)))
             pb.publish(JointState(name=['q'], position=[float(i)]))
-        time.sleep(0.5)
+        assert wait_acked(pa) and wait_acked(pb)
         assert stop(rec) == 0
     finally:
         stop(rec, 9)

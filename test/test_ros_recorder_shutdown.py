@@ -3,7 +3,7 @@ and SIGTERM, call close() once, and a CdmpError while building the node gives ex
 import signal
 import subprocess
 import sys
-import time
+import threading
 
 import pytest
 
@@ -41,11 +41,14 @@ sys.exit(run_node(Tiny, [], graceful=sys.argv[1] == 'graceful'))
 def test_signals_end_the_node_cleanly(mode, sig):
     proc = subprocess.Popen([sys.executable, '-c', NODE, mode, 'ok'], env=ros_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    watchdog = threading.Timer(60.0, proc.kill)  # a hang fails the test instead of blocking
+    watchdog.start()
     try:
         assert proc.stdout.readline().strip() == 'tick'  # spinning
         proc.send_signal(sig)
-        out, _ = proc.communicate(timeout=15)
+        out, _ = proc.communicate(timeout=60)
     finally:
+        watchdog.cancel()
         if proc.poll() is None:
             proc.kill()
             proc.wait()
@@ -54,9 +57,7 @@ def test_signals_end_the_node_cleanly(mode, sig):
 
 
 def test_error_while_building_the_node_exits_2():
-    t = time.monotonic()
     proc = subprocess.run([sys.executable, '-c', NODE, 'graceful', 'fail'], env=ros_env(),
-                          capture_output=True, text=True, timeout=30)
+                          capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert 'parameter x: expected > 0, got -1' in proc.stderr
-    assert time.monotonic() - t < 30

@@ -2,12 +2,11 @@
 subscriptions into a bag exactly and in order, closes chunks when idle, and the Fast DDS profile
 is loaded only when the user chose none and never opens a non-loopback or multicast locator."""
 import os
-import time
 import xml.etree.ElementTree as ET
 
 import pytest
 
-from bag_ros_util import Peer, wait_for
+from bag_ros_util import WAIT_S, Peer, wait_for, wait_matched
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 from cdmp_ros.ros.recorder_take import (PROFILE_OVERRIDE, TakeThread, ThreadTakenGroup,
@@ -29,20 +28,18 @@ def test_take_thread_records_exactly_in_order_and_flushes_when_idle(tmp_path):
     try:
         sub = peer.node.create_subscription(String, '/take', lambda m: None, qos,
                                             callback_group=ThreadTakenGroup(), raw=True)
-        pub = peer.publisher(String, '/take')
-        assert wait_for(lambda: pub.get_subscription_count() >= 1, 20)
-        time.sleep(0.2)
+        # publisher and subscription queues (5000) hold all 2000: none is ever replaced
+        pub = peer.publisher(String, '/take', depth=5000)
+        assert wait_matched(pub)
         taker.add('/take', sub)
         taker.start()
         size0 = os.path.getsize(writer.path)
         for i in range(2000):
             pub.publish(encode_string(f'm{i}'))
-            if i % 200 == 199:
-                time.sleep(0.01)
-        # the last chunk reaches the file within flush_period + a take period, with no new
-        # message arriving (flush_if_due of the idle take thread)
-        assert wait_for(lambda: writer.message_count == 2000, 10), writer.message_count
-        assert wait_for(lambda: writer._chunk_started is None, 2.0)
+        # the last chunk reaches the file with no new message arriving (flush_if_due of the
+        # idle take thread)
+        assert wait_for(lambda: writer.message_count == 2000, WAIT_S), writer.message_count
+        assert wait_for(lambda: writer._chunk_started is None, WAIT_S)
         assert os.path.getsize(writer.path) > size0
         taker.stop()
         assert taker.drain() == 0 and taker.error is None
