@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cdmp_ros.core.basis import U_END
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 
 #: Relative back-off of the velocity-limited time scaling: reported |yd| <= vmax exactly.
@@ -118,9 +119,9 @@ class DmpStepper:
         roots = np.roots([1.0, -(2.0 - h * cfg.alpha_y - h * h * cfg.alpha_y * cfg.beta_y),
                           1.0 - h * cfg.alpha_y])
         if h * cfg.alpha_y >= 1.0 or np.max(np.abs(roots)) >= 1.0:
-            raise ValueError(f'dt: dt / tau = {h:.3g} is too large for alpha_y = {cfg.alpha_y} '
-                             f'(need dt / tau * alpha_y < 1 and a stable recursion); use a '
-                             f'smaller dt or a larger tau')
+            raise ValidationError(f'dt: dt / tau = {h:.3g} is too large for alpha_y = '
+                                  f'{cfg.alpha_y} (need dt / tau * alpha_y < 1 and a stable '
+                                  f'recursion); use a smaller dt or a larger tau')
         self._inv_tau = 1.0 / self.tau
         self._cdmp = prim.kind == 'cdmp'
         self._yo = self._yd_ = None
@@ -135,7 +136,8 @@ class DmpStepper:
         if velocity_limits is not None:
             vl = as_array('velocity_limits', velocity_limits, (n,))
             if np.any(vl <= 0):
-                raise ValueError(f'velocity_limits: expected positive values, got {vl}')
+                raise ValidationError(f'velocity_limits: expected positive values, got '
+                                      f'{vl}')
             self._vmax = vl.tolist()
         self._noise = None
         if noise_phi is not None:
