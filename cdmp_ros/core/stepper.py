@@ -31,6 +31,8 @@ from cdmp_ros.core.validation import as_array, check_positive
 
 #: Relative back-off of the velocity-limited time scaling: reported |yd| <= vmax exactly.
 VMAX_BACKOFF = 1.0 - 1e-12
+#: Largest forcing profile precomputed by a stepper (2 tau / dt rows of n_dims floats).
+MAX_TABLE_ROWS = 2_000_000
 
 
 class StepStatus(enum.IntFlag):
@@ -113,6 +115,10 @@ class DmpStepper:
         self._ag = cfg.alpha_g
         self._alpha_s = cfg.alpha_s
         self._h = self.dt / self.tau
+        if not U_END * self.tau <= MAX_TABLE_ROWS * self.dt:
+            raise ValidationError(f'dt: the forcing profile needs {U_END:g} * tau / dt = '
+                                  f'{U_END * self.tau / self.dt:.6g} rows, more than '
+                                  f'{MAX_TABLE_ROWS}; use a larger dt or a shorter tau')
         self._inv_h = 1.0 / self._h
         # The semi-implicit Euler recursion x_{k+1} = tr x_k - det x_{k-1} + ... must be stable.
         h = self._h
