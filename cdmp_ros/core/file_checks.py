@@ -11,7 +11,7 @@ between fields, ordering, positive definiteness) live next to each loader's sche
 :func:`field_path` for their messages.
 """
 import math
-from typing import Any, Callable, Iterable, Optional, Sequence, Type
+from typing import Any, Callable, Iterable, Optional, Sequence, Tuple, Type
 
 import jsonschema
 from jsonschema.exceptions import best_match
@@ -65,52 +65,52 @@ def _non_finite(doc: Any, path: list, skip: Sequence[str], depth: int = 0):
     return None
 
 
-def _describe(e: jsonschema.ValidationError, root: str) -> str:
-    """``path: expected ..., got ...`` for one schema error."""
+def _describe(e: jsonschema.ValidationError, root: str) -> Tuple[list, str]:
+    """Path of the offending field and ``expected ..., got ...`` for one schema error."""
     v, vv, inst = e.validator, e.validator_value, e.instance
     path = list(e.absolute_path)
-    where = field_path(root, path)
     if v == 'required':
         missing = [k for k in vv if isinstance(inst, dict) and k not in inst]
-        return f'{field_path(root, path + missing[:1])}: missing (a required field)'
+        return path + missing[:1], 'missing (a required field)'
     if v == 'additionalProperties':
         allowed = set(e.schema.get('properties', {}))
         extra = sorted(k for k in inst if k not in allowed)
-        return (f'{field_path(root, path + extra[:1])}: unexpected field (expected one of '
-                f'{sorted(allowed)})')
+        return path + extra[:1], f'unexpected field (expected one of {sorted(allowed)})'
     if v == 'type':
         names = vv if isinstance(vv, list) else [vv]
         expected = ' or '.join(_TYPE_NAMES.get(n, n) for n in names)
-        return f'{where}: expected {expected}, got {short_repr(inst)}'
+        return path, f'expected {expected}, got {short_repr(inst)}'
     ops = {'minimum': '>=', 'exclusiveMinimum': '>', 'maximum': '<=',
            'exclusiveMaximum': '<'}
     if v in ops:
-        return f'{where}: expected a value {ops[v]} {vv}, got {short_repr(inst)}'
+        return path, f'expected a value {ops[v]} {vv}, got {short_repr(inst)}'
     if v in ('minItems', 'maxItems'):
         word = 'at least' if v == 'minItems' else 'at most'
-        return f'{where}: expected {word} {vv} items, got {len(inst)}'
+        return path, f'expected {word} {vv} items, got {len(inst)}'
     if v in ('minLength', 'maxLength'):
         word = 'at least' if v == 'minLength' else 'at most'
-        return f'{where}: expected a string of {word} {vv} characters, got {short_repr(inst)}'
+        return path, f'expected a string of {word} {vv} characters, got {short_repr(inst)}'
     if v == 'enum':
-        return f'{where}: expected one of {vv}, got {short_repr(inst)}'
+        return path, f'expected one of {vv}, got {short_repr(inst)}'
     if v == 'const':
-        return f'{where}: expected {vv!r}, got {short_repr(inst)}'
+        return path, f'expected {vv!r}, got {short_repr(inst)}'
     if v == 'uniqueItems':
-        return f'{where}: expected unique items, got duplicates in {short_repr(inst)}'
-    if v == 'anyOf' and all(s.keys() == {'required'} for s in vv):
+        return path, f'expected unique items, got duplicates in {short_repr(inst)}'
+    if v == 'anyOf' and all(isinstance(s, dict) and s.keys() == {'required'} for s in vv):
         names = [n for s in vv for n in s['required']]
-        return f'{where}: expected at least one of the fields {names}'
+        kind = f' (type {inst["type"]!r})' if isinstance(inst, dict) and 'type' in inst else ''
+        return path, f'expected at least one of the fields {names}{kind}'
     if v in ('oneOf', 'anyOf') and e.context:
-        sub = best_match(e.context)
-        return f'{where}: matches none of its allowed forms (closest: {_describe(sub, root)})'
-    return f'{where}: {short_repr(e.message, 200)}'
+        sub_path, sub_text = _describe(best_match(e.context), root)
+        return path, (f'matches none of its allowed forms (closest: '
+                      f'{field_path(root, sub_path)}: {sub_text})')
+    return path, short_repr(e.message, 200)
 
 
 def check_document(doc: Any, schema: dict, root: str, error: Type[ValidationError],
                    skip: Sequence[str] = (),
-                   order: Optional[Callable[[jsonschema.ValidationError], Any]] = None
-                   ) -> None:
+                   order: Optional[Callable[[jsonschema.ValidationError], Any]] = None,
+                   label: Optional[Callable[[list], str]] = None) -> None:
     """Refuse non-finite numbers, then validate ``doc`` against ``schema``.
 
     Parameters
@@ -127,6 +127,8 @@ def check_document(doc: Any, schema: dict, root: str, error: Type[ValidationErro
         Top-level keys exempt from the finiteness check (free-form ``metadata``).
     order : callable, optional
         Sort key choosing which schema error to report first (default: the shallowest).
+    label : callable, optional
+        ``label(path) -> str`` appended to the path in messages (e.g. a constraint's name).
 
     Raises
     ------
@@ -138,10 +140,9 @@ def check_document(doc: Any, schema: dict, root: str, error: Type[ValidationErro
     bad = _non_finite(doc, [], skip)
     if bad is not None:
         where, value = bad
-        if isinstance(value, str):
-            raise error(f'{field_path(root, where)}: {value}')
-        raise error(f'{field_path(root, where)}: expected a finite number, got {value!r} '
-                    '(NaN and Infinity are not JSON numbers)')
+        text = (value if isinstance(value, str) else f'expected a finite number, got {value!r} '
+                '(NaN and Infinity are not JSON numbers)')
+        raise error(f'{field_path(root, where)}{label(where) if label else ""}: {text}')
     key = id(schema)
     if key not in _VALIDATORS:
         _VALIDATORS[key] = (schema, jsonschema.Draft202012Validator(schema))
@@ -149,4 +150,5 @@ def check_document(doc: Any, schema: dict, root: str, error: Type[ValidationErro
     errors = list(validator.iter_errors(doc))
     if errors:
         errors.sort(key=order or (lambda e: (len(e.absolute_path), e.message)))
-        raise error(_describe(errors[0], root))
+        where, text = _describe(errors[0], root)
+        raise error(f'{field_path(root, where)}{label(where) if label else ""}: {text}')
