@@ -65,6 +65,20 @@ def _non_finite(doc: Any, path: list, skip: Sequence[str], depth: int = 0):
     return None
 
 
+def _closest(e: jsonschema.ValidationError) -> jsonschema.ValidationError:
+    """The error of the form a oneOf / anyOf instance was meant to have: the first form whose
+    required fields the instance has (else jsonschema's best match)."""
+    inst = e.instance
+    if isinstance(inst, dict):
+        for i, form in enumerate(e.validator_value):
+            if isinstance(form, dict) and set(form.get('required', ())) & set(inst):
+                subs = [c for c in e.context if c.relative_schema_path
+                        and c.relative_schema_path[0] == i]
+                if subs:
+                    return max(subs, key=lambda c: len(c.absolute_path))
+    return best_match(e.context)
+
+
 def _describe(e: jsonschema.ValidationError, root: str) -> Tuple[list, str]:
     """Path of the offending field and ``expected ..., got ...`` for one schema error."""
     v, vv, inst = e.validator, e.validator_value, e.instance
@@ -95,13 +109,20 @@ def _describe(e: jsonschema.ValidationError, root: str) -> Tuple[list, str]:
     if v == 'const':
         return path, f'expected {vv!r}, got {short_repr(inst)}'
     if v == 'uniqueItems':
-        return path, f'expected unique items, got duplicates in {short_repr(inst)}'
+        seen = []
+        for j, item in enumerate(inst):
+            if item in seen:
+                first = seen.index(item)
+                return path + [j], (f'expected unique items, got a repeat of '
+                                    f'{field_path(root, path + [first])} ({short_repr(item)})')
+            seen.append(item)
+        return path, f'expected unique items, got {short_repr(inst)}'
     if v == 'anyOf' and all(isinstance(s, dict) and s.keys() == {'required'} for s in vv):
         names = [n for s in vv for n in s['required']]
         kind = f' (type {inst["type"]!r})' if isinstance(inst, dict) and 'type' in inst else ''
         return path, f'expected at least one of the fields {names}{kind}'
     if v in ('oneOf', 'anyOf') and e.context:
-        sub_path, sub_text = _describe(best_match(e.context), root)
+        sub_path, sub_text = _describe(_closest(e), root)
         return path, (f'matches none of its allowed forms (closest: '
                       f'{field_path(root, sub_path)}: {sub_text})')
     return path, short_repr(e.message, 200)

@@ -4,6 +4,7 @@ Floats are written by :mod:`json` with ``repr`` precision, so a save/load round 
 every parameter exactly and therefore every rollout bit for bit.
 """
 import json
+import math
 import os
 from typing import Any, Dict, Optional, Union
 
@@ -95,8 +96,22 @@ def _validate_promp(body: Dict[str, Any], n: int) -> None:
     asym = np.abs(C - C.T) > 1e-12 + 1e-9 * np.abs(C.T)  # the ProMP's own tolerance
     if np.any(asym):
         i, j = (int(v) for v in np.argwhere(asym)[0])
-        raise PrimitiveFileError(f'primitive.promp.cov_w[{i}][{j}]: expected a symmetric '
-                                 f'matrix (cov_w[{j}][{i}] = {C[j, i]!r}), got {C[i, j]!r}')
+        raise PrimitiveFileError(f'primitive.promp.cov_w[{i}][{j}] and primitive.promp.cov_w'
+                                 f'[{j}][{i}]: expected equal values (a symmetric matrix), got '
+                                 f'{float(C[i, j])!r} and {float(C[j, i])!r}')
+    d = np.diag(C)
+    if np.any(d < 0):
+        i = int(np.flatnonzero(d < 0)[0])
+        raise PrimitiveFileError(f'primitive.promp.cov_w[{i}][{i}]: expected a variance >= 0, '
+                                 f'got {float(d[i])!r}')
+    # every 2x2 principal minor of a PSD matrix is PSD: |C_ij| <= sqrt(C_ii C_jj)
+    bad = C * C > np.outer(d, d) * (1.0 + 1e-9) + 1e-300
+    if np.any(bad):
+        i, j = (int(v) for v in np.argwhere(bad)[0])
+        raise PrimitiveFileError(
+            f'primitive.promp.cov_w[{i}][{j}]: expected |value| <= sqrt(primitive.promp.cov_w'
+            f'[{i}][{i}] * primitive.promp.cov_w[{j}][{j}]) = {math.sqrt(d[i] * d[j]):.6g} '
+            f'(a positive semi-definite matrix), got {float(C[i, j])!r}')
     eig = np.linalg.eigvalsh(0.5 * (C + C.T))
     if eig[0] < -1e-8 * max(float(np.max(np.abs(eig))), 1e-300):
         raise PrimitiveFileError(f'primitive.promp.cov_w: expected a positive semi-definite '

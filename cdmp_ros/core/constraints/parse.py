@@ -68,14 +68,15 @@ def validate_constraint_set(doc: Any) -> None:
 
         support = c.get('support', (0.0, 1.0))
         if support[0] > support[1]:
-            fail('support', f'expected t0 <= t1, got {list(support)}')
+            fail('support[1]', f'expected t1 >= constraint_set.constraints[{i}].support[0] = '
+                 f'{support[0]!r}, got {support[1]!r}')
         for key in ('lower', 'upper'):
             b = c.get(key)
             if isinstance(b, dict):
                 ts, vs = b['times'], b['values']
                 if len(vs) != len(ts):
-                    fail(f'{key}.values', f'expected {len(ts)} values (one per time), got '
-                         f'{len(vs)}')
+                    fail(f'{key}.values', f'expected {len(ts)} values (one per entry of '
+                         f'constraint_set.constraints[{i}].{key}.times), got {len(vs)}')
                 for k in range(1, len(ts)):
                     if not ts[k] > ts[k - 1]:
                         fail(f'{key}.times[{k}]', f'expected strictly increasing times (> '
@@ -145,11 +146,12 @@ def _point(spec: dict, ctx: RobotContext, where: str, tag: str = '') -> Point:
     return pt
 
 
-def _vec(c: dict, field: str, n: int, where: str, tag: str = '') -> np.ndarray:
+def _vec(c: dict, field: str, n: int, where: str, tag: str = '',
+         point_field: str = '') -> np.ndarray:
     v = np.asarray(c[field], dtype=float)
     if v.shape != (n,):
         raise ConstraintSetError(f'{where}.{field}{tag}: expected {n} numbers (the point of '
-                                 f'interest has {n} coordinates), got {v.size}')
+                                 f'interest {point_field} has {n} coordinates), got {v.size}')
     return v
 
 
@@ -217,8 +219,11 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
                 pt = _point(c['point'], ctx, f'{where}.point', tag)
                 k = pt.n_out
 
+                point_field = f'{where}.point.' + next(
+                    key for key in ('joint', 'dims', 'link') if key in c['point'])
+
                 def vec(field):
-                    return _vec(c, field, k, where, tag)
+                    return _vec(c, field, k, where, tag, point_field)
                 if kind == 'hyperplane':
                     out.append(Hyperplane(pt, vec('normal'), vec('offset'), support, **common))
                 elif kind == 'corner':
