@@ -225,3 +225,30 @@ def test_every_mutation_and_kind_is_reachable():
     for kind, paths in PATHS.items():
         assert len(paths) > 20, kind
         assert any(isinstance(p[-1], int) for p in paths), kind
+
+
+def test_the_schema_ranges_mirror_the_dataclass_and_parameter_ranges():
+    """A value a node accepts as a parameter is one its files accept, and the reverse."""
+    from dataclasses import fields
+
+    from cdmp_ros.core.adaptation_config import RANGES
+    from cdmp_ros.core.adapter_config import AdaptRequestConfig
+    from cdmp_ros.core.constraints.parse import constraints_schema
+    from cdmp_ros.core.primitive_io import primitive_schema
+    dmp = primitive_schema()['properties']['dmp']['properties']
+    phase = primitive_schema()['properties']['phase']['properties']
+    basis = primitive_schema()['properties']['basis']['properties']
+    schema = {'alpha_y': dmp['alpha_y'], 'beta_y': dmp['beta_y'], 'alpha_g': dmp['alpha_g'],
+              'demo_margin': dmp['demo_margin'], 'alpha_s': phase['alpha_s'],
+              'basis_width': basis['basis_width']}
+    ranges = {f.name: f.metadata['range'] for f in fields(DmpConfig)}
+    for name, prop in schema.items():
+        assert (prop['minimum'], prop['maximum']) == ranges[name], name
+    assert basis['centers']['maxItems'] == ranges['n_weights_per_dim'][1]
+    opt = constraints_schema()['properties']['optimizer']['properties']
+    adapter = {f.name: f.metadata.get('range') for f in fields(AdaptRequestConfig)}
+    assert {'n_steps', 'max_outer', 'max_inner', 'lambda0'} <= set(adapter)
+    for name, (lo, hi) in RANGES.items():
+        assert (opt[name]['minimum'], opt[name]['maximum']) == (lo, hi), name
+        if adapter.get(name) is not None:
+            assert adapter[name] == (lo, hi), name
