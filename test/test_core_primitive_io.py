@@ -53,7 +53,8 @@ def _broken(cdmp, mutate):
     (lambda d: d.pop('limits'), 'limits'),
     (lambda d: d.__setitem__('duration', -1.0), 'primitive.duration'),
     (lambda d: d.__setitem__('joint_names', ['a', 'b']), 'primitive.joint_names'),
-    (lambda d: d['limits'].__setitem__('lower', [5.0, 5.0, 5.0]), 'y_min'),
+    (lambda d: d['limits'].__setitem__('lower', [5.0, 5.0, 5.0]),
+     r'primitive\.limits\.upper\[0\]: expected a value > primitive\.limits\.lower\[0\]'),
     (lambda d: d['basis']['widths'].__setitem__(0, -1.0), 'basis'),
     (lambda d: d.__setitem__('extra', 1), 'extra'),
 ])

@@ -450,7 +450,7 @@ def test_prepare_rejects_schema_violations_naming_the_field(cdmp_text):
     with pytest.raises(PrimitiveFileError, match=r'primitive\.dmp\.alpha_y'):
         prepare_primitive(json.dumps(d), PANDA_JOINTS, DT, LOWER, UPPER)
     d = json.loads(cdmp_text)
-    d['duration'] = 1e-4  # cannot be integrated at 2 ms
+    d['duration'] = 2e-3  # a valid duration that cannot be integrated at 2 ms
     with pytest.raises(PrimitiveFileError, match='dt'):
         prepare_primitive(json.dumps(d), PANDA_JOINTS, DT, LOWER, UPPER)
 

@@ -440,7 +440,7 @@ PRIMITIVE_CASES = {
     'malformed_json': (lambda d: json.dumps(d)[:-5], 'primitive: not valid JSON'),
     'not_an_object': (lambda d: '[1, 2, 3]', 'expected a JSON object'),
     'schema_violation': (lambda d: json.dumps(dict(d, duration=-1.0)),
-                         'primitive.duration: -1.0 is less than or equal to the minimum of 0'),
+                         'primitive.duration: expected a value >= 0.001, got -1.0'),
     'wrong_joints': (lambda d: json.dumps(dict(d, joint_names=[f'j{i}' for i in range(7)])),
                      'expected the robot joints'),
     'nan_mean': (lambda d: json.dumps(d).replace('"mean_w": [', '"mean_w": [NaN, ', 1),
@@ -469,16 +469,15 @@ CONSTRAINT_CASES = {
     'malformed_json': ('{"constraints": [', 'constraints: not valid JSON'),
     'not_an_object': ('[]', 'constraint_set: expected a JSON object'),
     'unknown_type': (json.dumps({'constraints': [{'type': 'teleport'}]}),
-                     "'teleport' is not one of"),
+                     'constraints[0].type (teleport): expected one of'),
     'bad_alpha': (json.dumps({'constraints': [{'type': 'joint_limit', 'joint': 0,
                                                'upper': 1.0, 'alpha': 1.5}]}),
-                  'constraints[0].alpha (joint_limit): 1.5 is greater than or equal to the '
-                  'maximum of 1'),
+                  'constraints[0].alpha (joint_limit): expected a value < 1, got 1.5'),
     'joint_out_of_range': (json.dumps({'constraints': [
         {'type': 'joint_limit', 'joint': 9, 'upper': 1.0}]}), 'expected an index < 7'),
     'nan_center': ('{"constraints": [{"type": "repeller", "point": {"link": "ee"}, '
                    '"center": [NaN, 0, 0], "radius": 0.1}]}',
-                   'center: expected finite values, got nan'),
+                   'constraints[0].center[0] (repeller): expected a finite number, got nan'),
     'too_large': (json.dumps({'constraints': [], 'pad': 'x' * 400000}),
                   'exceeds max_json_bytes = 300000'),
     'unknown_link': (json.dumps({'constraints': [

@@ -280,14 +280,14 @@ def test_marker_in_another_frame_is_rejected(graph):
 PRIMITIVE_CASES = {
     'malformed_json': (lambda d: json.dumps(d)[:-5], 'not valid JSON'),
     'schema_violation': (lambda d: json.dumps(dict(d, duration=-1.0)),
-                         'primitive.duration: -1.0 is less than or equal to the minimum of 0'),
+                         'primitive.duration: expected a value >= 0.001, got -1.0'),
     'wrong_joints': (lambda d: json.dumps(dict(d, joint_names=[f'j{i}' for i in range(7)])),
                      'expected the streamer joints'),
     'not_an_object': (lambda d: '[1, 2, 3]', 'expected a JSON object'),
     'nan_constant': (lambda d: json.dumps(d).replace('"alpha_y": 25.0', '"alpha_y": NaN'),
-                     'alpha_y: expected a finite positive number, got nan'),
+                     'primitive.dmp.alpha_y: expected a finite number, got nan'),
     'nan_weights': (lambda d: json.dumps(d).replace('"weights": [[', '"weights": [[NaN, '),
-                    'primitive.dmp.weights: expected shape (7, 30)'),
+                    'primitive.dmp.weights[0][0]: expected a finite number, got nan'),
 }
 
 

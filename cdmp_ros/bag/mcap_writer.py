@@ -15,6 +15,8 @@ import struct
 import zlib
 from typing import BinaryIO, Dict, List, Tuple
 
+from cdmp_ros.core.errors import ValidationError
+
 MAGIC = b'\x89MCAP0\r\n'
 _MSG = struct.Struct('<BQHIQQ')  # opcode, record length, channel, sequence, log, publish
 _U16, _U32, _U64 = struct.Struct('<H'), struct.Struct('<I'), struct.Struct('<Q')
@@ -59,7 +61,7 @@ class McapStreamWriter:
         elif compression == '':
             self._compress = bytes
         else:
-            raise ValueError(f'compression: expected zstd, lz4 or "", got {compression!r}')
+            raise ValidationError(f'compression: expected zstd, lz4 or "", got {compression!r}')
         self._f = stream
         self._compression = compression
         self._chunk_size = chunk_size

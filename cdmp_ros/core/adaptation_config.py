@@ -6,6 +6,13 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 
 
+#: Ranges of the settings a constraint set may override (its schema's "optimizer", the
+#: adapter's ROS parameters): bounded so that a file cannot ask for unbounded work.
+RANGES = {'n_steps': (2, 1000), 'max_outer': (1, 100), 'max_inner': (1, 10000),
+          'lambda0': (1e-6, 1e6), 'eta': (1e-6, 100.0), 'kappa': (0.0, 1e6)}
+_INTEGERS = ('n_steps', 'max_outer', 'max_inner')
+
+
 @dataclass(frozen=True)
 class AdaptationConfig:
     """Optimiser settings (defaults: the authors' Table II settings, promp_benchmark_protocol).
@@ -97,14 +104,15 @@ class AdaptationConfig:
     whiten: bool = True
 
     def __post_init__(self):
-        if int(self.n_steps) < 2:
-            raise ValidationError(f'n_steps: expected an integer >= 2, got {self.n_steps!r}')
-        check_positive('lambda0', self.lambda0)
-        check_positive('eta', self.eta)
-        for name in ('max_outer', 'max_inner'):
-            if int(getattr(self, name)) < 1:
-                raise ValidationError(f'{name}: expected an integer >= 1, '
-                                      f'got {getattr(self, name)!r}')
+        for name, (lo, hi) in RANGES.items():
+            v = getattr(self, name)
+            kind = int if name in _INTEGERS else float
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or (
+                    kind is int and not float(v).is_integer()):
+                what = 'an integer' if kind is int else 'a number'
+                raise ValidationError(f'{name}: expected {what} in [{lo}, {hi}], got {v!r}')
+            if not lo <= v <= hi:  # also refuses NaN
+                raise ValidationError(f'{name}: expected a value in [{lo}, {hi}], got {v!r}')
         check_positive('objective_tol', self.objective_tol, allow_zero=True)
         check_positive('feasibility_tol', self.feasibility_tol, allow_zero=True)
         check_positive('kappa', self.kappa, allow_zero=True)

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.signal import lfilter
 
 from cdmp_ros.core.basis import PhaseBasis
+from cdmp_ros.core.config_fields import check_fields, param
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.transform import TanhTransform, XI_SAT
 from cdmp_ros.core.validation import as_array, check_positive
@@ -31,6 +32,8 @@ from cdmp_ros.core.validation import as_array, check_positive
 ACC_CLAMP = 1e15
 #: Clamp of |z| (internal units).
 VEL_CLAMP = 1e12
+#: Largest number of samples of one rollout (duration / dt + 1).
+MAX_ROLLOUT_STEPS = 10_000_000
 
 CouplingFn = Callable[[float, NDArray[np.float64], NDArray[np.float64]], ArrayLike]
 
@@ -60,23 +63,22 @@ class DmpConfig:
         starts that touch or cross a limit (see :mod:`cdmp_ros.core.transform`).
     """
 
-    n_weights_per_dim: int = 30
-    alpha_y: float = 25.0
-    beta_y: float = 6.25
-    alpha_g: float = 12.5
-    alpha_s: float = 4.0
-    basis_width: float = 1.0
-    regularization: float = 1e-8
-    demo_margin: float = 1e-3
+    n_weights_per_dim: int = param(30, 'Gaussian kernels per degree of freedom.', 1, 1000)
+    alpha_y: float = param(25.0, 'Spring constant alpha_y of the transformation system.',
+                           1e-6, 1e4)
+    beta_y: float = param(6.25, 'Damper constant beta_y (alpha_y / 4: critically damped).',
+                          1e-6, 1e4)
+    alpha_g: float = param(12.5, 'Goal dynamics constant alpha_g.', 1e-6, 1e4)
+    alpha_s: float = param(4.0, 'Canonical system decay alpha_s.', 1e-6, 100.0)
+    basis_width: float = param(1.0, 'Kernel standard deviation in centre spacings.',
+                               1e-3, 1e3)
+    regularization: float = param(1e-8, 'Ridge factor of the weight regression.', 0.0, 1.0)
+    demo_margin: float = param(1e-3, 'CDMP: fraction of the half range kept free when '
+                               'clipping positions at a limit.', 1e-9, 0.5)
 
     def __post_init__(self):
-        for name in ('alpha_y', 'beta_y', 'alpha_g', 'alpha_s', 'basis_width'):
-            check_positive(name, getattr(self, name))
-        check_positive('regularization', self.regularization, allow_zero=True)
-        if not (0.0 < self.demo_margin < 1.0):
-            raise ValidationError(f'demo_margin: expected 0 < demo_margin < 1, got '
-                                  f'{self.demo_margin!r}')
-        # The basis validates n_weights_per_dim.
+        # The ranges are those of the primitive file (msg_schemas/primitive.schema.json).
+        check_fields(self)
         PhaseBasis(self.n_weights_per_dim, self.alpha_s, self.basis_width)
 
 
@@ -267,6 +269,10 @@ class DMP:
         dt = check_positive('dt', dt)
         tau = self.tau_ if tau is None else check_positive('tau', tau)
         duration = tau if duration is None else check_positive('duration', duration)
+        n_steps = duration / dt + 1.0
+        if not n_steps <= MAX_ROLLOUT_STEPS:
+            raise ValidationError(f'dt: duration / dt = {duration:.6g} / {dt:.6g} gives more '
+                                  f'than {MAX_ROLLOUT_STEPS} steps; use a larger dt')
         n_steps = int(round(duration / dt)) + 1
         start_y = (self.start_y_ if start_y is None
                    else as_array('start_y', start_y, (self.n_dims,)))

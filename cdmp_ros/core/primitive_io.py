@@ -4,15 +4,16 @@ Floats are written by :mod:`json` with ``repr`` precision, so a save/load round 
 every parameter exactly and therefore every rollout bit for bit.
 """
 import json
+import math
 import os
 from typing import Any, Dict, Optional, Union
 
-import jsonschema
 import numpy as np
 
 from cdmp_ros.core.basis import PhaseBasis
 from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError
+from cdmp_ros.core.file_checks import check_document, field_path
 from cdmp_ros.core.resources import schema_path
 
 FORMAT_VERSION = 1
@@ -28,46 +29,95 @@ def primitive_schema() -> dict:
     return _SCHEMA
 
 
-def _path_str(path) -> str:
-    out = 'primitive'
-    for p in path:
-        out += f'[{p}]' if isinstance(p, int) else f'.{p}'
-    return out
+#: Largest number of ProMP weights n_dims * len(promp.basis.centers) (cov_w is its square).
+MAX_PROMP_WEIGHTS = 2048
+
+
+def _len(path, value, expected: int, why: str) -> None:
+    if len(value) != expected:
+        raise PrimitiveFileError(f'{field_path("primitive", path)}: expected {expected} '
+                                 f'{why}, got {len(value)}')
 
 
 def validate_primitive_dict(d: Any) -> None:
-    """Raise :class:`PrimitiveFileError` naming the first offending field."""
-    if not isinstance(d, dict):
-        raise PrimitiveFileError(f'primitive: expected a JSON object, got {type(d).__name__}')
-    validator = jsonschema.Draft202012Validator(primitive_schema())
-    errors = sorted(validator.iter_errors(d), key=lambda e: (len(e.absolute_path), e.message))
-    if errors:
-        e = errors[0]
-        raise PrimitiveFileError(f'{_path_str(e.absolute_path)}: {e.message}')
+    """Check a decoded primitive file; raise :class:`PrimitiveFileError` naming the field.
+
+    The one gate of every primitive loader (files, topics, the streamer and the adapter):
+    finite numbers and the schema's ranges (:func:`cdmp_ros.core.file_checks.check_document`),
+    then what the schema cannot express: sizes that agree between fields, ordered limits, a
+    symmetric positive semi-definite ProMP covariance.
+    """
+    check_document(d, primitive_schema(), 'primitive', PrimitiveFileError, skip=('metadata',))
     n = d['n_dims']
     if len(d['joint_names']) != n:
-        raise PrimitiveFileError(f'primitive.joint_names: expected {n} names (n_dims), got '
-                                 f'{len(d["joint_names"])}')
-    for key in ('lower', 'upper'):
-        if 'limits' in d and len(d['limits'][key]) != n:
-            raise PrimitiveFileError(f'primitive.limits.{key}: expected {n} values, got '
-                                     f'{len(d["limits"][key])}')
+        raise PrimitiveFileError(f'primitive.n_dims: expected len(primitive.joint_names) = '
+                                 f'{len(d["joint_names"])}, got {n}')
+    per_joint = 'values (one per joint, primitive.n_dims)'
+    if 'limits' in d:
+        lo, hi = d['limits']['lower'], d['limits']['upper']
+        _len(['limits', 'lower'], lo, n, per_joint)
+        _len(['limits', 'upper'], hi, n, per_joint)
+        for i, (a, b) in enumerate(zip(lo, hi)):
+            if not a < b:
+                raise PrimitiveFileError(f'primitive.limits.upper[{i}]: expected a value > '
+                                         f'primitive.limits.lower[{i}] = {a!r}, got {b!r}')
     if 'velocity_limits' in d:
-        vl = d['velocity_limits']
-        if len(vl) != n or min(vl) <= 0:
-            raise PrimitiveFileError(f'primitive.velocity_limits: expected {n} positive values')
+        _len(['velocity_limits'], d['velocity_limits'], n, per_joint)
     if d['kind'] in ('dmp', 'cdmp'):
         nb = len(d['basis']['centers'])
-        if len(d['basis']['widths']) != nb:
-            raise PrimitiveFileError('primitive.basis.widths: expected as many widths as '
-                                     f'centers ({nb}), got {len(d["basis"]["widths"])}')
+        per_kernel = 'values (len(primitive.basis.centers))'
+        _len(['basis', 'widths'], d['basis']['widths'], nb, per_kernel)
         dm = d['dmp']
-        if len(dm['weights']) != n or any(len(r) != nb for r in dm['weights']):
-            raise PrimitiveFileError(f'primitive.dmp.weights: expected shape ({n}, {nb})')
+        _len(['dmp', 'weights'], dm['weights'], n, 'rows (primitive.n_dims)')
+        for i, row in enumerate(dm['weights']):
+            _len(['dmp', 'weights', i], row, nb, per_kernel)
         for key in ('start', 'goal'):
-            if len(dm[key]) != n:
-                raise PrimitiveFileError(f'primitive.dmp.{key}: expected {n} values, got '
-                                         f'{len(dm[key])}')
+            _len(['dmp', key], dm[key], n, per_joint)
+    if d['kind'] == 'promp':
+        _validate_promp(d['promp'], n)
+
+
+def _validate_promp(body: Dict[str, Any], n: int) -> None:
+    M = len(body['basis']['centers'])
+    nw = n * M
+    if nw > MAX_PROMP_WEIGHTS:
+        raise PrimitiveFileError(f'primitive.promp.basis.centers: expected n_dims * '
+                                 f'len(centers) <= {MAX_PROMP_WEIGHTS} weights, got {n} * {M}')
+    if 'n_basis' in body and body['n_basis'] != M:
+        raise PrimitiveFileError(f'primitive.promp.n_basis: expected len(primitive.promp.basis.'
+                                 f'centers) = {M}, got {body["n_basis"]}')
+    why = f'values (n_dims * len(primitive.promp.basis.centers) = {n} * {M})'
+    _len(['promp', 'mean_w'], body['mean_w'], nw, why)
+    cov = body['cov_w']
+    _len(['promp', 'cov_w'], cov, nw, why.replace('values', 'rows'))
+    for i, row in enumerate(cov):
+        _len(['promp', 'cov_w', i], row, nw, why)
+    C = np.asarray(cov, dtype=np.float64)
+    asym = np.abs(C - C.T) > 1e-12 + 1e-9 * np.abs(C.T)  # the ProMP's own tolerance
+    if np.any(asym):
+        i, j = (int(v) for v in np.argwhere(asym)[0])
+        raise PrimitiveFileError(f'primitive.promp.cov_w[{i}][{j}] and primitive.promp.cov_w'
+                                 f'[{j}][{i}]: expected equal values (a symmetric matrix), got '
+                                 f'{float(C[i, j])!r} and {float(C[j, i])!r}')
+    d = np.diag(C)
+    if np.any(d < 0):
+        i = int(np.flatnonzero(d < 0)[0])
+        raise PrimitiveFileError(f'primitive.promp.cov_w[{i}][{i}]: expected a variance >= 0, '
+                                 f'got {float(d[i])!r}')
+    # every 2x2 principal minor of a PSD matrix is PSD: |C_ij| <= sqrt(C_ii C_jj)
+    bad = C * C > np.outer(d, d) * (1.0 + 1e-9) + 1e-300
+    if np.any(bad):
+        i, j = (int(v) for v in np.argwhere(bad)[0])
+        raise PrimitiveFileError(
+            f'primitive.promp.cov_w[{i}][{j}]: expected |value| <= sqrt(primitive.promp.cov_w'
+            f'[{i}][{i}] * primitive.promp.cov_w[{j}][{j}]) = {math.sqrt(d[i] * d[j]):.6g} '
+            f'(a positive semi-definite matrix), got {float(C[i, j])!r}')
+    eig = np.linalg.eigvalsh(0.5 * (C + C.T))
+    if eig[0] < -1e-8 * max(float(np.max(np.abs(eig))), 1e-300):
+        raise PrimitiveFileError(f'primitive.promp.cov_w: expected a positive semi-definite '
+                                 f'matrix, got the eigenvalue {eig[0]:.3g}')
+    if 'sigma_y' in body:
+        _len(['promp', 'sigma_y'], body['sigma_y'], n, 'values (primitive.n_dims)')
 
 
 def primitive_to_dict(prim) -> Dict[str, Any]:
@@ -105,8 +155,8 @@ def primitive_from_dict(d: Any):
     """Build a DMP, CDMP or ProMP from a dict; raises :class:`PrimitiveFileError`."""
     validate_primitive_dict(d)
     if d['kind'] == 'promp':
-        from cdmp_ros.core.promp_io import promp_from_dict
-        return promp_from_dict(d)
+        from cdmp_ros.core.promp_io import promp_from_validated
+        return promp_from_validated(d)
     dm = d['dmp']
     try:
         cfg = DmpConfig(n_weights_per_dim=len(d['basis']['centers']),
@@ -141,7 +191,7 @@ def loads_primitive(text: Union[str, bytes]):
     """Parse JSON text of a primitive; raises :class:`PrimitiveFileError` on any problem."""
     try:
         d = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError) as exc:
         raise PrimitiveFileError(f'primitive: not valid JSON ({exc})') from None
     return primitive_from_dict(d)
 

@@ -36,9 +36,20 @@ def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
 
 def promp_from_dict(d: Dict[str, Any], n_dims: int = None, duration: float = None) -> ProMP:
     """Rebuild a ProMP from a primitive file dict (kind "promp") or its "promp" sub-object.
-    Raises PrimitiveFileError naming the bad field."""
+
+    A whole file dict is checked by :func:`cdmp_ros.core.primitive_io.validate_primitive_dict`
+    first. Raises PrimitiveFileError naming the bad field."""
     if not isinstance(d, dict):
         raise PrimitiveFileError(f'promp: expected a JSON object, got {type(d).__name__}')
+    if 'promp' in d:
+        from cdmp_ros.core.primitive_io import validate_primitive_dict
+        validate_primitive_dict(d)
+    return promp_from_validated(d, n_dims, duration)
+
+
+def promp_from_validated(d: Dict[str, Any], n_dims: int = None,
+                         duration: float = None) -> ProMP:
+    """:func:`promp_from_dict` without the file check (``d`` was validated already)."""
     joint_names = None
     if 'promp' in d:
         n_dims = d.get('n_dims', n_dims)

@@ -9,6 +9,7 @@ from typing import Dict, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array
 
 
@@ -29,7 +30,7 @@ def path_progress(path: ArrayLike, point: ArrayLike) -> float:
     P = as_array('path', path, shape=(None, 3))
     x = as_array('point', point, shape=(3,))
     if P.shape[0] < 2:
-        raise ValueError(f'path: expected at least 2 samples, got {P.shape[0]}')
+        raise ValidationError(f'path: expected at least 2 samples, got {P.shape[0]}')
     seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     if s[-1] <= 0.0:
@@ -42,7 +43,7 @@ def point_at_progress(path: ArrayLike, fraction: float) -> NDArray[np.float64]:
     """The point of ``path`` (n_steps, 3) at ``fraction`` of its arc length (linear)."""
     P = as_array('path', path, shape=(None, 3))
     if not 0.0 <= fraction <= 1.0:
-        raise ValueError(f'fraction: expected in [0, 1], got {fraction}')
+        raise ValidationError(f'fraction: expected in [0, 1], got {fraction}')
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
     if s[-1] <= 0.0:
         return P[0].copy()
@@ -62,9 +63,9 @@ def drop_positions(target: ArrayLike, height: float, n: int) -> NDArray[np.float
     """
     x = as_array('target', target, shape=(3,))
     if n < 2:
-        raise ValueError(f'n: expected >= 2, got {n}')
+        raise ValidationError(f'n: expected >= 2, got {n}')
     if not np.isfinite(height) or height < 0.0:
-        raise ValueError(f'height: expected a finite value >= 0, got {height}')
+        raise ValidationError(f'height: expected a finite value >= 0, got {height}')
     u = np.linspace(0.0, 1.0, n)
     out = np.repeat(x[None, :], n, axis=0)
     out[:, 2] += height * (1.0 - u ** 2)
@@ -99,7 +100,7 @@ def tracking_error(T_ref: ArrayLike, Q_ref: ArrayLike, T: ArrayLike,
     T = as_array('T', T, shape=(None,))
     Q = as_array('Q', Q, shape=(T.size, Q_ref.shape[1]))
     if np.any(np.diff(T_ref) < 0):
-        raise ValueError('T_ref: expected non-decreasing times')
+        raise ValidationError('T_ref: expected non-decreasing times')
     idx = np.searchsorted(T_ref, T, side='right') - 1
     ok = idx >= 0
     if not np.any(ok):

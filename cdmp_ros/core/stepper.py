@@ -26,10 +26,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cdmp_ros.core.basis import U_END
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 
 #: Relative back-off of the velocity-limited time scaling: reported |yd| <= vmax exactly.
 VMAX_BACKOFF = 1.0 - 1e-12
+#: Largest forcing profile precomputed by a stepper (2 tau / dt rows of n_dims floats).
+MAX_TABLE_ROWS = 2_000_000
 
 
 class StepStatus(enum.IntFlag):
@@ -112,15 +115,19 @@ class DmpStepper:
         self._ag = cfg.alpha_g
         self._alpha_s = cfg.alpha_s
         self._h = self.dt / self.tau
+        if not U_END * self.tau <= MAX_TABLE_ROWS * self.dt:
+            raise ValidationError(f'dt: the forcing profile needs {U_END:g} * tau / dt = '
+                                  f'{U_END * self.tau / self.dt:.6g} rows, more than '
+                                  f'{MAX_TABLE_ROWS}; use a larger dt or a shorter tau')
         self._inv_h = 1.0 / self._h
         # The semi-implicit Euler recursion x_{k+1} = tr x_k - det x_{k-1} + ... must be stable.
         h = self._h
         roots = np.roots([1.0, -(2.0 - h * cfg.alpha_y - h * h * cfg.alpha_y * cfg.beta_y),
                           1.0 - h * cfg.alpha_y])
         if h * cfg.alpha_y >= 1.0 or np.max(np.abs(roots)) >= 1.0:
-            raise ValueError(f'dt: dt / tau = {h:.3g} is too large for alpha_y = {cfg.alpha_y} '
-                             f'(need dt / tau * alpha_y < 1 and a stable recursion); use a '
-                             f'smaller dt or a larger tau')
+            raise ValidationError(f'dt: dt / tau = {h:.3g} is too large for alpha_y = '
+                                  f'{cfg.alpha_y} (need dt / tau * alpha_y < 1 and a stable '
+                                  f'recursion); use a smaller dt or a larger tau')
         self._inv_tau = 1.0 / self.tau
         self._cdmp = prim.kind == 'cdmp'
         self._yo = self._yd_ = None
@@ -135,7 +142,8 @@ class DmpStepper:
         if velocity_limits is not None:
             vl = as_array('velocity_limits', velocity_limits, (n,))
             if np.any(vl <= 0):
-                raise ValueError(f'velocity_limits: expected positive values, got {vl}')
+                raise ValidationError(f'velocity_limits: expected positive values, got '
+                                      f'{vl}')
             self._vmax = vl.tolist()
         self._noise = None
         if noise_phi is not None:

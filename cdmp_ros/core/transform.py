@@ -16,6 +16,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_limits
 
 #: Saturation of the exogenous state: tanh(XI_SAT) = 1 - 1e-9.
@@ -38,7 +39,7 @@ class TanhTransform:
     def __init__(self, y_min: ArrayLike, y_max: ArrayLike, margin: float = 1e-3):
         lo, hi = check_limits(y_min, y_max)
         if not (0.0 < float(margin) < 1.0):
-            raise ValueError(f'margin: expected 0 < margin < 1, got {margin!r}')
+            raise ValidationError(f'margin: expected 0 < margin < 1, got {margin!r}')
         self.y_min = lo
         self.y_max = hi
         self.margin = float(margin)

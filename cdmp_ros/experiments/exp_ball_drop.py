@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.experiments.results import write_results
 
 NAME = 'ball-drop'
@@ -104,7 +105,7 @@ def make_setup():
     if not ik.converged:  # the null-space pull can hold a clipped joint off the target
         ik = solve_position_ik(chain, ee, est, ik.q, lower, upper, margin=0.02)
     if not ik.converged:
-        raise RuntimeError(f'ball-drop: no IK solution above the estimated cup ({ik.error} m)')
+        raise CdmpError(f'ball-drop: no IK solution above the estimated cup ({ik.error} m)')
     x0 = chain.forward(ik.q, [ee])[0]  # Eq. (41): the initial policy's release point
     return Setup(chain, ee, lower, upper, ik.q, x0)
 

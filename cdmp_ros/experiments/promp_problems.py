@@ -7,6 +7,7 @@ import numpy as np
 
 from cdmp_ros.core.adaptation import AdaptationConfig, sample_points
 from cdmp_ros.core.constraints import DofPoint, Hyperplane, Repeller, UnboundWaypoint
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp import ProMP, RbfBasis
 
 ALPHA = 0.999
@@ -36,7 +37,7 @@ def original_promp(n_basis: int, rng: np.random.Generator, prior: str = 'scripts
     elif prior == 'paper-text':
         p = ProMP(2, basis, np.zeros(2 * M), np.eye(2 * M))
     else:
-        raise ValueError(f'prior: expected "scripts" or "paper-text", got {prior!r}')
+        raise ValidationError(f'prior: expected "scripts" or "paper-text", got {prior!r}')
     start = np.array([-3.0, rng.uniform(-3.0, 3.0)])
     end = np.array([3.0, rng.uniform(-3.0, 3.0)])
     return p.condition([0.0, 1.0], np.stack([start, end]), var=1e-3), start, end
@@ -84,7 +85,7 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
             cons.append(Hyperplane(XY, n, b, alpha=ALPHA, name=f'wall_{k + 1}'))
             k += 1
     else:
-        raise ValueError(f'table: expected table2, table3 or table4, got {table!r}')
+        raise ValidationError(f'table: expected table2, table3 or table4, got {table!r}')
     cfg = AdaptationConfig(n_steps=n_steps, lambda0=lambda0, eta=1.0, max_outer=10,
                            max_inner=500, objective_tol=1e-2, relative_step=relative_step,
                            confidence_margin=confidence_margin)

@@ -4,6 +4,8 @@ import math
 import os
 from typing import Iterable, List, Optional, Sequence
 
+from cdmp_ros.core.errors import ValidationError
+
 
 def row(name: str, ours, paper=None, unit: str = '') -> dict:
     """One result row; ``paper`` is None where the paper gives no figure."""
@@ -38,7 +40,7 @@ def write_results(out_dir: str, experiment: str, rows: List[dict],
     os.makedirs(out_dir, exist_ok=True)
     names = [r['name'] for r in rows]
     if len(set(names)) != len(names):
-        raise ValueError(f'duplicate result row names in {experiment}: {names}')
+        raise ValidationError(f'duplicate result row names in {experiment}: {names}')
     payload = {'experiment': experiment, 'rows': rows}
     if extra:
         payload.update(extra)

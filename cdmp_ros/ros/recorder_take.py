@@ -27,6 +27,7 @@ from typing import Callable, List, Optional, Tuple
 
 from rclpy.callback_groups import CallbackGroup
 
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.ros.realtime import configure_thread
 
 #: Prefixes of the Fast DDS receive threads' names (Fast DDS >= 2.13 names its threads).
@@ -92,7 +93,7 @@ class TakeThread:
     def __init__(self, writer, period: float, priority: int = 0, realtime_dds: bool = True,
                  log: Callable[[str, str], None] = lambda level, text: None):
         if not period > 0:
-            raise ValueError(f'period: expected > 0 s, got {period!r}')
+            raise ValidationError(f'period: expected > 0 s, got {period!r}')
         self.writer = writer
         self.period = float(period)
         self.priority = int(priority)

@@ -7,7 +7,6 @@ Malformed sets raise :class:`ConstraintSetError` naming the constraint and the f
 import json
 from typing import Any, List, Optional, Sequence, Tuple
 
-import jsonschema
 import numpy as np
 
 from cdmp_ros.core.constraints.hyperplane import Hyperplane, NonConvexCorner
@@ -17,6 +16,7 @@ from cdmp_ros.core.constraints.smoothness import SmoothnessConstraint
 from cdmp_ros.core.constraints.spheres import (MutualAvoidance, Repeller, UnboundWaypoint,
                                                Waypoint)
 from cdmp_ros.core.errors import ConstraintSetError, ValidationError
+from cdmp_ros.core.file_checks import check_document
 from cdmp_ros.core.resources import schema_path
 
 _SCHEMA = None
@@ -31,30 +31,62 @@ def constraints_schema() -> dict:
     return _SCHEMA
 
 
-def _where(path) -> str:
-    out = 'constraint_set'
-    for p in path:
-        out += f'[{p}]' if isinstance(p, int) else f'.{p}'
-    return out
+def _label(doc: dict, path: list) -> str:
+    """`` (name)`` of the constraint a path points into (empty outside the constraints)."""
+    if len(path) >= 2 and path[0] == 'constraints' and isinstance(path[1], int):
+        cons = doc.get('constraints')
+        c = cons[path[1]] if isinstance(cons, list) and path[1] < len(cons) else None
+        if isinstance(c, dict):
+            return f' ({c.get("name", c.get("type", "?"))})'
+    return ''
+
+
+def _order(e) -> tuple:
+    # the deepest error first: a oneOf / allOf failure is reported at the field inside it
+    return (-len(e.absolute_path), e.message)
 
 
 def validate_constraint_set(doc: Any) -> None:
-    """Schema validation; raises ConstraintSetError naming the first offending field."""
-    if not isinstance(doc, dict):
-        raise ConstraintSetError(f'constraint_set: expected a JSON object, got '
-                                 f'{type(doc).__name__}')
-    validator = jsonschema.Draft202012Validator(constraints_schema())
-    errors = sorted(validator.iter_errors(doc),
-                    key=lambda e: (-len(e.absolute_path), e.message))
-    if errors:
-        e = errors[0]
-        name = ''
-        path = list(e.absolute_path)
-        if len(path) >= 2 and path[0] == 'constraints' and isinstance(path[1], int):
-            c = doc['constraints'][path[1]]
-            if isinstance(c, dict):
-                name = f' ({c.get("name", c.get("type", "?"))})'
-        raise ConstraintSetError(f'{_where(path)}{name}: {e.message}')
+    """Check a decoded constraint set; raise :class:`ConstraintSetError` naming the field.
+
+    The one gate of every constraint-set loader (files, the constraints topic, ``cdmp
+    adapt``): finite numbers and the schema's ranges
+    (:func:`cdmp_ros.core.file_checks.check_document`), then what the schema cannot express
+    and that does not depend on the ProMP: ordered supports, time-varying bounds with as many
+    values as strictly increasing times, constant lower < upper, non-zero normals.
+    Checks against the ProMP and the robot (indices, dimensions) are in
+    :func:`parse_constraint_set`.
+    """
+    label = (lambda path: _label(doc, path)) if isinstance(doc, dict) else None
+    check_document(doc, constraints_schema(), 'constraint_set', ConstraintSetError,
+                   order=_order, label=label)
+    for i, c in enumerate(doc['constraints']):
+        tag = _label(doc, ['constraints', i])
+
+        def fail(field: str, text: str):
+            raise ConstraintSetError(f'constraint_set.constraints[{i}].{field}{tag}: {text}')
+
+        support = c.get('support', (0.0, 1.0))
+        if support[0] > support[1]:
+            fail('support[1]', f'expected t1 >= constraint_set.constraints[{i}].support[0] = '
+                 f'{support[0]!r}, got {support[1]!r}')
+        for key in ('lower', 'upper'):
+            b = c.get(key)
+            if isinstance(b, dict):
+                ts, vs = b['times'], b['values']
+                if len(vs) != len(ts):
+                    fail(f'{key}.values', f'expected {len(ts)} values (one per entry of '
+                         f'constraint_set.constraints[{i}].{key}.times), got {len(vs)}')
+                for k in range(1, len(ts)):
+                    if not ts[k] > ts[k - 1]:
+                        fail(f'{key}.times[{k}]', f'expected strictly increasing times (> '
+                             f'{ts[k - 1]!r}), got {ts[k]!r}')
+        lo, hi = c.get('lower'), c.get('upper')
+        if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and not lo < hi:
+            fail('upper', f'expected a value > lower = {lo!r}, got {hi!r}')
+        for key in ('normal', 'normal1', 'normal2'):
+            if key in c and not any(v != 0 for v in c[key]):
+                fail(key, f'expected a non-zero vector, got {c[key]}')
 
 
 class RobotContext:
@@ -78,27 +110,28 @@ class RobotContext:
         self._cache = {}
 
 
-def _point(spec: dict, ctx: RobotContext, where: str) -> Point:
+def _point(spec: dict, ctx: RobotContext, where: str, tag: str = '') -> Point:
     if 'joint' in spec:
         j = spec['joint']
         if j >= ctx.n_dims:
-            raise ConstraintSetError(f'{where}.joint: expected an index < {ctx.n_dims}, got {j}')
+            raise ConstraintSetError(f'{where}.joint{tag}: expected an index < {ctx.n_dims}, '
+                                     f'got {j}')
         key = ('dims', (j,))
     elif 'dims' in spec:
         dims = tuple(spec['dims'])
         if max(dims) >= ctx.n_dims:
-            raise ConstraintSetError(f'{where}.dims: expected indices < {ctx.n_dims}, '
+            raise ConstraintSetError(f'{where}.dims{tag}: expected indices < {ctx.n_dims}, '
                                      f'got {list(dims)}')
         key = ('dims', dims)
     else:
         r = spec.get('robot', 0)
         if r >= len(ctx.chains):
-            raise ConstraintSetError(f'{where}.robot: expected one of {len(ctx.chains)} '
+            raise ConstraintSetError(f'{where}.robot{tag}: expected one of {len(ctx.chains)} '
                                      f'robots with kinematics, got {r}')
         chain, dofs = ctx.chains[r]
         link = spec['link']
         if link != 'ee' and link not in chain.link_names:
-            raise ConstraintSetError(f'{where}.link: expected "ee" or one of '
+            raise ConstraintSetError(f'{where}.link{tag}: expected "ee" or one of '
                                      f'{list(chain.link_names)}, got {link!r}')
         offset = tuple(spec.get('offset', (0.0, 0.0, 0.0)))
         key = ('link', r, link, offset)
@@ -113,11 +146,12 @@ def _point(spec: dict, ctx: RobotContext, where: str) -> Point:
     return pt
 
 
-def _vec(c: dict, field: str, n: int, where: str) -> np.ndarray:
+def _vec(c: dict, field: str, n: int, where: str, tag: str = '',
+         point_field: str = '') -> np.ndarray:
     v = np.asarray(c[field], dtype=float)
     if v.shape != (n,):
-        raise ConstraintSetError(f'{where}.{field}: expected {n} numbers (the point of '
-                                 f'interest has {n} coordinates), got {v.size}')
+        raise ConstraintSetError(f'{where}.{field}{tag}: expected {n} numbers (the point of '
+                                 f'interest {point_field} has {n} coordinates), got {v.size}')
     return v
 
 
@@ -142,7 +176,7 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
     if isinstance(doc, (str, bytes)):
         try:
             doc = json.loads(doc)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise ConstraintSetError(f'constraint_set: not valid JSON ({exc})') from None
     validate_constraint_set(doc)
     ctx = ctx or RobotContext(promp.n_dims)
@@ -153,55 +187,57 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
     for i, c in enumerate(doc['constraints']):
         kind = c['type']
         label = c.get('name', f'{kind}_{i + 1}')
-        where = f'constraint_set.constraints[{i}] ({label})'
+        where = f'constraint_set.constraints[{i}]'
+        tag = f' ({label})'
         common = {'alpha': c.get('alpha', 0.999), 'lambda0': c.get('lambda0'),
                   'eta': c.get('eta'), 'name': label}
         support = tuple(c.get('support', (0.0, 1.0)))
-        if support[0] > support[1]:
-            raise ConstraintSetError(f'{where}.support: expected t0 <= t1, got {list(support)}')
         try:
             if kind == 'joint_limit':
                 j = c['joint']
                 if j >= promp.n_dims:
-                    raise ConstraintSetError(f'{where}.joint: expected an index < '
+                    raise ConstraintSetError(f'{where}.joint{tag}: expected an index < '
                                              f'{promp.n_dims}, got {j}')
                 out.append(JointLimit(j, _bound(c.get('lower')), _bound(c.get('upper')),
                                       support, **common))
             elif kind == 'smoothness':
                 w = c.get('joint_weights')
                 if w is not None and len(w) != promp.n_dims:
-                    raise ConstraintSetError(f'{where}.joint_weights: expected {promp.n_dims} '
-                                             f'values, got {len(w)}')
+                    raise ConstraintSetError(f'{where}.joint_weights{tag}: expected '
+                                             f'{promp.n_dims} values, got {len(w)}')
                 Phi = promp.smoothness_matrix(support if support[1] > support[0]
                                               else (0.0, 1.0), w)
                 out.append(SmoothnessConstraint(Phi, c['bound'], **common))
             elif kind == 'mutual_avoidance':
-                p1 = _point(c['point1'], ctx, f'{where}.point1')
-                p2 = _point(c['point2'], ctx, f'{where}.point2')
+                p1 = _point(c['point1'], ctx, f'{where}.point1', tag)
+                p2 = _point(c['point2'], ctx, f'{where}.point2', tag)
                 if p1.n_out != p2.n_out:
-                    raise ConstraintSetError(f'{where}.point2: expected {p1.n_out} coordinates '
-                                             f'like point1, got {p2.n_out}')
+                    raise ConstraintSetError(f'{where}.point2{tag}: expected {p1.n_out} '
+                                             f'coordinates like point1, got {p2.n_out}')
                 out.append(MutualAvoidance(p1, p2, c['distance'], support, **common))
             else:
-                pt = _point(c['point'], ctx, f'{where}.point')
+                pt = _point(c['point'], ctx, f'{where}.point', tag)
                 k = pt.n_out
+
+                point_field = f'{where}.point.' + next(
+                    key for key in ('joint', 'dims', 'link') if key in c['point'])
+
+                def vec(field):
+                    return _vec(c, field, k, where, tag, point_field)
                 if kind == 'hyperplane':
-                    out.append(Hyperplane(pt, _vec(c, 'normal', k, where),
-                                          _vec(c, 'offset', k, where), support, **common))
+                    out.append(Hyperplane(pt, vec('normal'), vec('offset'), support, **common))
                 elif kind == 'corner':
-                    out.append(NonConvexCorner(pt, _vec(c, 'normal1', k, where),
-                                               _vec(c, 'offset1', k, where),
-                                               _vec(c, 'normal2', k, where),
-                                               _vec(c, 'offset2', k, where), support, **common))
+                    out.append(NonConvexCorner(pt, vec('normal1'), vec('offset1'),
+                                               vec('normal2'), vec('offset2'), support,
+                                               **common))
                 else:
                     cls = {'waypoint': Waypoint, 'repeller': Repeller,
                            'unbound_waypoint': UnboundWaypoint}[kind]
-                    out.append(cls(pt, _vec(c, 'center', k, where), c['radius'], support,
-                                   **common))
+                    out.append(cls(pt, vec('center'), c['radius'], support, **common))
         except ConstraintSetError:
             raise
         except ValidationError as exc:
-            raise ConstraintSetError(f'{where}: {exc}') from None
+            raise ConstraintSetError(f'{where}{tag}: {exc}') from None
     opt = dict(doc.get('optimizer', {}))
     objective = opt.pop('objective', 'joint_kl')
     if 'smoothness_weights' in opt:
