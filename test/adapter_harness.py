@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from conftest import REPO_ROOT, ros_env
+from conftest import REPO_ROOT, ros_env, wait_for
 
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 Q_START = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
@@ -167,14 +167,9 @@ class Harness:
             return self.adapted[-1][1] if self.adapted else None
 
     def wait(self, pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return True
-            time.sleep(0.02)
-        return pred()
+        return wait_for(pred, timeout)
 
-    def wait_adapted(self, n0, timeout=20.0, trigger=None, source=None, pred=None):
+    def wait_adapted(self, n0, timeout=30.0, trigger=None, source=None, pred=None):
         """Wait for an adapted primitive after the first ``n0`` (caused by ``trigger``,
         adapted from the primitive JSON text ``source``, with ``pred(dict)`` true, if given);
         returns its dict or None."""
@@ -193,7 +188,7 @@ class Harness:
             return match()
         return None
 
-    def wait_diag(self, text, since, timeout=5.0, name=None):
+    def wait_diag(self, text, since, timeout=30.0, name=None):
         """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
         def found():
             with self.lock:
@@ -206,7 +201,7 @@ class Harness:
             return [(m, lv, kv) for t, nm, m, lv, kv in self.diag_messages
                     if t >= since and nm.endswith(': state')]
 
-    def wait_state(self, pred, since, timeout=20.0):
+    def wait_state(self, pred, since, timeout=30.0):
         """Wait for an adapter state status after ``since`` with pred(message, level, kv)."""
         out = []
 

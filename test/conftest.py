@@ -3,6 +3,8 @@ discovery and a private ROS_DOMAIN_ID (see ../shared/design.md, Environment fact
 import os
 import random
 import sys
+import time
+import uuid
 
 import pytest
 from hypothesis import settings
@@ -40,6 +42,117 @@ def ros_env(domain_id=None) -> dict:
     env['AMENT_PREFIX_PATH'] = sys.prefix
     env['PYTHONUNBUFFERED'] = '1'
     return env
+
+
+def wait_for(pred, timeout, period=0.02):
+    """Poll ``pred()`` until it is true or ``timeout`` [s] has passed; returns the last result.
+
+    The one wait of the test suite: tests wait on a condition, never on a duration. The
+    timeout only bounds a failure, so it is generous (tens of seconds on a loaded machine).
+    """
+    end = time.monotonic() + timeout
+    while True:
+        result = pred()
+        if result or time.monotonic() >= end:
+            return result
+        time.sleep(period)
+
+
+# -- evidence on diagnostics -----------------------------------------------------------------
+# The test harnesses record every diagnostics status as a tuple (receive time, status name,
+# message, ..., {key: value}); a node reports rejected input on '<node>: input <topic>' with
+# the keys rejected_total and last_reason (cdmp_ros.ros.diagnostics).
+def rejected_total(h, topic):
+    """``rejected_total`` of the newest '<node>: input <topic>' status ``h`` received (0)."""
+    with h.lock:
+        for entry in reversed(h.diag_messages):
+            if entry[1].endswith(f': input {topic}'):
+                return int(entry[-1]['rejected_total'])
+    return 0
+
+
+def reject_token(h, topic, send, timeout=30.0, resend_after=None):
+    """Send (``send(token)``) one message the node must reject with a reason naming a fresh
+    ``token``, and wait until its diagnostics report that rejection.
+
+    Returns ``(rejected_total, sends)``: the topic's rejection count that includes this
+    rejection, and how many messages were sent (more than one only on a best-effort topic, after
+    ``resend_after`` seconds without a report).
+    """
+    token = f'evidence_{uuid.uuid4().hex[:10]}'
+    sends = [0, 0.0]
+
+    def seen():
+        with h.lock:
+            for entry in reversed(h.diag_messages):
+                if (entry[1].endswith(f': input {topic}')
+                        and token in entry[-1].get('last_reason', '')):
+                    return int(entry[-1]['rejected_total'])
+        now = time.monotonic()
+        if sends[0] == 0 or (resend_after is not None and now - sends[1] > resend_after):
+            send(token)
+            sends[0] += 1
+            sends[1] = now
+        return None
+
+    total = wait_for(seen, timeout)
+    assert total, f'the rejection of {token} on {topic} was never reported'
+    return total, sends[0]
+
+
+def assert_not_rejected(h, topic, send_rejected, action, timeout=30.0, resend_after=None):
+    """Run ``action()`` (which publishes on ``topic``) between two messages the node rejects
+    (``send_rejected(token)``: a message whose rejection reason names ``token``), and assert
+    on the evidence of the node's own counter that nothing ``action`` sent was rejected: the
+    two rejections are counted exactly one apart. Messages of one publisher are processed in
+    order, so the second rejection is reported only after everything before it was handled.
+    Returns what ``action`` returned."""
+    before, n1 = reject_token(h, topic, send_rejected, timeout, resend_after)
+    result = action()
+    after, n2 = reject_token(h, topic, send_rejected, timeout, resend_after)
+    # a resent (best-effort) rejection message may have been counted more than once
+    assert after - before - 1 <= (n1 - 1) + (n2 - 1), \
+        f'{after - before - 1} message(s) on {topic} rejected: {last_reason(h, topic)}'
+    return result
+
+
+def last_reason(h, topic):
+    with h.lock:
+        for entry in reversed(h.diag_messages):
+            if entry[1].endswith(f': input {topic}'):
+                return entry[-1].get('last_reason')
+    return None
+
+
+def joint_state_rejected(h, publish, joint_names, stamp_ns):
+    """``send_rejected`` for a JointState topic: the joint names plus a duplicated ``token``
+    (rejected as 'duplicate joint name <token>' before anything else is checked)."""
+    from sensor_msgs.msg import JointState
+
+    def send(token):
+        msg = JointState()
+        t = stamp_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t, 1_000_000_000)
+        msg.name = list(joint_names) + [token, token]
+        msg.position = [0.0] * len(msg.name)
+        publish(msg)
+    return send
+
+
+def marker_rejected(h, publish, stamp=None):
+    """``send_rejected`` for an obstacles topic: a SPHERE in the frame ``token``."""
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    def send(token):
+        m = Marker(ns='evidence', id=0, type=Marker.SPHERE, action=Marker.ADD)
+        m.header.frame_id = token
+        if stamp is not None:
+            m.header.stamp = stamp()
+        m.pose.position.x = 2.0
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = 0.1
+        publish(MarkerArray(markers=[m]))
+    return send
 
 
 @pytest.fixture

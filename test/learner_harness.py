@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from conftest import REPO_ROOT, ros_env
+from conftest import REPO_ROOT, ros_env, wait_for
 
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 
@@ -84,12 +84,7 @@ class LearnerHarness:
 
     # -- helpers -----------------------------------------------------------------------------
     def wait(self, pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return True
-            time.sleep(0.02)
-        return pred()
+        return wait_for(pred, timeout)
 
     def n_primitives(self):
         with self.lock:
@@ -99,7 +94,7 @@ class LearnerHarness:
         with self.lock:
             return self.primitives[-1][1] if self.primitives else None
 
-    def wait_diag(self, text, since, timeout=5.0, name=None):
+    def wait_diag(self, text, since, timeout=30.0, name=None):
         """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
         def found():
             with self.lock:

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from conftest import REPO_ROOT, ros_env
+from conftest import REPO_ROOT, ros_env, wait_for
 
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 PANDA_HOME = np.array([0.0, -np.pi / 4, 0.0, -3 * np.pi / 4, 0.0, np.pi / 2, np.pi / 4])
@@ -140,14 +140,9 @@ class SimHarness:
             return self.states[-1][3].copy() if self.states else None
 
     def wait(self, pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return True
-            time.sleep(0.02)
-        return pred()
+        return wait_for(pred, timeout)
 
-    def wait_diag(self, text, since, timeout=10.0, name=None):
+    def wait_diag(self, text, since, timeout=30.0, name=None):
         """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
         def found():
             with self.lock:
@@ -163,7 +158,7 @@ class SimHarness:
                     return m, kv
         return None
 
-    def wait_state(self, pred, timeout=10.0):
+    def wait_state(self, pred, timeout=30.0):
         """Wait for a 'sim: state' status whose (message, values) satisfy ``pred``."""
         def found():
             m, kv = self.last_state()

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from conftest import wait_for
 from streamer_util import LOWER, PANDA_JOINTS, Q_START, UPPER
 
 
@@ -120,14 +121,9 @@ class Harness:
             return self.refs[-1] if self.refs else None
 
     def wait(self, pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return True
-            time.sleep(0.02)
-        return pred()
+        return wait_for(pred, timeout)
 
-    def wait_diag(self, text, since, timeout=5.0, name=None):
+    def wait_diag(self, text, since, timeout=30.0, name=None):
         """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
         def found():
             with self.lock:

@@ -3,11 +3,10 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 
-from conftest import REPO_ROOT, ros_env
+from conftest import REPO_ROOT, ros_env, wait_for  # noqa: F401 -- wait_for for the tests
 
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 # Panda limits of pybullet_data's panda.urdf (checked against the URDF in test_core_streaming)
@@ -60,16 +59,3 @@ def stop_process(proc, timeout=10.0):
             os.killpg(proc.pid, signal.SIGKILL)
             return proc.wait(5)
     return proc.returncode
-
-
-def wait_for(pred, timeout, spin=None, period=0.01):
-    """Spin (``spin(period)``) until ``pred()`` or the timeout; returns pred()."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        if spin is not None:
-            spin(period)
-        else:
-            time.sleep(period)
-    return pred()

@@ -19,7 +19,7 @@ def test_latest_request_wins_and_stale_results_are_marked():
     def solve(job):
         started.set()
         if job.trigger == 'first':
-            assert release.wait(5.0)
+            assert release.wait(30.0)
         if job.trigger == 'boom':
             raise RuntimeError('solver exploded')
         return JobResult(job, 'converged', 0.0)
@@ -28,23 +28,23 @@ def test_latest_request_wins_and_stale_results_are_marked():
     w.start()
     try:
         w.submit(_job('first'))
-        assert started.wait(5.0)          # 'first' is running
+        assert started.wait(30.0)          # 'first' is running
         w.submit(_job('second'))          # waiting ...
         w.submit(_job('third'))           # ... replaced: 'second' is dropped
         assert w.summary()['solver_busy']
         release.set()
-        assert notified.acquire(timeout=5.0) and notified.acquire(timeout=5.0)
+        assert notified.acquire(timeout=30.0) and notified.acquire(timeout=30.0)
         results = w.take()
         assert [(r.job.trigger, r.stale) for r in results] == [('first', True),
                                                                ('third', False)]
         assert [r.job.id for r in results] == [1, 3]
         w.submit(_job('boom'))
-        assert notified.acquire(timeout=5.0)
+        assert notified.acquire(timeout=30.0)
         (bad,) = w.take()
         assert bad.outcome == 'rejected' and 'solver exploded' in bad.error
         assert bad.error_topic == 'boom'
         w.submit(_job('after'))           # the thread survived
-        assert notified.acquire(timeout=5.0)
+        assert notified.acquire(timeout=30.0)
         assert [r.outcome for r in w.take()] == ['converged']
         c = w.summary()
         assert (c['requests_received'], c['requests_dropped'], c['requests_stale'],

@@ -21,6 +21,7 @@ from streamer_util import stop_process
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(4)
 STARTUP = 30.0  # s; interpreter + rclpy start-up on a loaded 2-core machine
+TIMEOUT = 30.0  # s; bounds a failing wait only
 BAGS = os.path.join(REPO_ROOT, 'bags', 'panda_reach')
 
 
@@ -82,7 +83,7 @@ def test_publishes_the_bag_primitive_at_start(graph):
     Y = prim.rollout(dt=0.01).Y
     assert np.abs(Y[-1] - goals.mean(axis=0)).max() < 0.02
     text = 'cdmp from 5 demonstration(s) (5 from bags, 0 from the topic)'
-    assert h.wait(lambda: text in log.read_text(), 10), log.read_text()
+    assert h.wait(lambda: text in log.read_text(), TIMEOUT), log.read_text()
 
 
 def test_topic_demonstration_with_shuffled_names_is_mapped_and_refitted(graph):
@@ -93,11 +94,12 @@ def test_topic_demonstration_with_shuffled_names_is_mapped_and_refitted(graph):
     _, kv0 = h.last_state()
     n0 = int(kv0.get('topic_demonstrations', 0))
     h.publish_demo(T, Y, order=perm, period=0.002)
-    assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1, 10)
+    assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1,
+                  TIMEOUT)
     k = h.n_primitives()
     r = h.call('refit')
     assert r.success and f'{n0 + 1} from the topic' in r.message, r.message
-    assert h.wait(lambda: h.n_primitives() > k, 5)
+    assert h.wait(lambda: h.n_primitives() > k, TIMEOUT)
     d = h.last_primitive()
     goals = [y[-1] for _, y, _ in bag_demos()] + [Y[-1]] * (n0 + 1)
     assert d['metadata']['demonstrations']['from_topic'] == n0 + 1
@@ -113,8 +115,8 @@ def test_a_gap_ends_a_demonstration_and_auto_refit_publishes(graph):
     try:
         h.publish_demo(T[:40], Y[:40], end=False, period=0.002)  # no end marker: a gap ends it
         assert h.wait(lambda: int(h.last_state()[1].get('topic_demonstrations', 0)) == n0 + 1,
-                      10)
-        assert h.wait(lambda: h.n_primitives() > k, 5)
+                      TIMEOUT)
+        assert h.wait(lambda: h.n_primitives() > k, TIMEOUT)
         assert h.last_primitive()['metadata']['demonstrations']['from_topic'] == n0 + 1
     finally:
         assert h.set_parameter('auto_refit', False).successful
@@ -177,7 +179,7 @@ def test_bad_demonstration_samples_are_rejected(graph, case):
     h.demo_pub.publish(JointState())  # discard what a case left pending, before the next one
     t1 = time.monotonic()
     assert h.wait(lambda: h.last_state()[1].get('pending_samples') == '0'
-                  and h.diag_messages[-1][0] > t1, 5)
+                  and h.diag_messages[-1][0] > t1, TIMEOUT)
 
 
 def test_flooding_is_dropped_and_reported(graph):
@@ -186,14 +188,13 @@ def test_flooding_is_dropped_and_reported(graph):
     assert h.set_parameter('max_input_rate', 100.0).successful
     try:
         t0 = time.monotonic()
-        end = time.monotonic() + 1.0
-        sent = 0
-        while time.monotonic() < end:
-            h.demo_pub.publish(JointState())  # end markers: harmless when admitted
-            sent += 1
-        assert sent > 1000
-        assert h.wait_diag('flooding: more than 100 messages/s', t0,
-                           name='input demonstration'), h.recent_diag()
+
+        def burst():  # end markers, harmless when admitted, until the node reports drops
+            for _ in range(200):
+                h.demo_pub.publish(JointState())
+            return h.wait_diag('flooding: more than 100 messages/s', t0, timeout=0.0,
+                               name='input demonstration')
+        assert h.wait(burst, TIMEOUT), h.recent_diag()
     finally:
         assert h.set_parameter('max_input_rate', 1000.0).successful
     alive(h, proc)
@@ -266,7 +267,7 @@ def test_improve_runs_pi2_in_a_worker_within_the_limits(graph):
     assert kv['improve_rollouts'] == '240' and kv['improve_rollouts_outside_limits'] == '0'
     # exploration went close to the narrow limits (a plain DMP leaves them: test_core_improve)
     assert 0.9 < float(kv['improve_max_limit_usage']) < 1.0
-    assert h.wait(lambda: h.n_primitives() > k, 5)
+    assert h.wait(lambda: h.n_primitives() > k, TIMEOUT)
     d = h.last_primitive()
     assert d['metadata']['pi2']['updates'] == 30
     prim = primitive_from_dict(d)
@@ -288,7 +289,8 @@ def test_improve_against_the_sim(graph):
         kv = h.last_state()[1]
         assert kv['improve_rollouts'] == '6' and kv['improve_rollouts_outside_limits'] == '0'
         assert float(kv['improve_cost_after']) > 0.0
-        assert not h.wait_diag('improvement failed', t0, timeout=0.1)
+        # diagnostics arrive in order: a failure would have been received before 'done'
+        assert not h.wait_diag('improvement failed', t0, timeout=0.0)
     finally:
         for name, value in (('improve.cost', 'scripted'), ('improve.updates', 30),
                             ('improve.rollouts_per_update', 8)):
@@ -314,7 +316,7 @@ def test_runtime_parameter_changes_are_validated(graph):
         k = h.n_primitives()
         r = h.call('refit')
         assert r.success and 'promp from' in r.message, r.message
-        assert h.wait(lambda: h.n_primitives() > k, 5)
+        assert h.wait(lambda: h.n_primitives() > k, TIMEOUT)
         assert h.last_primitive()['kind'] == 'promp'
         r = h.call('improve')
         assert not r.success and 'PI2 improves dmp and cdmp primitives' in r.message

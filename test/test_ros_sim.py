@@ -4,8 +4,11 @@ One sim process (Panda, position control, real time, started from config/sim.yam
 module on its own private domain (localhost
 only); start-up failures and other configurations are in
 test_ros_sim_startup.py. Each bad-input case publishes its input,
-waits for the matching ``diagnostics`` entry and checks that the node keeps publishing. The
-module teardown stops the sim with SIGINT and requires exit code 0.
+waits for the matching ``diagnostics`` entry and checks that the node keeps publishing; an
+accepted input is shown accepted by the node's own rejection counter (conftest
+``assert_not_rejected``). Every wait is on a condition with a generous timeout; rates and
+real-time figures are measured by benchmarks/bench_sim_node.py, not here. The module teardown
+stops the sim with SIGINT and requires exit code 0.
 """
 import os
 import time
@@ -13,14 +16,14 @@ import time
 import numpy as np
 import pytest
 
-from conftest import module_domain
+from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
 from sim_harness import (LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, stop_process,
                          UPPER)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(5)
 STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
-RATE_TOL = 0.2  # relative tolerance of the joint_states rate
+TIMEOUT = 30.0   # s; bounds a failing wait only
 TRACK_TOL = 0.005  # rad; settled position error after a reference ramp (position control)
 
 
@@ -44,7 +47,7 @@ def graph(tmp_path_factory):
 def alive(h, proc, n=20):
     """The node is alive and joint_states keep coming."""
     n0 = h.n_states()
-    ok = h.wait(lambda: h.n_states() >= n0 + n, 10.0)
+    ok = h.wait(lambda: h.n_states() >= n0 + n, TIMEOUT)
     assert proc.poll() is None, 'sim died'
     assert ok, 'joint_states stopped'
 
@@ -53,35 +56,39 @@ def go_home(h):
     q = h.q()
     if np.abs(q - PANDA_HOME).max() > 1e-3:
         h.ramp(q, PANDA_HOME, 0.5)
-    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 0.01, 10.0), h.q()
+    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 0.01, TIMEOUT), h.q()
 
 
 def kv_float(kv, key):
     return float(kv[key])
 
 
+def not_rejected(h, topic, action):
+    """Run ``action`` and assert, on the sim's own rejection counter, that nothing it
+    published on ``topic`` was rejected."""
+    if topic == 'obstacles':
+        send = marker_rejected(h, lambda msg: h.publish('obstacles', msg))
+    else:
+        send = joint_state_rejected(h, lambda msg: h.publish(topic, msg), PANDA_JOINTS,
+                                    lambda: h.node.get_clock().now().nanoseconds)
+    return assert_not_rejected(h, topic, send, action)
+
+
 # -- normal operation --------------------------------------------------------------------------
-def test_publishes_joint_states_and_ee_pose_at_the_rate(graph):
+def test_publishes_joint_states_and_ee_pose_on_the_slot_grid(graph):
     h, proc, _ = graph
-    t0 = time.monotonic()
-    time.sleep(2.0)
-    states = [s for s in h.states_since(t0) if s[0] < t0 + 2.0]
+    n0 = h.n_states()
+    assert h.wait(lambda: h.n_states() >= n0 + 500, TIMEOUT), h.n_states() - n0
     with h.lock:
-        rtf = [float(kv['real_time_factor']) for t, nm, _, kv in h.diag_messages
-               if nm == 'sim: state' and t0 + 0.2 < t < t0 + 2.0]
-    # one message per 4 ms slot of simulated time, none lost: consecutive stamps one slot
-    # apart, except where the simulation slipped behind the wall clock (a larger gap)
-    stamps = np.array([s[1] for s in states])
-    slots = np.diff(stamps) / 4e6
-    assert np.all(slots > 1 - 1e-3)
-    assert np.mean(np.abs(slots - 1) < 1e-3) > 0.9
-    # the slots are wall-clock times: 250 per second x the real-time factor the node reports
-    # (about 1; less only when this shared machine starves the process; the benchmark
-    # measures the arrival rate and jitter)
-    stamp_rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9)
-    expected = 250.0 * np.mean(rtf)
-    assert abs(stamp_rate - expected) < RATE_TOL * expected, (stamp_rate, rtf)
-    assert np.mean(rtf) > 0.0 and len(states) > 50, (rtf, len(states))
+        states = h.states[n0:n0 + 500]
+    # one message per 4 ms slot of simulated time, in order: consecutive stamps at least one
+    # slot apart and whole physics steps (1 ms) apart; a larger gap where the simulation
+    # slipped behind the wall clock (benchmarks/bench_sim_node.py measures how often)
+    stamps = np.array([s[1] for s in states], dtype=np.int64)
+    gaps_ms = np.diff(stamps) / 1e6
+    assert np.all(gaps_ms > 4.0 - 1e-6), gaps_ms.min()
+    assert np.abs(gaps_ms - np.round(gaps_ms)).max() < 1e-6, 'a stamp off the physics grid'
+    assert h.wait_state(lambda m, kv: float(kv['real_time_factor']) > 0.0), h.last_state()
     names, q, qd, effort = states[-1][2:]
     assert names == list(PANDA_JOINTS) and q.shape == qd.shape == effort.shape == (7,)
     assert np.all(np.isfinite(effort)) and np.abs(effort).max() > 1.0  # holding against gravity
@@ -91,9 +98,12 @@ def test_publishes_joint_states_and_ee_pose_at_the_rate(graph):
     from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     by_stamp = {s[1]: s[3] for s in states}
-    with h.lock:
-        poses = [p for p in h.poses if p[1] in by_stamp]
-    assert len(poses) > 100
+
+    def poses():
+        with h.lock:
+            return [p for p in h.poses if p[1] in by_stamp]
+    assert h.wait(lambda: len(poses()) == len(states), TIMEOUT), len(poses())  # one per state
+    poses = poses()
     _, stamp, frame, pos, quat = poses[-1]
     assert frame == 'panda_link0'
     ee = chain.forward(by_stamp[stamp], [PointOfInterest('ee')])[0]
@@ -106,7 +116,7 @@ def test_tracks_a_published_reference(graph):
     goal = np.array([0.4, -0.3, 0.2, -1.9, 0.1, 1.8, 0.5])
     t0 = time.monotonic()
     h.ramp(h.q(), goal, 1.0)
-    assert h.wait(lambda: np.abs(h.q() - goal).max() < TRACK_TOL, 10.0), h.q() - goal
+    assert h.wait(lambda: np.abs(h.q() - goal).max() < TRACK_TOL, TIMEOUT), h.q() - goal
     assert h.wait_state(lambda m, kv: float(kv['tracking_error_rad']) < TRACK_TOL
                         and int(kv['references_received']) >= 10), \
         sorted(h.last_state()[1].items())
@@ -119,9 +129,8 @@ def test_tracks_a_published_reference(graph):
     assert float(kv['tracking_error_rad']) <= float(kv['tracking_error_max_rad']) < span
     assert kv['limit_violations'] == '0'
     assert 0.5 <= float(kv['max_limit_usage_since_start']) < 1.0  # joint 4 at home: 0.5
-    assert 0.0 < float(kv['real_time_factor']) < 1.6  # ~1 unless starved (benchmark)
     # the reference goes stale: the last position is held
-    assert h.wait_diag('holding: joint_reference stale', t0, timeout=3.0, name='sim: state')
+    assert h.wait_diag('holding: joint_reference stale', t0, name='sim: state')
     assert np.abs(h.q() - goal).max() < TRACK_TOL
     go_home(h)
 
@@ -130,13 +139,15 @@ def test_shuffled_joint_names_are_mapped(graph):
     h, proc, _ = graph
     perm = [6, 2, 0, 5, 1, 3, 4]
     target = PANDA_HOME + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2])
-    t0 = time.monotonic()
-    for _ in range(20):
-        h.publish('joint_reference', h.reference(target[perm],
-                                                 names=[PANDA_JOINTS[i] for i in perm]))
-        time.sleep(0.02)
-    assert h.wait(lambda: np.abs(h.q() - target).max() < TRACK_TOL, 10.0), h.q() - target
-    assert not h.wait_diag('rejected', t0, timeout=0.3, name='input joint_reference')
+
+    def shuffled():
+        for _ in range(20):  # a reference stream at 50 Hz
+            h.publish('joint_reference', h.reference(target[perm],
+                                                     names=[PANDA_JOINTS[i] for i in perm]))
+            time.sleep(0.02)
+        assert h.wait(lambda: np.abs(h.q() - target).max() < TRACK_TOL, TIMEOUT), \
+            h.q() - target
+    not_rejected(h, 'joint_reference', shuffled)
     go_home(h)
 
 
@@ -168,23 +179,24 @@ def _publish_markers(h, *markers):
 def test_obstacles_change_the_reported_distance(graph):
     from visualization_msgs.msg import Marker
     h, proc, _ = graph
-    t0 = time.monotonic()
-    _publish_markers(h, _marker(position=(0.75, 0.0, 0.5), size=0.1))  # ~0.3 m from the hand
-    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
-                        and float(kv['min_obstacle_distance_m']) < 1.0)
-    d1 = float(h.last_state()[1]['min_obstacle_distance_m'])
-    assert 0.2 < d1 < 0.4, d1
-    _publish_markers(h, _marker(position=(0.65, 0.0, 0.5), size=0.1))  # MODIFY: 0.1 m closer
-    assert h.wait_state(lambda m, kv: float(kv['min_obstacle_distance_m']) < d1 - 0.05)
-    kv = h.last_state()[1]
-    d2 = float(kv['min_obstacle_distance_m'])
-    assert abs((d1 - d2) - 0.1) < 0.02, (d1, d2)
-    assert float(kv['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
-    _publish_markers(h, Marker(ns='obs', id=1, action=Marker.DELETE))
-    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '0'
-                        and kv['min_obstacle_distance_m'] == 'inf')
-    assert float(h.last_state()[1]['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
-    assert not h.wait_diag('rejected', t0, timeout=0.2, name='input obstacles')
+
+    def add_modify_delete():
+        _publish_markers(h, _marker(position=(0.75, 0.0, 0.5), size=0.1))  # ~0.3 m from the hand
+        assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
+                            and float(kv['min_obstacle_distance_m']) < 1.0)
+        d1 = float(h.last_state()[1]['min_obstacle_distance_m'])
+        assert 0.2 < d1 < 0.4, d1
+        _publish_markers(h, _marker(position=(0.65, 0.0, 0.5), size=0.1))  # MODIFY: 0.1 m closer
+        assert h.wait_state(lambda m, kv: float(kv['min_obstacle_distance_m']) < d1 - 0.05)
+        kv = h.last_state()[1]
+        d2 = float(kv['min_obstacle_distance_m'])
+        assert abs((d1 - d2) - 0.1) < 0.02, (d1, d2)
+        assert float(kv['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
+        _publish_markers(h, Marker(ns='obs', id=1, action=Marker.DELETE))
+        assert h.wait_state(lambda m, kv: kv.get('obstacles') == '0'
+                            and kv['min_obstacle_distance_m'] == 'inf')
+        assert float(h.last_state()[1]['min_obstacle_distance_since_start_m']) <= d2 + 1e-9
+    not_rejected(h, 'obstacles', add_modify_delete)
 
 
 def test_contact_when_the_arm_is_driven_into_a_box(graph):
@@ -198,16 +210,19 @@ def test_contact_when_the_arm_is_driven_into_a_box(graph):
     box = _marker(ns='box', id=3, kind='cube', size=0.06,
                   position=(0.307 * np.cos(a), 0.307 * np.sin(a), 0.56))
     t0 = time.monotonic()
-    _publish_markers(h, box)
-    assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
-                        and 0.02 < float(kv['min_obstacle_distance_m']) < 0.1), h.last_state()
+
+    def add_box():
+        _publish_markers(h, box)
+        assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
+                            and 0.02 < float(kv['min_obstacle_distance_m']) < 0.1), \
+            h.last_state()
+    not_rejected(h, 'obstacles', add_box)
     target = PANDA_HOME + np.array([1.1, 0, 0, 0, 0, 0, 0])
     h.ramp(PANDA_HOME, target, 0.8)
     assert h.wait_state(lambda m, kv: int(kv['contacts_since_start']) > n0
                         and float(kv['min_obstacle_distance_since_start_m']) <= 0.0), \
         h.last_state()
     assert h.wait_diag('; contact panda_', t0, name='sim: state')
-    assert not h.wait_diag('rejected', t0, timeout=0.1, name='input obstacles')
     _publish_markers(h, Marker(ns='box', action=Marker.DELETEALL))
     assert h.wait_state(lambda m, kv: kv['contacts'] == '0' and kv.get('obstacles') == '0')
     go_home(h)
@@ -282,17 +297,23 @@ def test_reference_outside_the_limits_is_clipped_and_reported(graph):
     h.publish('joint_reference', h.reference(target))
     assert h.wait_diag("position of 'panda_joint7' is outside the limits [-2.9671, 2.9671], "
                        'clipped to 2.9671', t0, name='sim: input joint_reference')
-    assert h.wait(lambda: h.q()[6] > 2.96, 10.0), h.q()
-    time.sleep(0.3)
+    assert h.wait(lambda: h.q()[6] > 2.96, TIMEOUT), h.q()
+    # the step response is over after 0.3 s of simulated time (75 joint_states); the sim's
+    # state reported after that counts its limit violations
+    n0 = h.n_states()
+    assert h.wait(lambda: h.n_states() >= n0 + 75, TIMEOUT)
+    t1 = time.monotonic()
+    assert h.wait(lambda: h.state_after(t1) is not None, TIMEOUT)
     with h.lock:
         qs = np.array([s[3] for s in h.states if s[0] >= t0])
     excess = max(float(np.max(qs - UPPER)), float(np.max(LOWER - qs)))
     # the clipped reference is exactly at the limit: the position motors' step response
     # overshoots it by a few mrad (measured 7 mrad), bounded by the URDF joint stop
     assert excess < 0.02, excess
-    assert int(h.last_state()[1]['rejected_limits']) >= 1
+    _, kv = h.state_after(t1)
+    assert int(kv['rejected_limits']) >= 1
     # limit_violations counts measured excursions beyond limit_tolerance (1e-4 rad)
-    violations = int(h.last_state()[1]['limit_violations'])
+    violations = int(kv['limit_violations'])
     assert (violations > violations0) == (excess > 1e-4) or 0.9e-4 < excess < 1.1e-4, \
         (excess, violations0, violations)
     go_home(h)
@@ -347,35 +368,35 @@ def test_flooding_is_dropped_and_reported(graph):
     from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     # low limits for this test, so that a flood is a flood even when this shared machine
-    # starves the sim process (it must receive more than the limit plus the burst)
+    # starves the sim process; the flood goes on until the node reports the drops
     assert h.set_parameter('max_reference_rate', 20.0).successful
     assert h.set_parameter('max_input_rate', 5.0).successful
     try:
         t0 = time.monotonic()
         msg = h.reference(h.q(), zero=True)
-        end = time.monotonic() + 1.0
-        sent = 0
-        while time.monotonic() < end:
-            h.publish('joint_reference', msg)
-            sent += 1
-            time.sleep(0.0005)
-        assert sent > 200
-        assert h.wait_diag('flooding: more than 20 messages/s', t0,
-                           name='sim: input joint_reference'), [
+        assert flood(h, 'joint_reference', msg, lambda: h.wait_diag(
+            'flooding: more than 20 messages/s', t0, timeout=0.0,
+            name='sim: input joint_reference')), [
             d[1:3] for d in h.diag_messages if d[0] > t0][-6:]
         assert h.wait_state(lambda m, kv: int(kv.get('rejected_flooding', 0)) > 0)
         msg = MarkerArray(markers=[_marker(ns='flood', id=1, position=(2.0, 0.0, 0.0))])
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            h.publish('obstacles', msg)
-            time.sleep(0.002)
-        assert h.wait_diag('flooding: more than 5 messages/s', t0, name='sim: input obstacles')
+        assert flood(h, 'obstacles', msg, lambda: h.wait_diag(
+            'flooding: more than 5 messages/s', t0, timeout=0.0, name='sim: input obstacles'))
         alive(h, proc)
     finally:
         assert h.set_parameter('max_reference_rate', 200.0).successful
         assert h.set_parameter('max_input_rate', 50.0).successful
     _publish_markers(h, _marker(ns='flood', action=3))
     assert h.wait_state(lambda m, kv: kv.get('obstacles') == '0')
+
+
+def flood(h, topic, msg, reported, timeout=TIMEOUT):
+    """Publish ``msg`` on ``topic`` in bursts of 50 until ``reported()``; returns it."""
+    def burst():
+        for _ in range(50):
+            h.publish(topic, msg)
+        return reported()
+    return h.wait(burst, timeout)
 
 
 # -- services and parameters -------------------------------------------------------------------
@@ -395,11 +416,11 @@ def test_snapshot_and_reset_services(graph, tmp_path):
     assert res.success and res.message == path and os.path.getsize(path) > 1000
     # reset: the robot is back at initial_positions at once
     h.ramp(h.q(), PANDA_HOME + 0.2 * np.array([1, 1, 1, 1, 1, 0, 0]), 0.4)
-    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() > 0.1, 10.0)
+    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() > 0.1, TIMEOUT)
     t0 = time.monotonic()
     res = h.call('reset')
     assert res.success and 'reset to initial_positions' in res.message
-    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 1e-3, 5.0)
+    assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 1e-3, TIMEOUT)
     assert h.wait_diag('waiting: holding initial_positions', t0, name='sim: state')
     alive(h, proc)
 
@@ -426,7 +447,7 @@ def test_runtime_parameter_changes_are_validated(graph):
         assert h.wait_state(lambda m, kv: kv['control'] == mode)
         goal = PANDA_HOME + np.array([0.2, 0.1, 0, 0.1, 0, 0, 0])
         h.ramp(h.q(), goal, 0.5)
-        assert h.wait(lambda: np.abs(h.q() - goal).max() < 0.01, 10.0), (mode, h.q() - goal)
+        assert h.wait(lambda: np.abs(h.q() - goal).max() < 0.01, TIMEOUT), (mode, h.q() - goal)
         go_home(h)
     alive(h, proc)
 
