@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 
-from conftest import ros_env
+from conftest import ros_env, wait_for  # noqa: F401 (re-exported to the bag tests)
 
 #: Bound of every wait on a condition [s]: it only bounds a failure, a pass never waits it out.
 WAIT_S = 30.0
@@ -144,13 +144,3 @@ def recoverable_count(bag, probe_dir):
         return recover_bag(bag, output=probe_dir).message_count
     except (BagError, OSError):
         return 0
-
-
-def wait_for(pred, timeout, period=0.01):
-    """Poll ``pred`` until true or ``timeout`` s; returns its last value."""
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v or time.monotonic() > deadline:
-            return v
-        time.sleep(period)
