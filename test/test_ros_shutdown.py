@@ -21,11 +21,11 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 
 from conftest import REPO_ROOT, module_domain, ros_env
+from conftest import wait_for as conftest_wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -42,14 +42,9 @@ STARTUP_SIGNAL = {'learner': 'SIGINT', 'adapter': 'SIGTERM', 'streamer': 'SIGINT
 BAG = os.path.join(REPO_ROOT, 'bags', 'panda_reach', 'demo_00')
 
 
-def wait_for(pred, timeout=TIMEOUT, period=0.02):
-    """Poll ``pred`` until it is true or ``timeout`` s passed; returns its last value."""
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v or time.monotonic() > deadline:
-            return v
-        time.sleep(period)
+def wait_for(pred, timeout=TIMEOUT):
+    """conftest's one wait, with this module's generous default."""
+    return conftest_wait_for(pred, timeout)
 
 
 def catches_sigterm(pid: int) -> bool:
