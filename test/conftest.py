@@ -125,15 +125,17 @@ def last_reason(h, topic):
 
 
 def joint_state_rejected(h, publish, joint_names, stamp_ns):
-    """``send_rejected`` for a JointState topic: the joint names plus a duplicated ``token``
-    (rejected as 'duplicate joint name <token>' before anything else is checked)."""
+    """``send_rejected`` for a JointState topic: the joint names with the last two replaced by
+    a duplicated ``token`` (rejected as 'duplicate joint name <token>' before anything else is
+    checked; as many names as joints, so the input gate's constant-time name count, which
+    rejects more names than the robot has joints unparsed, lets it through to that check)."""
     from sensor_msgs.msg import JointState
 
     def send(token):
         msg = JointState()
         t = stamp_ns()
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t, 1_000_000_000)
-        msg.name = list(joint_names) + [token, token]
+        msg.name = list(joint_names)[:-2] + [token, token]
         msg.position = [0.0] * len(msg.name)
         publish(msg)
     return send

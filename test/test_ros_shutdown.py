@@ -42,9 +42,9 @@ STARTUP_SIGNAL = {'learner': 'SIGINT', 'adapter': 'SIGTERM', 'streamer': 'SIGINT
 BAG = os.path.join(REPO_ROOT, 'bags', 'panda_reach', 'demo_00')
 
 
-def wait_for(pred, timeout=TIMEOUT):
+def wait_for(pred, timeout=TIMEOUT, period=0.02):
     """conftest's one wait, with this module's generous default."""
-    return conftest_wait_for(pred, timeout)
+    return conftest_wait_for(pred, timeout, period)
 
 
 def catches_sigterm(pid: int) -> bool:
