@@ -1,6 +1,10 @@
 """The streamer node: ROS glue around :class:`cdmp_ros.core.streaming.ReferenceStreamer`.
 
-Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``;
+Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``,
+and with ``controller_output`` the same references for a ros2_control controller in its joint
+order (std_msgs/Float64MultiArray on ``forward_position_controller/commands`` or
+trajectory_msgs/JointTrajectory, one point per tick, on
+``joint_trajectory_controller/joint_trajectory``; ``controller_topic``, ``controller_joints``);
 subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``
 and ``obstacles``; reports on ``diagnostics``. Primitive messages are parsed and prepared in a
 worker thread (the latest one wins), so a large primitive never delays a tick; the tick only
@@ -35,7 +39,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Float64MultiArray, String
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling import DampingConfig
@@ -43,10 +48,12 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.stream_primitives import prepare_primitive
+from cdmp_ros.core.streamer_config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer,
                                      StreamerConfig, StreamFlags, StreamState)
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.convert import JointStateMapper, JointStateWriter, ObstacleSet
+from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
+                                  JointTrajectoryWriter, ObstacleSet)
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
@@ -97,6 +104,7 @@ class StreamerNode(Node):
         self.gate = InputGate(self, self.reporter, lambda: self.config, lock=self._report_lock)
         self._set_rates(cfg)
         self.writer = JointStateWriter(JointState(), cfg.joint_names, cfg.base_frame)
+        self.controller_pub, self.controller_writer = self._controller_output(cfg)
         n = len(cfg.joint_names)
         cfg_now = lambda: self.config  # noqa: E731
         for topic in PRIMITIVE_TOPICS:
@@ -165,6 +173,28 @@ class StreamerNode(Node):
         return ObstacleCoupling(self.chain, configs[''].coupling_links,
                                 sphere_field=configs['repeller'],
                                 box_field=configs['box_field'], config=cc)
+
+    def _controller_output(self, cfg: StreamerConfig):
+        """The publisher and writer of ``controller_output`` (None, None for 'none'); the
+        reorder index into the controller's joint order is computed here, once."""
+        joints = cfg.controller_joint_names
+        # the topic from a parameter: listed as <controller_topic> in the README topic table
+        self.controller_topic = (cfg.controller_topic
+                                 or DEFAULT_CONTROLLER_TOPICS.get(cfg.controller_output, ''))
+        if cfg.controller_output == 'forward_command':
+            writer = ForwardCommandWriter(Float64MultiArray(), cfg.joint_names, joints)
+            pub = self.create_publisher(Float64MultiArray, self.controller_topic,
+                                        qos_profiles.COMMAND)
+        elif cfg.controller_output == 'joint_trajectory':
+            writer = JointTrajectoryWriter(JointTrajectory(), JointTrajectoryPoint(),
+                                           cfg.joint_names, joints, cfg.dt, cfg.base_frame)
+            pub = self.create_publisher(JointTrajectory, self.controller_topic,
+                                        qos_profiles.COMMAND)
+        else:
+            return None, None
+        self.get_logger().info(f'{cfg.controller_output} controller output on '
+                               f'{pub.topic_name}, joints {list(joints)}')
+        return pub, writer
 
     def _set_rates(self, cfg: StreamerConfig) -> None:
         rates = {t: cfg.max_input_rate for t in PRIMITIVE_TOPICS + ('goal', 'obstacles')}
@@ -346,6 +376,8 @@ class StreamerNode(Node):
         st = self.streamer
         stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
+        if self.controller_pub is not None:  # the same reference, the controller's order
+            self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
         self.counts['published'] += 1
         if self._latency_pending_ns:
             lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
@@ -373,6 +405,9 @@ class StreamerNode(Node):
             n_obstacles = len(self.obstacles)
         level = OK if state is StreamState.RUNNING else WARN
         extra = {'tick_errors': self._tick_errors} if self._tick_errors else {}
+        if self.controller_pub is not None:
+            extra['controller_output'] = (f'{self.config.controller_output} on '
+                                          f'{self.controller_pub.topic_name}')
         if self.realtime_status is not None:
             extra['tick_scheduling'] = (f'SCHED_FIFO {self.realtime_status.priority}'
                                         if self.realtime_status.realtime else 'normal')
