@@ -46,6 +46,7 @@ from visualization_msgs.msg import MarkerArray
 from cdmp_ros.core.coupling import DampingConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
+from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.stream_primitives import prepare_primitive
 from cdmp_ros.core.streamer_config import DEFAULT_CONTROLLER_TOPICS
@@ -59,7 +60,7 @@ from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_
                                      marker_count)
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
-from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
+from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
                                           report_scheduling)
 from cdmp_ros.ros.streamer_worker import PrimitiveWorker
@@ -82,8 +83,9 @@ class StreamerNode(Node):
                    ('damping', DampingConfig), ('repeller', RepellerField),
                    ('box_field', ConstantField)], on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
-        self.urdf_path = cfg.urdf_path or default_urdf_path()
-        self.chain = load_panda_chain(self.urdf_path, cfg.joint_names)
+        # the limits and kinematics of the robot: robot_description, else urdf_path
+        self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
+        self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
         self.coupling_source = CouplingSource(self._make_coupling(self.params.configs))
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
@@ -97,6 +99,7 @@ class StreamerNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
+        self.reporter.values['limits_source'] = self.urdf_path
         # the reporter's own lock: building and publishing diagnostics (milliseconds on a
         # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
         # writes without a lock
@@ -342,8 +345,9 @@ class StreamerNode(Node):
                 self.gate.reject(topic, error)
             else:
                 text = self.streamer.activate(prepared, now)
-                self.get_logger().info(text + ('; ' + '; '.join(prepared.notes)
-                                               if prepared.notes else ''))
+                log = (self.get_logger().warning if prepared.limit_mismatches
+                       else self.get_logger().info)
+                log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
         dt = self._dt
         k = int((now - self._t0) / dt)  # the slot that began most recently
         steps = k - self._k
@@ -404,6 +408,12 @@ class StreamerNode(Node):
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
         level = OK if state is StreamState.RUNNING else WARN
+        # the active primitive's limits against the robot's (the tighter ones are used)
+        mismatches = active.limit_mismatches if active is not None else ()
+        if mismatches:
+            reason += (f'; the primitive limits differ from the robot ({self.urdf_path}) on '
+                       f'{len(mismatches)} bounds: the tighter are used')
+        extra_limits = {'limit_mismatch': describe_mismatches(mismatches)}
         extra = {'tick_errors': self._tick_errors} if self._tick_errors else {}
         if self.controller_pub is not None:
             extra['controller_output'] = (f'{self.config.controller_output} on '
@@ -418,6 +428,7 @@ class StreamerNode(Node):
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
                 rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
+                **extra_limits,
                 **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())
 
