@@ -18,7 +18,7 @@ import re
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, ParameterValue, SetParametersResult)
+                                ParameterType, SetParametersResult)
 from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 
@@ -143,10 +143,9 @@ def declare_config(node, cls: Type, prefix: str = '', overrides: Optional[Dict] 
         name = f'{prefix}.{f.name}' if prefix else f.name
         default = overrides.get(f.name, default)
         desc = descriptor_for(cls, f, kind, name)
-        # a string array as a typed ParameterValue: an empty default list would be declared
-        # as a byte array otherwise
-        value = ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY,
-                               string_array_value=list(default)) if kind is tuple else default
+        value = list(default) if kind is tuple else default
+        if kind is tuple and not value:  # [] would be declared as a byte array: type only
+            value = Parameter.Type.STRING_ARRAY
         try:
             p = node.declare_parameter(name, value, desc)
         except (ParameterException, TypeError, ValueError) as exc:
