@@ -2,9 +2,9 @@
 
 Runs in its own rclpy context on a private domain id, spun by a background thread. It
 publishes ``joint_states`` (echoing the last reference, like a perfect robot) at 100 Hz while
-``robot_on`` is set, offers publishers for every input topic, and checks EVERY received
-``joint_reference`` message: 7 names in order, finite, inside the limits (violations are
-collected, never silently dropped).
+``robot_on`` is set (joints ``robot_names``, by default the arm's in order), offers publishers
+for every input topic, and checks EVERY received ``joint_reference`` message: 7 names in
+order, finite, inside the limits (violations are collected, never silently dropped).
 """
 import math
 import threading
@@ -14,6 +14,9 @@ import numpy as np
 
 from conftest import wait_for
 from streamer_util import LOWER, PANDA_JOINTS, Q_START, UPPER
+
+
+FINGER_POSITION = 0.02  # m, the fake robot's finger joints (when listed in robot_names)
 
 
 class Harness:
@@ -38,6 +41,9 @@ class Harness:
         self.diag_messages = []  # (time, status name, message, {key: value})
         self.robot_on = True
         self.robot_q = Q_START.copy()
+        # names of the fake robot's joint_states (any order; names other than the arm's, such
+        # as finger joints, are published at FINGER_POSITION)
+        self.robot_names = PANDA_JOINTS
         self.pub = {
             'primitive': n.create_publisher(String, 'primitive', qos_profiles.LATCHED),
             'adapted_primitive': n.create_publisher(String, 'adapted_primitive',
@@ -99,9 +105,11 @@ class Harness:
         from sensor_msgs.msg import JointState
         msg = JointState()
         msg.header.stamp = self.node.get_clock().now().to_msg()
-        msg.name = list(PANDA_JOINTS)
+        names = list(self.robot_names)
+        msg.name = names
         with self.lock:
-            msg.position = self.robot_q.tolist()
+            q = dict(zip(PANDA_JOINTS, self.robot_q.tolist()))
+        msg.position = [q.get(n, FINGER_POSITION) for n in names]
         self.pub['joint_states'].publish(msg)
 
     # -- helpers -----------------------------------------------------------------------------

@@ -37,6 +37,24 @@ def reach_dmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
     return DMP(7, joint_names=PANDA_JOINTS).fit(T, Y)
 
 
+#: Limits of :func:`wide_narrow_cdmp`: wider than the robot's on panda_joint1, narrower on
+#: panda_joint2; and the tighter of these and the robot's.
+WIDE_NARROW_LOWER = np.where(np.arange(7) == 0, -3.5, np.where(np.arange(7) == 1, -0.8, LOWER))
+WIDE_NARROW_UPPER = np.where(np.arange(7) == 0, 3.5, np.where(np.arange(7) == 1, 0.4, UPPER))
+TIGHT_LOWER = np.maximum(LOWER, WIDE_NARROW_LOWER)
+TIGHT_UPPER = np.minimum(UPPER, WIDE_NARROW_UPPER)
+
+
+def wide_narrow_cdmp():
+    """A reach CDMP with the limits WIDE_NARROW_* whose goal on panda_joint1 (3.2) is beyond
+    the robot's upper limit (2.9671)."""
+    from cdmp_ros.core.dmp import CDMP
+    goal = Q_GOAL.copy()
+    goal[0] = 3.2
+    T, Y = reach_demo(Q_START, goal, 2.0)
+    return CDMP(WIDE_NARROW_LOWER, WIDE_NARROW_UPPER, joint_names=PANDA_JOINTS).fit(T, Y)
+
+
 def start_streamer(domain_id, params=(), log_path=None, params_file=None):
     """Start ``python -m cdmp_ros.nodes.streamer`` with ``-p`` parameters (name:=value)."""
     cmd = [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args']

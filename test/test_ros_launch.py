@@ -573,7 +573,14 @@ def code_endpoints():
                 return [eval(compile(ast.Expression(expr), where, 'eval'), namespace)]
             try:
                 types_ = value(call.args[0])
-                names = value(call.args[1])
+                try:
+                    names = value(call.args[1])
+                except NameError:
+                    # a topic named by a parameter, read as an attribute (``self.X`` or
+                    # ``cfg.X``): the README lists it as ``<X>``
+                    if not isinstance(call.args[1], ast.Attribute):
+                        raise
+                    names = [f'<{call.args[1].attr}>']
                 qos_expr = None
                 if role != 'service':
                     kw = {k.arg: k.value for k in call.keywords}
@@ -584,7 +591,9 @@ def code_endpoints():
             except NameError as exc:  # a local variable: known only at run time
                 assert node in DYNAMIC_NODES, (
                     f'{where}: {node} {role} with a type, name or QoS known only at run time '
-                    f'({exc}); list it in the README table')
+                    f'({exc}); a topic name taken from a parameter is read from an attribute '
+                    f'(self.X = the parameter value; create_publisher(T, self.X, qos)) and '
+                    f'listed in the README table as <X>')
                 continue
             for msg_type in types_:
                 for name in names:

@@ -8,7 +8,7 @@ from cdmp_ros.core.errors import ValidationError
 
 __all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lead_param',
            'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
-           'obstacle_distance_param', 'max_json_bytes_param']
+           'obstacle_distance_param', 'max_json_bytes_param', 'robot_description_param']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -89,3 +89,9 @@ def obstacle_distance_param():
 def max_json_bytes_param():
     return param(4_000_000, 'Largest accepted JSON payload (primitive, constraints) [bytes]; '
                  'a longer message is rejected before it is parsed.', 100, 100_000_000)
+
+
+def robot_description_param():
+    return param('', 'The robot URDF as XML text, as a ROS system passes it to its nodes; when '
+                 'non-empty it takes precedence over urdf_path for the joint limits and the '
+                 'kinematics (diagnostics: limits_source).', read_only=True)

@@ -16,7 +16,8 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.config_fields import check_fields, check_names, param
+from cdmp_ros.core.config_fields import (check_fields, check_names, param,
+                                         robot_description_param)
 from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -40,6 +41,7 @@ class LearnerConfig:
         'name.', read_only=True)
     urdf_path: str = param('', 'Robot URDF giving the joint limits when limits.lower/upper '
                            'are empty. Empty: the Panda of pybullet_data.', read_only=True)
+    robot_description: str = robot_description_param()
     demonstration_bags: Tuple[str, ...] = param(
         DEFAULT_BAGS, 'Bags (or directories of bag directories) fitted with the topic '
         'demonstrations. Relative paths are looked up in the working directory, then in the '

@@ -8,14 +8,15 @@ its mean trajectory (paper 000), so that the same integrator gives the limit gua
 obstacle coupling and the jump-free switching for every kind of primitive.
 """
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.dmp import CDMP, DmpConfig
-from cdmp_ros.core.errors import PrimitiveFileError
+from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
+from cdmp_ros.core.joint_limits import LimitMismatch, describe_mismatches, merge_limits
 from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
 from cdmp_ros.core.stepper import DmpStepper
 from cdmp_ros.core.validation import check_limits
@@ -39,7 +40,9 @@ class PreparedPrimitive:
     source : str
         Topic (or file) it came from.
     notes : list of str
-        Non-fatal remarks (reordered joints, ProMP converted, ...).
+        Non-fatal remarks (reordered joints, ProMP converted, limits differing, ...).
+    limit_mismatches : list of LimitMismatch
+        Where the primitive's limits differ from the robot's (the tighter ones are used).
     """
 
     prim: Any
@@ -47,6 +50,7 @@ class PreparedPrimitive:
     kind: str
     source: str
     notes: List[str]
+    limit_mismatches: List[LimitMismatch] = field(default_factory=list)
 
     @property
     def goal_y(self) -> NDArray[np.float64]:
@@ -99,6 +103,20 @@ def _promp_to_cdmp(d: Dict[str, Any], perm: List[int], lower: NDArray, upper: ND
     return cdmp.fit(s * duration, Y)
 
 
+def _refit_cdmp(prim: CDMP, lower: NDArray, upper: NDArray) -> CDMP:
+    """A CDMP whose tanh transform (Eq. 19) has the limits ``lower, upper``, fitted to the
+    rollout of ``prim`` clipped into them (with the demonstration margin): the limits of a
+    CDMP enter through its transform, so wider ones are replaced, not clipped afterwards."""
+    traj = prim.rollout(dt=1.0 / PROMP_FIT_RATE)
+    margin = prim.config.demo_margin * (upper - lower)
+    Y = np.clip(traj.Y, lower + margin, upper - margin)
+    new = CDMP(lower, upper, prim.config, prim.joint_names).fit(traj.T, Y)
+    for attr in ('velocity_limits', 'metadata'):
+        if hasattr(prim, attr):
+            setattr(new, attr, getattr(prim, attr))
+    return new
+
+
 def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: Sequence[str],
                       dt: float, lower: ArrayLike, upper: ArrayLike,
                       velocity_limits: Optional[ArrayLike] = None, source: str = 'primitive',
@@ -114,7 +132,11 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
     dt : float
         Streaming period [s].
     lower, upper : array-like, shape (n_dims,)
-        Robot position limits (streamer order); used for ProMP conversion.
+        Robot position limits (streamer order). Where the primitive's limits differ, the
+        tighter of the two are used and listed in ``limit_mismatches`` and ``notes``; a CDMP
+        whose limits are wider than the robot's is refitted into the tighter ones, a ProMP is
+        converted within them. A plain DMP has no limits of its own (the streamer's guard
+        holds the robot's).
     velocity_limits : array-like, shape (n_dims,), optional
         Robot velocity limits; the stepper uses the smaller of these and the primitive's.
     source : str
@@ -142,6 +164,17 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
         notes.append(f'joints reordered from {d["joint_names"]}')
     lower = np.asarray(lower, dtype=float)
     upper = np.asarray(upper, dtype=float)
+    mismatches: List[LimitMismatch] = []
+    if 'limits' in d:  # the tighter of the primitive's and the robot's, reported
+        try:
+            lo_m, hi_m, mismatches = merge_limits(
+                joint_names, lower, upper, np.asarray(d['limits']['lower'], dtype=float)[perm],
+                np.asarray(d['limits']['upper'], dtype=float)[perm])
+        except ValidationError as exc:
+            raise PrimitiveFileError(f'{source}: primitive.limits and the robot limits: '
+                                     f'{exc}') from None
+    if mismatches:
+        notes.append(f'limits differ from the robot: {describe_mismatches(mismatches)}')
     try:
         if d['kind'] == 'promp':
             prim = _promp_to_cdmp(d, perm, lower, upper, promp_config or DmpConfig(),
@@ -150,6 +183,10 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
                          f'{prim.fit_rms_error_:.2e})')
         else:
             prim = primitive_from_dict(_reorder_dmp_dict(d, perm))
+            if d['kind'] == 'cdmp' and any(m.wider for m in mismatches):
+                prim = _refit_cdmp(prim, lo_m, hi_m)
+                notes.append(f'CDMP refitted into the tighter limits (rms '
+                             f'{prim.fit_rms_error_:.2e})')
         vmax = None if velocity_limits is None else np.asarray(velocity_limits, dtype=float)
         pvl = getattr(prim, 'velocity_limits', None)
         if pvl is not None:
@@ -159,4 +196,4 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
         raise
     except (ValueError, TypeError, KeyError, np.linalg.LinAlgError) as exc:
         raise PrimitiveFileError(f'{source}: cannot be streamed: {exc}') from None
-    return PreparedPrimitive(prim, stepper, d['kind'], source, notes)
+    return PreparedPrimitive(prim, stepper, d['kind'], source, notes, mismatches)

@@ -7,11 +7,18 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, c
                                          max_json_bytes_param, max_obstacles_param,
                                          obstacle_distance_param,
                                          obstacle_size_param, param as _param,
+                                         robot_description_param,
                                          stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 
-__all__ = ['StreamerConfig']
+__all__ = ['StreamerConfig', 'CONTROLLER_OUTPUTS', 'DEFAULT_CONTROLLER_TOPICS']
+
+#: Values of ``controller_output``.
+CONTROLLER_OUTPUTS = ('none', 'forward_command', 'joint_trajectory')
+#: The command topic of each ros2_control controller under its usual name.
+DEFAULT_CONTROLLER_TOPICS = {'forward_command': 'forward_position_controller/commands',
+                             'joint_trajectory': 'joint_trajectory_controller/joint_trajectory'}
 
 
 @dataclass(frozen=True)
@@ -38,6 +45,7 @@ class StreamerConfig:
     urdf_path: str = _param(
         '', 'Robot URDF (limits, kinematics for the coupling). Empty: the Panda of '
         'pybullet_data.', read_only=True)
+    robot_description: str = robot_description_param()
     base_frame: str = _param(
         'panda_link0', 'Robot base frame: obstacles must be given in it (or with an empty '
         'frame_id).', read_only=True)
@@ -84,6 +92,20 @@ class StreamerConfig:
         True, 'An obstacle message wakes the tick thread: the next slot is integrated with '
         'the new obstacles and published at once with its own scheduled stamp (at most one '
         'period early); the schedule is unchanged.')
+    controller_output: str = _param(
+        'none', "Also publish the references for a ros2_control controller: 'none'; "
+        "'forward_command' (std_msgs/Float64MultiArray of positions, for a "
+        "forward_command_controller on the position interface); 'joint_trajectory' "
+        '(trajectory_msgs/JointTrajectory with one point per tick, time_from_start one '
+        'period, positions and velocities, for a joint_trajectory_controller).',
+        read_only=True, choices=CONTROLLER_OUTPUTS)
+    controller_topic: str = _param(
+        '', 'Topic of the controller output; empty: the standard one of the controller '
+        "('forward_position_controller/commands' or "
+        "'joint_trajectory_controller/joint_trajectory').", read_only=True)
+    controller_joints: Tuple[str, ...] = _param(
+        (), "The controller's joints in its order (a permutation of joint_names); empty: "
+        'joint_names.', read_only=True)
     coupling_links: Tuple[str, ...] = _param(
         ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
@@ -94,6 +116,16 @@ class StreamerConfig:
             raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
                                   f'{self.realtime_threads!r}')
         check_names('joint_names', self.joint_names)
+        check_names('controller_joints', self.controller_joints, allow_empty=True)
+        if self.controller_joints and sorted(self.controller_joints) != sorted(
+                self.joint_names):
+            raise ValidationError(f'controller_joints: expected a permutation of joint_names '
+                                  f'{list(self.joint_names)}, got {list(self.controller_joints)}')
+
+    @property
+    def controller_joint_names(self) -> Tuple[str, ...]:
+        """``controller_joints``, or ``joint_names`` when empty."""
+        return self.controller_joints or self.joint_names
 
     @property
     def dt(self) -> float:

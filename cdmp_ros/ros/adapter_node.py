@@ -63,7 +63,7 @@ from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate,
                                      joint_names, json_bytes, marker_count, message_bytes)
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
+from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
@@ -82,8 +82,9 @@ class AdapterNode(Node):
                                               ('adaptation', AdaptRequestConfig)],
                                        on_change=self._on_params)
         cfg: AdapterConfig = self.params['']
-        self.urdf_path = cfg.urdf_path or default_urdf_path()
-        self.chain = load_panda_chain(self.urdf_path, cfg.joint_names)
+        # the limits and kinematics of the robot: robot_description, else urdf_path
+        self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
+        self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
         self._check_links(self.params['adaptation'])
         self.joint_names = list(cfg.joint_names)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
@@ -108,7 +109,8 @@ class AdapterNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
-        self.reporter.set_state(OK, 'waiting for a primitive', outcome='none')
+        self.reporter.set_state(OK, 'waiting for a primitive', outcome='none',
+                                limits_source=self.urdf_path)
         self.gate = InputGate(self, self.reporter, lambda: self.config)
         self._set_rates(cfg)
         gate, n = self.gate, len(self.joint_names)

@@ -3,6 +3,9 @@
 - ``sensor_msgs/JointState`` <-> joint arrays in a fixed joint order (:class:`JointStateMapper`,
   :class:`JointStateWriter`): names are mapped (any order is accepted), duplicates, missing and
   unknown names, wrong lengths and non-finite values are rejected.
+- Reference -> ros2_control controller commands in the controller's joint order
+  (:class:`ForwardCommandWriter`: ``std_msgs/Float64MultiArray``; :class:`JointTrajectoryWriter`:
+  ``trajectory_msgs/JointTrajectory`` with one point).
 - Header stamps: :func:`check_stamp` rejects stamps far in the future or the past.
 - ``visualization_msgs/MarkerArray`` -> an obstacle set (:class:`ObstacleSet`): SPHERE = a
   repeller of radius ``scale.x / 2``, CUBE = a box (:class:`Box` when axis-aligned,
@@ -162,6 +165,100 @@ class JointStateWriter:
         for i in range(self.n_dims):
             pos[i] = y[i]
             vel[i] = yd[i]
+        return msg
+
+
+def controller_order(joint_names: Sequence[str], controller_joints: Sequence[str]
+                     ) -> List[int]:
+    """For each of ``controller_joints``, its index in ``joint_names`` (the reference order).
+
+    Raises
+    ------
+    ValidationError
+        ``controller_joints`` is not a permutation of ``joint_names`` (names the missing and
+        unknown joints).
+    """
+    missing = [n for n in joint_names if n not in controller_joints]
+    unknown = [n for n in controller_joints if n not in joint_names]
+    if missing or unknown or len(controller_joints) != len(joint_names):
+        raise ValidationError(f'controller_joints: expected a permutation of '
+                              f'{list(joint_names)}, got {list(controller_joints)} (missing '
+                              f'{missing}, unknown {unknown})')
+    return [list(joint_names).index(n) for n in controller_joints]
+
+
+class ForwardCommandWriter:
+    """Fills one reused ``std_msgs/Float64MultiArray`` for a ros2_control
+    ``forward_command_controller`` (position interface): the reference positions in the
+    controller's joint order. The message has no stamp; ``fill`` takes one for the common
+    interface of the writers and ignores it.
+
+    Parameters
+    ----------
+    msg : std_msgs.msg.Float64MultiArray
+    joint_names : sequence of str
+        The order of the reference (``y``).
+    controller_joints : sequence of str
+        The controller's order (a permutation of ``joint_names``).
+    """
+
+    def __init__(self, msg, joint_names: Sequence[str], controller_joints: Sequence[str]):
+        self.msg = msg
+        self.order = controller_order(joint_names, controller_joints)
+        msg.data = [0.0] * len(self.order)
+
+    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float]):
+        """Write the positions in the controller's order; returns the message."""
+        data = self.msg.data
+        for i, j in enumerate(self.order):
+            data[i] = y[j]
+        return self.msg
+
+
+class JointTrajectoryWriter:
+    """Fills one reused ``trajectory_msgs/JointTrajectory`` for a ros2_control
+    ``joint_trajectory_controller``: one point per tick, ``time_from_start`` one period,
+    positions and velocities in the controller's joint order, the header stamp of the
+    reference.
+
+    Parameters
+    ----------
+    msg : trajectory_msgs.msg.JointTrajectory
+    point : trajectory_msgs.msg.JointTrajectoryPoint
+    joint_names : sequence of str
+        The order of the reference (``y``, ``yd``).
+    controller_joints : sequence of str
+        The controller's order (a permutation of ``joint_names``).
+    period : float
+        The streaming period [s] (``time_from_start`` of the point).
+    frame_id : str
+    """
+
+    def __init__(self, msg, point, joint_names: Sequence[str],
+                 controller_joints: Sequence[str], period: float, frame_id: str = ''):
+        self.msg = msg
+        self.order = controller_order(joint_names, controller_joints)
+        n = len(self.order)
+        msg.joint_names = list(controller_joints)
+        msg.header.frame_id = frame_id
+        point.positions = [0.0] * n
+        point.velocities = [0.0] * n
+        ns = int(round(period * 1e9))
+        point.time_from_start.sec = ns // 1_000_000_000
+        point.time_from_start.nanosec = ns % 1_000_000_000
+        msg.points = [point]
+        self.point = msg.points[0]
+
+    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float]):
+        """Write the stamp, positions and velocities; returns the message."""
+        msg = self.msg
+        st = msg.header.stamp
+        st.sec = stamp_ns // 1_000_000_000
+        st.nanosec = stamp_ns % 1_000_000_000
+        pos, vel = self.point.positions, self.point.velocities
+        for i, j in enumerate(self.order):
+            pos[i] = y[j]
+            vel[i] = yd[j]
         return msg
 
 

@@ -49,7 +49,7 @@ from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names
 from cdmp_ros.ros.learner_improve import ImproveWorker, load_bag_demonstrations
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.robot_model import default_urdf_path
+from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 #: ``demonstration``: reliable, volatile, keep last 1000 -- a demonstration streamed at up to
 #: 1 kHz loses no sample while a refit briefly holds the executor.
@@ -95,7 +95,9 @@ class LearnerNode(Node):
         self.improve_values = {}
         self.poll_timer = self.create_timer(POLL_PERIOD, self._poll)
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
-        self.reporter.set_state(WARN, 'no primitive yet')
+        self.reporter.set_state(WARN, 'no primitive yet',
+                                limits_source=('limits.lower/upper' if self._explicit_limits
+                                               else self.limits_source))
         if cfg.fit_on_start:
             ok, text = self.refit('start')
             (self.get_logger().info if ok else self.get_logger().warning)(text)
@@ -119,22 +121,21 @@ class LearnerNode(Node):
     def _limits(self, cfg: LearnerConfig):
         """(chain or None, lower, upper): explicit limits, else those of the URDF."""
         lower, upper = self._declare_limits()
-        path = cfg.urdf_path or default_urdf_path()
+        self._explicit_limits = False
+        # the robot model: robot_description, else urdf_path (as the streamer and adapter)
+        path = self.limits_source = limits_source(cfg.urdf_path, cfg.robot_description)
         chain, chain_error = None, None
         try:
-            from cdmp_ros.core.kinematics import panda_chain
-            chain = panda_chain(path)
-            if list(chain.joint_names) != list(cfg.joint_names):
-                raise ValidationError(f'joints {list(chain.joint_names)} differ from '
-                                      f'joint_names {list(cfg.joint_names)}')
-        except (OSError, CdmpError) as exc:
-            chain, chain_error = None, f'urdf_path: cannot use {path!r}: {exc}'
+            chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
+        except CdmpError as exc:
+            chain, chain_error = None, f'cannot use {path!r}: {exc}'
         n = len(cfg.joint_names)
         if lower or upper:
             if len(lower) != n or len(upper) != n:
                 raise ValidationError(f'limits.lower/upper: expected {n} values each (one per '
                                       f'joint), got {len(lower)} and {len(upper)}')
             lo, hi = check_limits(lower, upper, n)
+            self._explicit_limits = True
         elif chain is not None:
             lo, hi = chain.lower.copy(), chain.upper.copy()
         else:

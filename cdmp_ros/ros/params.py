@@ -100,6 +100,9 @@ def descriptor_for(cls, f: dataclasses.Field, kind: type, name: str) -> Paramete
             desc.floating_point_range = [FloatingPointRange(from_value=float(lo),
                                                             to_value=float(hi), step=0.0)]
         desc.description += range_text
+    choices = meta.get('choices')
+    if choices:
+        desc.description += f' One of: {", ".join(map(str, choices))}.'
     return desc
 
 
@@ -108,6 +111,8 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if kind is tuple:
+        if value is None:  # an empty list in a parameter file: no type, no value
+            return ()
         if isinstance(value, (list, tuple)):
             return tuple(value)
         raise ValidationError(f'{name}: expected a list of strings, got {value!r}')
@@ -139,6 +144,8 @@ def declare_config(node, cls: Type, prefix: str = '', overrides: Optional[Dict] 
         default = overrides.get(f.name, default)
         desc = descriptor_for(cls, f, kind, name)
         value = list(default) if kind is tuple else default
+        if kind is tuple and not value:  # [] would be declared as a byte array: type only
+            value = Parameter.Type.STRING_ARRAY
         try:
             p = node.declare_parameter(name, value, desc)
         except (ParameterException, TypeError, ValueError) as exc:

@@ -1,6 +1,10 @@
 """The streamer node: ROS glue around :class:`cdmp_ros.core.streaming.ReferenceStreamer`.
 
-Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``;
+Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``,
+and with ``controller_output`` the same references for a ros2_control controller in its joint
+order (std_msgs/Float64MultiArray on ``forward_position_controller/commands`` or
+trajectory_msgs/JointTrajectory, one point per tick, on
+``joint_trajectory_controller/joint_trajectory``; ``controller_topic``, ``controller_joints``);
 subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``
 and ``obstacles``; reports on ``diagnostics``. Primitive messages are parsed and prepared in a
 worker thread (the latest one wins), so a large primitive never delays a tick; the tick only
@@ -35,24 +39,28 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Float64MultiArray, String
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling import DampingConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.fields import ConstantField, RepellerField
+from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.stream_primitives import prepare_primitive
+from cdmp_ros.core.streamer_config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer,
                                      StreamerConfig, StreamFlags, StreamState)
 from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.convert import JointStateMapper, JointStateWriter, ObstacleSet
+from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
+                                  JointTrajectoryWriter, ObstacleSet)
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
-from cdmp_ros.ros.robot_model import default_urdf_path, load_panda_chain
+from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
                                           report_scheduling)
 from cdmp_ros.ros.streamer_worker import PrimitiveWorker
@@ -75,8 +83,9 @@ class StreamerNode(Node):
                    ('damping', DampingConfig), ('repeller', RepellerField),
                    ('box_field', ConstantField)], on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
-        self.urdf_path = cfg.urdf_path or default_urdf_path()
-        self.chain = load_panda_chain(self.urdf_path, cfg.joint_names)
+        # the limits and kinematics of the robot: robot_description, else urdf_path
+        self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
+        self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
         self.coupling_source = CouplingSource(self._make_coupling(self.params.configs))
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
@@ -90,6 +99,7 @@ class StreamerNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
                                               qos_profiles.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
+        self.reporter.values['limits_source'] = self.urdf_path
         # the reporter's own lock: building and publishing diagnostics (milliseconds on a
         # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
         # writes without a lock
@@ -97,6 +107,7 @@ class StreamerNode(Node):
         self.gate = InputGate(self, self.reporter, lambda: self.config, lock=self._report_lock)
         self._set_rates(cfg)
         self.writer = JointStateWriter(JointState(), cfg.joint_names, cfg.base_frame)
+        self.controller_pub, self.controller_writer = self._controller_output(cfg)
         n = len(cfg.joint_names)
         cfg_now = lambda: self.config  # noqa: E731
         for topic in PRIMITIVE_TOPICS:
@@ -165,6 +176,28 @@ class StreamerNode(Node):
         return ObstacleCoupling(self.chain, configs[''].coupling_links,
                                 sphere_field=configs['repeller'],
                                 box_field=configs['box_field'], config=cc)
+
+    def _controller_output(self, cfg: StreamerConfig):
+        """The publisher and writer of ``controller_output`` (None, None for 'none'); the
+        reorder index into the controller's joint order is computed here, once."""
+        joints = cfg.controller_joint_names
+        # the topic from a parameter: listed as <controller_topic> in the README topic table
+        self.controller_topic = (cfg.controller_topic
+                                 or DEFAULT_CONTROLLER_TOPICS.get(cfg.controller_output, ''))
+        if cfg.controller_output == 'forward_command':
+            writer = ForwardCommandWriter(Float64MultiArray(), cfg.joint_names, joints)
+            pub = self.create_publisher(Float64MultiArray, self.controller_topic,
+                                        qos_profiles.COMMAND)
+        elif cfg.controller_output == 'joint_trajectory':
+            writer = JointTrajectoryWriter(JointTrajectory(), JointTrajectoryPoint(),
+                                           cfg.joint_names, joints, cfg.dt, cfg.base_frame)
+            pub = self.create_publisher(JointTrajectory, self.controller_topic,
+                                        qos_profiles.COMMAND)
+        else:
+            return None, None
+        self.get_logger().info(f'{cfg.controller_output} controller output on '
+                               f'{pub.topic_name}, joints {list(joints)}')
+        return pub, writer
 
     def _set_rates(self, cfg: StreamerConfig) -> None:
         rates = {t: cfg.max_input_rate for t in PRIMITIVE_TOPICS + ('goal', 'obstacles')}
@@ -312,8 +345,9 @@ class StreamerNode(Node):
                 self.gate.reject(topic, error)
             else:
                 text = self.streamer.activate(prepared, now)
-                self.get_logger().info(text + ('; ' + '; '.join(prepared.notes)
-                                               if prepared.notes else ''))
+                log = (self.get_logger().warning if prepared.limit_mismatches
+                       else self.get_logger().info)
+                log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
         dt = self._dt
         k = int((now - self._t0) / dt)  # the slot that began most recently
         steps = k - self._k
@@ -346,6 +380,8 @@ class StreamerNode(Node):
         st = self.streamer
         stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
+        if self.controller_pub is not None:  # the same reference, the controller's order
+            self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
         self.counts['published'] += 1
         if self._latency_pending_ns:
             lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
@@ -372,7 +408,16 @@ class StreamerNode(Node):
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
         level = OK if state is StreamState.RUNNING else WARN
+        # the active primitive's limits against the robot's (the tighter ones are used)
+        mismatches = active.limit_mismatches if active is not None else ()
+        if mismatches:
+            reason += (f'; the primitive limits differ from the robot ({self.urdf_path}) on '
+                       f'{len(mismatches)} bounds: the tighter are used')
+        extra_limits = {'limit_mismatch': describe_mismatches(mismatches)}
         extra = {'tick_errors': self._tick_errors} if self._tick_errors else {}
+        if self.controller_pub is not None:
+            extra['controller_output'] = (f'{self.config.controller_output} on '
+                                          f'{self.controller_pub.topic_name}')
         if self.realtime_status is not None:
             extra['tick_scheduling'] = (f'SCHED_FIFO {self.realtime_status.priority}'
                                         if self.realtime_status.realtime else 'normal')
@@ -383,6 +428,7 @@ class StreamerNode(Node):
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
                 rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
+                **extra_limits,
                 **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())
 

@@ -6,7 +6,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.chain import Chain
-from cdmp_ros.core.urdf import parse_urdf, rpy_to_matrix
+from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string, rpy_to_matrix
 from cdmp_ros.core.validation import as_array
 
 #: Panda tool centre point in the ``panda_hand`` frame: between the fingertips, the origin of
@@ -54,7 +54,8 @@ def _check_transform(name: str, T: Optional[ArrayLike]) -> NDArray[np.float64]:
 
 def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
                     base_transform: Optional[ArrayLike] = None,
-                    ee_offset: ArrayLike = (0.0, 0.0, 0.0)) -> Chain:
+                    ee_offset: ArrayLike = (0.0, 0.0, 0.0),
+                    urdf_text: Optional[str] = None) -> Chain:
     """Serial chain from a URDF file, from ``base_link`` (default: root) to ``tip_link``.
 
     Parameters
@@ -69,6 +70,8 @@ def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
         World pose of ``base_link`` (placing the robot in a cell); default identity.
     ee_offset : array-like (3,)
         End-effector point in the ``tip_link`` frame.
+    urdf_text : str, optional
+        The URDF XML itself (a ``robot_description``); ``path`` then only names it in messages.
 
     Returns
     -------
@@ -76,7 +79,7 @@ def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
         Joint limits and velocity limits from the URDF ``<limit>`` elements (continuous
         joints: -inf/inf position limits).
     """
-    robot = parse_urdf(path)
+    robot = parse_urdf(path) if urdf_text is None else parse_urdf_string(urdf_text, path)
     joints = robot.path(tip_link, base_link)
     base = _check_transform('base_transform', base_transform)
     base_link = base_link if base_link is not None else robot.root_link()
@@ -107,7 +110,8 @@ def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
                  as_array('ee_offset', ee_offset, (3,)), lower, upper, vel)
 
 
-def panda_chain(urdf_path: str, base_transform: Optional[ArrayLike] = None) -> Chain:
+def panda_chain(urdf_path: str, base_transform: Optional[ArrayLike] = None,
+                urdf_text: Optional[str] = None) -> Chain:
     """The 7 arm joints of the Franka Panda (``panda_joint1..7``), tip ``panda_hand``.
 
     ``PointOfInterest('ee')`` is the tool centre point between the fingertips,
@@ -115,7 +119,7 @@ def panda_chain(urdf_path: str, base_transform: Optional[ArrayLike] = None) -> C
     ``PointOfInterest('panda_hand')`` is the hand (flange) frame origin.
     """
     chain = chain_from_urdf(urdf_path, 'panda_hand', base_transform=base_transform,
-                            ee_offset=PANDA_EE_OFFSET)
+                            ee_offset=PANDA_EE_OFFSET, urdf_text=urdf_text)
     if tuple(chain.joint_names) != PANDA_JOINTS:
         raise ValidationError(f'{urdf_path}: expected the Panda arm joints {PANDA_JOINTS}, '
                               f'got {chain.joint_names}')

@@ -1,0 +1,90 @@
+"""The tighter of a primitive's and the robot's limits (cdmp_ros.core.joint_limits) and where
+it enters a streamed primitive (prepare_primitive), and the robot model's sources."""
+import os
+
+import numpy as np
+import pytest
+
+from cdmp_ros.core.dmp import CDMP
+from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
+from cdmp_ros.core.joint_limits import describe_mismatches, merge_limits
+from cdmp_ros.core.primitive_io import dumps_primitive
+from cdmp_ros.core.stream_primitives import prepare_primitive
+from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, TIGHT_LOWER, TIGHT_UPPER,
+                           UPPER, VMAX, reach_demo, wide_narrow_cdmp)
+
+
+def test_merge_takes_the_tighter_bound_per_joint_and_reports_both_values():
+    lo, hi, mm = merge_limits(['a', 'b', 'c'], [-1.0, -2.0, -3.0], [1.0, 2.0, 3.0],
+                              [-1.5, -1.0, -3.0], [0.5, 2.5, 3.0])
+    np.testing.assert_array_equal(lo, [-1.0, -1.0, -3.0])
+    np.testing.assert_array_equal(hi, [0.5, 2.0, 3.0])
+    assert [(m.joint, m.bound, m.primitive, m.robot, m.used) for m in mm] == [
+        ('a', 'lower', -1.5, -1.0, -1.0), ('a', 'upper', 0.5, 1.0, 0.5),
+        ('b', 'lower', -1.0, -2.0, -1.0), ('b', 'upper', 2.5, 2.0, 2.0)]
+    assert [m.wider for m in mm] == [True, False, False, True]
+    text = describe_mismatches(mm)
+    assert 'a lower: primitive -1.5, robot -1 -> -1 (robot)' in text
+    assert 'b upper: primitive 2.5, robot 2 -> 2 (robot)' in text
+    assert 'a upper: primitive 0.5, robot 1 -> 0.5 (primitive)' in text
+    assert 'c ' not in text
+
+
+def test_equal_limits_are_no_mismatch():
+    lo, hi, mm = merge_limits(PANDA_JOINTS, LOWER, UPPER, LOWER.copy(), UPPER.copy())
+    assert mm == [] and describe_mismatches(mm) == 'none'
+    np.testing.assert_array_equal(lo, LOWER)
+
+
+def test_disjoint_limits_are_refused():
+    with pytest.raises(ValidationError, match='y_min'):
+        merge_limits(['a'], [0.0], [1.0], [2.0], [3.0])
+
+
+def test_a_cdmp_wider_than_the_robot_is_refitted_into_the_tighter_limits():
+    prep = prepare_primitive(dumps_primitive(wide_narrow_cdmp()), PANDA_JOINTS, 0.002,
+                             LOWER, UPPER, VMAX)
+    tight_lo, tight_hi = TIGHT_LOWER, TIGHT_UPPER
+    # the tanh transform (Eq. 19) has the tighter limits: every position is inside them
+    np.testing.assert_array_equal(prep.prim.y_min, tight_lo)
+    np.testing.assert_array_equal(prep.prim.y_max, tight_hi)
+    assert {(m.joint, m.bound) for m in prep.limit_mismatches} == {
+        ('panda_joint1', 'lower'), ('panda_joint1', 'upper'), ('panda_joint2', 'lower'),
+        ('panda_joint2', 'upper')}
+    assert any('panda_joint1 upper: primitive 3.5, robot 2.9671' in n for n in prep.notes)
+    Y = prep.prim.rollout(dt=0.01).Y
+    assert np.all(Y > tight_lo) and np.all(Y < tight_hi)
+    assert prep.prim.goal_y_[0] < UPPER[0]
+
+
+def test_a_primitive_without_limit_differences_is_unchanged():
+    T, Y = reach_demo(Q_START, Q_GOAL, 2.0)
+    prim = CDMP(LOWER, UPPER, joint_names=PANDA_JOINTS).fit(T, Y)
+    prep = prepare_primitive(dumps_primitive(prim), PANDA_JOINTS, 0.002, LOWER, UPPER, VMAX)
+    assert prep.limit_mismatches == []
+    np.testing.assert_array_equal(prep.prim.weights_, prim.weights_)
+
+
+def test_limits_without_a_common_range_reject_the_primitive():
+    T, Y = reach_demo(Q_START, Q_GOAL, 2.0)
+    prim = CDMP(LOWER, UPPER, joint_names=PANDA_JOINTS).fit(T, Y)
+    robot_hi = UPPER.copy()
+    robot_lo = LOWER.copy()
+    robot_lo[3], robot_hi[3] = 0.5, 1.0  # the primitive's joint 4 range ends at 0.0
+    with pytest.raises(PrimitiveFileError, match='limits'):
+        prepare_primitive(dumps_primitive(prim), PANDA_JOINTS, 0.002, robot_lo, robot_hi)
+
+
+def test_robot_description_takes_precedence_over_urdf_path():
+    from cdmp_ros.ros.robot_model import default_urdf_path, limits_source, load_panda_chain
+    text = open(default_urdf_path()).read().replace(
+        'lower="-2.9671" upper="2.9671"', 'lower="-2.5" upper="2.5"', 1)
+    assert limits_source('', '') == default_urdf_path()
+    assert limits_source('/x.urdf', '') == '/x.urdf'
+    assert limits_source('/x.urdf', text) == 'robot_description'
+    chain = load_panda_chain('/nonexistent.urdf', PANDA_JOINTS, text)
+    assert chain.upper[0] == 2.5 and chain.lower[0] == -2.5
+    with pytest.raises(ValidationError, match='robot_description'):
+        load_panda_chain('', PANDA_JOINTS, '<robot name="x"><link name="a"/></robot>')
+    with pytest.raises(ValidationError, match='urdf_path'):
+        load_panda_chain(os.devnull + '.missing', PANDA_JOINTS)
