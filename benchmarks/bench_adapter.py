@@ -50,7 +50,7 @@ def panda_prior(rng):
     """The 7-DoF Panda ProMP of bench_promp (joint names set for the adapter)."""
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.experiments.promp_problems import panda_problem
-    from cdmp_ros.sim.robots import panda_urdf_path
+    from cdmp_ros.sim.robot_specs import panda_urdf_path
     chain = panda_chain(panda_urdf_path())
     prior, _, _ = panda_problem(chain, rng, n_spheres=1)
     prior.joint_names = list(chain.joint_names)
@@ -67,7 +67,7 @@ class User:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
         self.rclpy = rclpy
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx, domain_id=domain)
@@ -76,11 +76,11 @@ class User:
         self.adapted = []   # (t_recv, metadata.adapter)
         self.states = []    # (t_recv, {key: value})
         self.q = None
-        self.pub_prim = n.create_publisher(String, 'primitive', qos_profiles.LATCHED)
-        self.pub_obs = n.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
-        self.pub_js = n.create_publisher(JointState, 'joint_states', qos_profiles.COMMAND)
+        self.pub_prim = n.create_publisher(String, 'primitive', qos.LATCHED)
+        self.pub_obs = n.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        self.pub_js = n.create_publisher(JointState, 'joint_states', qos.COMMAND)
         n.create_subscription(String, 'adapted_primitive', self._on_adapted,
-                              qos_profiles.LATCHED)
+                              qos.LATCHED)
         n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
         n.create_timer(0.02, self._js)
         self.ex = SingleThreadedExecutor(context=self.ctx)
@@ -150,7 +150,7 @@ class User:
 
 def run(args):
     from std_msgs.msg import String
-    from cdmp_ros.core.adapt_requests import ee_path
+    from cdmp_ros.core.adaptation.requests import ee_path
     from cdmp_ros.core.primitive_io import dumps_primitive
     rng = np.random.default_rng(args.seed)
     prior, chain = panda_prior(rng)

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from cdmp_ros.core.dmp import CDMP, DmpConfig
+from cdmp_ros.core.dmp.dmp import CDMP, DmpConfig
 
 
 def make_cdmp(n_dims=7, n_weights=30, seed=0):

@@ -241,7 +241,7 @@ def main():
     from sensor_msgs.msg import JointState
 
     from cdmp_ros.core.kinematics import panda_chain
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     from cdmp_ros.ros.robot_model import default_urdf_path
     chain = panda_chain(default_urdf_path())
     lower, upper = chain.lower, chain.upper
@@ -253,9 +253,9 @@ def main():
     rclpy.init(domain_id=args.domain)
     node = rclpy.create_node('flood')
     obs = Observer(node)
-    qos = {'primitive': qos_profiles.LATCHED, 'joint_states': qos_profiles.COMMAND,
-           'demonstration': qos_profiles.COMMAND}
-    pubs = {t: node.create_publisher(cls, t, qos.get(t, qos_profiles.COMMAND))
+    topic_qos = {'primitive': qos.LATCHED, 'joint_states': qos.COMMAND,
+                 'demonstration': qos.COMMAND}
+    pubs = {t: node.create_publisher(cls, t, topic_qos.get(t, qos.COMMAND))
             for t, cls, _ in pool.values()}
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -286,7 +286,7 @@ def main():
         print(f'nodes up; flooding {args.duration:g} s at ~{args.rate:g} msg/s '
               f'(seed {args.seed}, domain {args.domain}, code {args.code})', flush=True)
         cats = list(pool)
-        goal_pub = node.create_publisher(JointState, 'goal', qos_profiles.COMMAND)
+        goal_pub = node.create_publisher(JointState, 'goal', qos.COMMAND)
         t_start = time.monotonic()
         next_goal, g = t_start, 0
         deadline = t_start + args.duration

@@ -17,10 +17,10 @@ import time
 import numpy as np
 import pybullet_data
 
-from cdmp_ros.core.fields import RepellerField
+from cdmp_ros.core.coupling.potential_fields import RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
 from cdmp_ros.core.kinematics.closest import Box, Sphere, segment_box, segment_box_scalar
-from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
 
 POINTS = (PointOfInterest('ee'), PointOfInterest('panda_link3', (0.0, 0.0, -0.1)),
           PointOfInterest('panda_link5', (0.0, 0.1, -0.1)))
@@ -60,7 +60,7 @@ def coupling_setup(chain, rng, q=(0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7)):
 
 
 def bench_coupled_step(chain, coupling, obstacles, reps):
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     T = np.linspace(0.0, 1.0, 501)
     s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
     start = np.array([0.2, -0.4, 0.1, -2.0, 0.1, 1.8, 0.7])
@@ -97,10 +97,10 @@ def bench_streamer_tick(chain, reps):
     ``CouplingSource``, the streamer's own exogenous map, stepper, guard) on a 2 s Panda CDMP
     at 1 kHz with 3 spheres placed so that the end effector and both links are within reach;
     restarted every 1,000 ticks. No ROS: the node adds publishing and the executor."""
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     from cdmp_ros.core.primitive_io import dumps_primitive
-    from cdmp_ros.core.stream_primitives import prepare_primitive
-    from cdmp_ros.core.streaming import CouplingSource, ReferenceStreamer, StreamerConfig
+    from cdmp_ros.core.streaming.primitives import prepare_primitive
+    from cdmp_ros.core.streaming.streamer import CouplingSource, ReferenceStreamer, StreamerConfig
     names = tuple(f'panda_joint{i}' for i in range(1, 8))
     y0 = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
     y1 = np.array([0.8, 0.2, 0.3, -1.2, 0.2, 2.0, 0.3])

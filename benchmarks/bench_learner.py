@@ -5,7 +5,7 @@
 2. Across processes: start ``python -m cdmp_ros.nodes.learner`` and measure the wall time
    until a subscriber in this process receives ``primitive`` (interpreter + rclpy start-up
    included), and the node's own "read bags + fit + publish" time from its log line.
-3. ``~/improve`` (in process, :class:`cdmp_ros.core.improve.Improver`, default
+3. ``~/improve`` (in process, :class:`cdmp_ros.core.dmp.improve.Improver`, default
    ``improve.*`` / ``cost.*`` parameters): cost of the noiseless rollout before and after,
    updates, rollouts, rollouts outside the limits, wall time; scripted and sim cost.
 
@@ -58,7 +58,7 @@ def startup_figures(domain):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from std_msgs.msg import String
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(domain), AMENT_PREFIX_PATH=sys.prefix, PYTHONUNBUFFERED='1')
     ctx = rclpy.Context()
@@ -66,7 +66,7 @@ def startup_figures(domain):
     node = rclpy.create_node('bench_learner', context=ctx)
     got = []
     node.create_subscription(String, 'primitive', lambda m: got.append(time.monotonic()),
-                             qos_profiles.LATCHED)
+                             qos.LATCHED)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     t0 = time.monotonic()
@@ -88,7 +88,7 @@ def startup_figures(domain):
 
 def improve_figures(chain):
     from cdmp_ros.bag import read_demonstrations
-    from cdmp_ros.core.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
+    from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
     from cdmp_ros.core.learning import fit_primitive
     from cdmp_ros.sim.rollout_cost import SimRolloutCost
     demos = read_demonstrations(os.path.join(REPO, 'bags', 'panda_reach'))

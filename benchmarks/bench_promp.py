@@ -17,7 +17,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 
-from cdmp_ros.core.adaptation import adapt  # noqa: E402
+from cdmp_ros.core.adaptation.solver import adapt  # noqa: E402
 from cdmp_ros.experiments.promp_problems import make_problem, panda_problem  # noqa: E402
 
 
@@ -54,7 +54,7 @@ def bench_table2(n, rng, confidence_margin=1.0):
 
 def bench_panda(n, rng):
     from cdmp_ros.core.kinematics import panda_chain
-    from cdmp_ros.sim.robots import panda_urdf_path
+    from cdmp_ros.sim.robot_specs import panda_urdf_path
     chain = panda_chain(panda_urdf_path())
     runs = _Runs()
     for _ in range(n):

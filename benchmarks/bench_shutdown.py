@@ -143,9 +143,9 @@ def solving_adapter(peer, proc):
     from std_msgs.msg import String
     from adapter_harness import PANDA_JOINTS, Q_GOAL, reach_promp
     from cdmp_ros.core.primitive_io import dumps_primitive
-    from cdmp_ros.ros import qos_profiles
-    prim = peer.node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
-    goal = peer.node.create_publisher(JointState, 'goal', qos_profiles.COMMAND)
+    from cdmp_ros.ros import qos
+    prim = peer.node.create_publisher(String, 'primitive', qos.LATCHED)
+    goal = peer.node.create_publisher(JointState, 'goal', qos.COMMAND)
     prim.publish(String(data=dumps_primitive(reach_promp())))
     peer.diag.clear()
     stop = threading.Event()

@@ -45,7 +45,7 @@ def env(domain):
 
 def panda_primitive_json():
     import numpy as np
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     from cdmp_ros.core.primitive_io import dumps_primitive
     lower = [-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671]
     upper = [2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223, 2.9671]
@@ -71,10 +71,10 @@ def realtime_listener(priority):
 def wait_joint_states(node, ex, n=20, timeout=90.0):
     """Spin until ``n`` joint_states arrived (the sim is up); False on timeout."""
     from sensor_msgs.msg import JointState
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     got = []
     sub = node.create_subscription(JointState, 'joint_states', lambda m: got.append(1),
-                                   qos_profiles.SENSOR)
+                                   qos.SENSOR)
     end = time.monotonic() + timeout
     while len(got) < n and time.monotonic() < end:
         ex.spin_once(timeout_sec=0.05)
@@ -93,12 +93,12 @@ def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     from visualization_msgs.msg import Marker, MarkerArray
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
 
     rclpy.init()
     node = rclpy.create_node('bench_listener')
-    prim_pub = node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
-    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
+    prim_pub = node.create_publisher(String, 'primitive', qos.LATCHED)
+    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
     rec = []
     clock = node.get_clock()
 
@@ -106,8 +106,8 @@ def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
         rec.append((clock.now().nanoseconds,
                     msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec))
 
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(JointState, 'joint_reference', on_ref, qos)
+    ref_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(JointState, 'joint_reference', on_ref, ref_qos)
     timing = {}
 
     def on_diag(msg):  # the streamer's own tick figures (wake-up lateness, tick duration)
@@ -185,14 +185,14 @@ def listen_latency(reps, priority=0, graph=False):
     from std_msgs.msg import String
     from visualization_msgs.msg import Marker, MarkerArray
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     from rclpy.experimental import EventsExecutor
 
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
     rclpy.init()
     node = rclpy.create_node('bench_latency')
-    prim_pub = node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
-    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
+    prim_pub = node.create_publisher(String, 'primitive', qos.LATCHED)
+    obs_pub = node.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
     clock = node.get_clock()
     last = {}
 

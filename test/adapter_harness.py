@@ -28,7 +28,7 @@ def panda_urdf():
 
 def reach_promp(n_basis=6, n_demos=6, seed=0, y0=Q_START, y1=Q_GOAL, joint_names=PANDA_JOINTS):
     """A 7-DoF ProMP learned from noisy minimum-jerk reaches y0 -> y1."""
-    from cdmp_ros.core.promp import ProMP, RbfBasis
+    from cdmp_ros.core.promp.promp import ProMP, RbfBasis
     rng = np.random.default_rng(seed)
     T = np.linspace(0.0, 2.0, 50)
     s = T / 2.0
@@ -44,7 +44,7 @@ def reach_promp(n_basis=6, n_demos=6, seed=0, y0=Q_START, y1=Q_GOAL, joint_names
 
 
 def reach_cdmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     from cdmp_ros.core.kinematics import panda_chain
     chain = panda_chain(panda_urdf())
     T = np.linspace(0.0, duration, 201)
@@ -92,7 +92,7 @@ class Harness:
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
 
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -104,16 +104,16 @@ class Harness:
         self.viz = []            # (receive time, MarkerArray)
         self.diag_messages = []  # (time, status name, message, level, {key: value})
         self.pub = {
-            'primitive': n.create_publisher(String, 'primitive', qos_profiles.LATCHED),
-            'goal': n.create_publisher(JointState, 'goal', qos_profiles.COMMAND),
-            'goal_point': n.create_publisher(PointStamped, 'goal_point', qos_profiles.COMMAND),
-            'constraints': n.create_publisher(String, 'constraints', qos_profiles.COMMAND),
-            'joint_states': n.create_publisher(JointState, 'joint_states', qos_profiles.COMMAND),
-            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND),
+            'primitive': n.create_publisher(String, 'primitive', qos.LATCHED),
+            'goal': n.create_publisher(JointState, 'goal', qos.COMMAND),
+            'goal_point': n.create_publisher(PointStamped, 'goal_point', qos.COMMAND),
+            'constraints': n.create_publisher(String, 'constraints', qos.COMMAND),
+            'joint_states': n.create_publisher(JointState, 'joint_states', qos.COMMAND),
+            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos.COMMAND),
         }
         n.create_subscription(String, 'adapted_primitive', self._on_adapted,
-                              qos_profiles.LATCHED)
-        n.create_subscription(MarkerArray, 'visualization', self._on_viz, qos_profiles.LATCHED)
+                              qos.LATCHED)
+        n.create_subscription(MarkerArray, 'visualization', self._on_viz, qos.LATCHED)
         n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
         self.robot_q = None      # published on joint_states at 20 Hz while not None
         n.create_timer(0.05, self._robot)

@@ -39,7 +39,7 @@ class LearnerHarness:
         from std_msgs.msg import String
         from std_srvs.srv import Trigger
 
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
         from cdmp_ros.ros.learner_node import DEMONSTRATION_QOS
 
         self.rclpy = rclpy
@@ -51,7 +51,7 @@ class LearnerHarness:
         self.primitives = []     # (receive time, dict)
         self.diag_messages = []  # (time, status name, message, {key: value})
         self.demo_pub = n.create_publisher(JointState, 'demonstration', DEMONSTRATION_QOS)
-        n.create_subscription(String, 'primitive', self._on_primitive, qos_profiles.LATCHED)
+        n.create_subscription(String, 'primitive', self._on_primitive, qos.LATCHED)
         n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 100)
         self.clients = {s: n.create_client(Trigger, f'/{node_name}/{s}')
                         for s in ('refit', 'save', 'improve')}

@@ -60,7 +60,7 @@ class SimHarness:
         from std_srvs.srv import Trigger
         from visualization_msgs.msg import MarkerArray
 
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -74,8 +74,8 @@ class SimHarness:
         self.diag_messages = []  # (time, status name, message, {key: value})
         self.pub = {
             'joint_reference': n.create_publisher(JointState, 'joint_reference',
-                                                  qos_profiles.REFERENCE),
-            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND),
+                                                  qos.REFERENCE),
+            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos.COMMAND),
         }
         ref = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)  # lose nothing
         n.create_subscription(JointState, 'joint_states', self._on_js, ref)

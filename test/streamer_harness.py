@@ -28,7 +28,7 @@ class Harness:
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
 
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -45,14 +45,14 @@ class Harness:
         # as finger joints, are published at FINGER_POSITION)
         self.robot_names = PANDA_JOINTS
         self.pub = {
-            'primitive': n.create_publisher(String, 'primitive', qos_profiles.LATCHED),
+            'primitive': n.create_publisher(String, 'primitive', qos.LATCHED),
             'adapted_primitive': n.create_publisher(String, 'adapted_primitive',
-                                                    qos_profiles.LATCHED),
-            'goal': n.create_publisher(JointState, 'goal', qos_profiles.COMMAND),
-            'joint_states': n.create_publisher(JointState, 'joint_states', qos_profiles.COMMAND),
-            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND),
+                                                    qos.LATCHED),
+            'goal': n.create_publisher(JointState, 'goal', qos.COMMAND),
+            'joint_states': n.create_publisher(JointState, 'joint_states', qos.COMMAND),
+            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos.COMMAND),
         }
-        n.create_subscription(JointState, 'joint_reference', self._on_ref, qos_profiles.REFERENCE)
+        n.create_subscription(JointState, 'joint_reference', self._on_ref, qos.REFERENCE)
         n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
         n.create_timer(0.01, self._robot)
         self.executor = SingleThreadedExecutor(context=self.context)

@@ -26,13 +26,13 @@ def reach_demo(y0=Q_START, y1=Q_GOAL, duration=2.0, n=401):
 
 
 def reach_cdmp(y0=Q_START, y1=Q_GOAL, duration=2.0, joint_names=PANDA_JOINTS):
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     T, Y = reach_demo(y0, y1, duration)
     return CDMP(LOWER, UPPER, joint_names=joint_names).fit(T, Y)
 
 
 def reach_dmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
-    from cdmp_ros.core.dmp import DMP
+    from cdmp_ros.core.dmp.dmp import DMP
     T, Y = reach_demo(y0, y1, duration)
     return DMP(7, joint_names=PANDA_JOINTS).fit(T, Y)
 
@@ -48,7 +48,7 @@ TIGHT_UPPER = np.minimum(UPPER, WIDE_NARROW_UPPER)
 def wide_narrow_cdmp():
     """A reach CDMP with the limits WIDE_NARROW_* whose goal on panda_joint1 (3.2) is beyond
     the robot's upper limit (2.9671)."""
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     goal = Q_GOAL.copy()
     goal[0] = 3.2
     T, Y = reach_demo(Q_START, goal, 2.0)

@@ -8,8 +8,7 @@ import pytest
 
 from cdmp_ros.bag import BagError, BagWriter, read_demonstrations
 from cdmp_ros.bag.cdr import encode_joint_state
-from cdmp_ros.bag.demos import (PANDA_JOINTS, PANDA_Y_MAX, PANDA_Y_MIN, min_jerk,
-                                noisy_reach)
+from cdmp_ros.bag.demos import (PANDA_JOINTS, PANDA_Y_MAX, PANDA_Y_MIN, min_jerk, noisy_reach)
 from cdmp_ros.core.errors import ValidationError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

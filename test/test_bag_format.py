@@ -8,8 +8,8 @@ import pytest
 import yaml
 
 from cdmp_ros.bag import BagError, BagReader, BagWriter, bag_info
-from cdmp_ros.bag.cdr import (decode_joint_state, decode_string, encode_clock,
-                              encode_joint_state, encode_string)
+from cdmp_ros.bag.cdr import (decode_joint_state, decode_string, encode_clock, encode_joint_state,
+                              encode_string)
 from cdmp_ros.bag.metadata import read_metadata
 from cdmp_ros.bag.scan import ScanState, scan
 from cdmp_ros.bag.schemas import normalize_type, schema_text, type_hash

@@ -1,4 +1,4 @@
-"""Adaptation requests of the adapter (cdmp_ros.core.adapt_requests): obstacles, goals and the
+"""Adaptation requests of the adapter (cdmp_ros.core.adaptation.requests): obstacles, goals and the
 current state turned into a constrained ProMP problem, checked against independent
 computations (closed-form distances, forward kinematics, Monte Carlo)."""
 import json
@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from adapter_harness import PANDA_JOINTS, Q_GOAL, Q_START, panda_urdf, reach_cdmp, reach_promp
-from cdmp_ros.core.adapt_requests import (AdaptRequest, box_wall, build_problem, classify,
-                                          clip_goal, ee_band, ee_path, obstacle_distance,
-                                          reorder_promp, retarget_primitive_dict, run_request,
-                                          solve_goal_point)
-from cdmp_ros.core.adaptation import AdaptationReport, monte_carlo_satisfaction
-from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
-from cdmp_ros.core.constraints import Hyperplane, JointLimit, Repeller, Waypoint
+from cdmp_ros.core.adaptation.requests import (AdaptRequest, box_wall, build_problem, classify,
+                                               clip_goal, ee_band, ee_path, obstacle_distance,
+                                               reorder_promp, retarget_primitive_dict, run_request,
+                                               solve_goal_point)
+from cdmp_ros.core.adaptation.solver import AdaptationReport, monte_carlo_satisfaction
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.adaptation.constraints import Hyperplane, JointLimit, Repeller, Waypoint
 from cdmp_ros.core.errors import ConstraintSetError, ValidationError
 from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere, panda_chain
 from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
@@ -85,7 +85,7 @@ def test_retarget_writes_the_goal_in_the_primitive_joint_order():
 
 
 def test_retarget_clips_into_the_primitive_limits():
-    from cdmp_ros.core.adapt_requests import retarget_clipped
+    from cdmp_ros.core.adaptation.requests import retarget_clipped
     d = primitive_to_dict(reach_cdmp())
     d['limits']['upper'][1] = 0.5                          # tighter than the robot's 1.8326
     goal = np.array([0.1, 1.0, 0.3, -1.0, 0.5, 1.6, 0.7])
@@ -223,7 +223,7 @@ def test_obstacle_at_the_conditioned_start_is_infeasible(chain, prior):
 
 
 def test_promp_message_is_the_primitive_file_document(prior):
-    from cdmp_ros.core.adapt_requests import promp_message
+    from cdmp_ros.core.adaptation.requests import promp_message
     p = prior.copy()
     p.metadata = {'adapter': {'outcome': 'converged'}}
     d = json.loads(promp_message(p))

@@ -4,12 +4,13 @@ the Gamma approximation), and the optimiser's outcome checked by sampling."""
 import numpy as np
 import pytest
 
-from cdmp_ros.core.adaptation import (AdaptationConfig, Problem, adapt,
-                                      monte_carlo_satisfaction)
-from cdmp_ros.core.constraints import (DofPoint, Hyperplane, JointLimit, MutualAvoidance,
-                                       NonConvexCorner, Point, Repeller, SmoothnessConstraint,
-                                       UnboundWaypoint, Waypoint)
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.adaptation.solver import (AdaptationConfig, Problem, adapt,
+                                             monte_carlo_satisfaction)
+from cdmp_ros.core.adaptation.constraints import (DofPoint, Hyperplane, JointLimit,
+                                                  MutualAvoidance, NonConvexCorner, Point,
+                                                  Repeller, SmoothnessConstraint, UnboundWaypoint,
+                                                  Waypoint)
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
 class Planar2(Point):

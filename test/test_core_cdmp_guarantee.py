@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, HealthCheck, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig, limit_usage
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig, limit_usage
 
 N_W = 5
 DT = 0.02

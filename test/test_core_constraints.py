@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cdmp_ros.core.adaptation import AdaptationConfig, adapt, monte_carlo_satisfaction
-from cdmp_ros.core.constraints import (DofPoint, JointLimit, MutualAvoidance, Repeller,
-                                       SmoothnessConstraint)
-from cdmp_ros.core.gaussian import (UnscentedTransform, batched_cholesky, cholesky_backward,
-                                    gamma_cdf, inv_lower, quadratic_moments)
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+from cdmp_ros.core.adaptation.constraints import (DofPoint, JointLimit, MutualAvoidance, Repeller,
+                                                  SmoothnessConstraint)
+from cdmp_ros.core.promp.gaussian import (UnscentedTransform, batched_cholesky, cholesky_backward,
+                                          gamma_cdf, inv_lower, quadratic_moments)
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 from test_core_adaptation import Planar2
 
 
@@ -158,8 +158,8 @@ def test_constraint_parameter_validation():
 
 
 def test_gradient_through_chain_kinematics_planar4(rng):
-    from cdmp_ros.core.adaptation import Problem
-    from cdmp_ros.core.constraints import ChainPoint, Hyperplane
+    from cdmp_ros.core.adaptation.solver import Problem
+    from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane
     from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
     from test_core_adaptation import _check_gradient
     chain = planar_chain([1.0, 1.0, 1.0, 1.0])
@@ -174,8 +174,8 @@ def test_gradient_through_chain_kinematics_planar4(rng):
 def test_chain_points_share_one_ut_but_subclasses_keep_their_own_kinematics(rng):
     """Points of one chain are stacked into one FK call and one unscented transform; a
     ChainPoint subclass (here shifted by 3 m) keeps its own forward kinematics."""
-    from cdmp_ros.core.adaptation import Problem
-    from cdmp_ros.core.constraints import ChainPoint
+    from cdmp_ros.core.adaptation.solver import Problem
+    from cdmp_ros.core.adaptation.constraints import ChainPoint
     from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
 
     class Shifted(ChainPoint):

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from cdmp_ros.cli import cmd_adapt
-from cdmp_ros.core.constraints import (ChainPoint, Hyperplane, MutualAvoidance,
-                                       Repeller, SmoothnessConstraint)
-from cdmp_ros.core.constraints.parse import RobotContext, parse_constraint_set
+from cdmp_ros.core.adaptation.constraints import (ChainPoint, Hyperplane, MutualAvoidance,
+                                                  Repeller, SmoothnessConstraint)
+from cdmp_ros.core.adaptation.constraints.parse import RobotContext, parse_constraint_set
 from cdmp_ros.core.errors import ConstraintSetError
 from cdmp_ros.core.kinematics import planar_chain
 from cdmp_ros.core.primitive_io import load_primitive, save_primitive
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
 def _cart_promp(M=8):

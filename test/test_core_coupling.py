@@ -6,15 +6,15 @@ import numpy as np
 import pybullet_data
 import pytest
 
-from cdmp_ros.core.coupling import (DampingConfig, LimitScale, coupling_3d, damped_pinv,
-                                    damped_pinv_apply, end_effector_term, limit_scale,
-                                    link_term, null_space_projector, scalar_coupling)
+from cdmp_ros.core.coupling.terms import (DampingConfig, LimitScale, coupling_3d, damped_pinv,
+                                          damped_pinv_apply, end_effector_term, limit_scale,
+                                          link_term, null_space_projector, scalar_coupling)
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain, planar_chain
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere, link_closest_point
-from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling, joint_coupling
-from cdmp_ros.core.transform import TanhTransform
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling, joint_coupling
+from cdmp_ros.core.dmp.transform import TanhTransform
 
 PANDA_URDF = pybullet_data.getDataPath() + '/franka_panda/panda.urdf'
 DAMP = DampingConfig(epsilon=0.02, lambda_max=0.05)
@@ -441,9 +441,9 @@ def test_to_internal_caps_the_coupling_near_saturation(panda):
     uncapped map (floor 0) makes it jump to the other limit in one tick; with the default
     floor the term is bounded by tau^2 |dq| / (y_delta floor) and the joint leaves the limit
     continuously. Inside 1 - tanh^2 >= floor the map is unchanged."""
-    from cdmp_ros.core.dmp import CDMP
-    from cdmp_ros.core.obstacle_coupling import SATURATION_FLOOR
-    from cdmp_ros.core.transform import XI_SAT
+    from cdmp_ros.core.dmp.dmp import CDMP
+    from cdmp_ros.core.coupling.obstacle import SATURATION_FLOOR
+    from cdmp_ros.core.dmp.transform import XI_SAT
     transform = TanhTransform(panda.lower, panda.upper)
     y_delta = transform.y_delta.tolist()
     tau = 1.3
@@ -500,7 +500,7 @@ def test_coupled_cdmp_avoids_obstacle_and_holds_limits_under_any_field(panda):
     """Paper 000, III-B/IV-B at core level: the end-effector repeller pushes the end
     effector away from a sphere on its path; with a far stronger field the CDMP still
     stays strictly inside the joint limits while a plain DMP with the same coupling does not."""
-    from cdmp_ros.core.dmp import CDMP, DMP, limit_usage
+    from cdmp_ros.core.dmp.dmp import CDMP, DMP, limit_usage
     T = np.linspace(0.0, 1.0, 201)
     s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
     start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
@@ -699,7 +699,7 @@ LIMIT_CASES = {
 def _limit_rollout(panda, case, config, field, steps=1500, dt=0.002):
     """Coupled CDMP rollout of a LIMIT_CASES reach: (largest limit usage per joint, smallest
     link-obstacle distance)."""
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     _, start, goal, center = LIMIT_CASES[case]
     T = np.linspace(0.0, 2.0, 401)
     s = T / 2.0

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from cdmp_ros.core.basis import PhaseBasis, U_END
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig, limit_usage
+from cdmp_ros.core.dmp.basis import PhaseBasis, U_END
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig, limit_usage
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.primitive_io import primitive_to_dict
-from cdmp_ros.core.stepper import StepStatus
-from cdmp_ros.core.transform import TanhTransform, XI_SAT
+from cdmp_ros.core.dmp.stepper import StepStatus
+from cdmp_ros.core.dmp.transform import TanhTransform, XI_SAT
 
 
 def min_jerk(T, y0, y1):

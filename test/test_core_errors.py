@@ -6,7 +6,7 @@ import pathlib
 
 import pytest
 
-from cdmp_ros.core.dmp import CDMP, DmpConfig
+from cdmp_ros.core.dmp.dmp import CDMP, DmpConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / 'cdmp_ros'

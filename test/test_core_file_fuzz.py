@@ -13,14 +13,14 @@ import math
 import numpy as np
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cdmp_ros.core.adaptation import AdaptationConfig, adapt
-from cdmp_ros.core.constraints.parse import parse_constraint_set
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt
+from cdmp_ros.core.adaptation.constraints.parse import parse_constraint_set
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError, PrimitiveFileError
 from cdmp_ros.core.file_checks import field_path
 from cdmp_ros.core.primitive_io import loads_primitive, primitive_from_dict, primitive_to_dict
-from cdmp_ros.core.promp import ProMP, RbfBasis
-from cdmp_ros.core.stepper import StepStatus
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
+from cdmp_ros.core.dmp.stepper import StepStatus
 
 MUTATIONS = ('missing', 'string', 'nan', 'inf', '-inf', '1e308', '-1e308', 'empty_list',
              'empty_string', 'negative', 'zero', 'huge_list', 'object')
@@ -231,9 +231,9 @@ def test_the_schema_ranges_mirror_the_dataclass_and_parameter_ranges():
     """A value a node accepts as a parameter is one its files accept, and the reverse."""
     from dataclasses import fields
 
-    from cdmp_ros.core.adaptation_config import RANGES
-    from cdmp_ros.core.adapter_config import AdaptRequestConfig
-    from cdmp_ros.core.constraints.parse import constraints_schema
+    from cdmp_ros.core.adaptation.config import RANGES
+    from cdmp_ros.core.adaptation.config import AdaptRequestConfig
+    from cdmp_ros.core.adaptation.constraints.parse import constraints_schema
     from cdmp_ros.core.primitive_io import primitive_schema
     dmp = primitive_schema()['properties']['dmp']['properties']
     phase = primitive_schema()['properties']['phase']['properties']

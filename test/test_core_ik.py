@@ -1,7 +1,7 @@
 """Position IK (damped least squares within limits) against forward kinematics."""
 import numpy as np
 
-from cdmp_ros.core.ik import solve_position_ik
+from cdmp_ros.core.kinematics.ik import solve_position_ik
 from cdmp_ros.core.kinematics import planar_chain, PointOfInterest
 
 

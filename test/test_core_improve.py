@@ -1,4 +1,4 @@
-"""PI2 improvement of a learned (C)DMP (cdmp_ros.core.improve): the scripted cost against
+"""PI2 improvement of a learned (C)DMP (cdmp_ros.core.dmp.improve): the scripted cost against
 independent computations, the improvement itself, reproducibility, and the guarantee that every
 exploratory CDMP rollout stays inside the limits (a plain DMP with the same noise leaves them)."""
 import os
@@ -7,9 +7,9 @@ import threading
 import numpy as np
 import pytest
 
-from cdmp_ros.core.dmp import limit_usage
+from cdmp_ros.core.dmp.dmp import limit_usage
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
+from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
 from cdmp_ros.core.learning import fit_primitive
 from conftest import REPO_ROOT
 
@@ -151,7 +151,7 @@ def test_stop_event_ends_early_and_promp_is_refused(chain, demos):
     imp = Improver(prim, cfg, cost, chain.lower, chain.upper)
     res = imp.run(lambda rep: stop.set() if rep.update == 3 else None, stop)
     assert res.stopped and res.updates == 3
-    from cdmp_ros.core.promp import ProMP, RbfBasis
+    from cdmp_ros.core.promp.promp import ProMP, RbfBasis
     promp = ProMP(7, RbfBasis.uniform(5), joint_names=JOINTS)
     with pytest.raises(ValidationError, match='PI2 improves dmp and cdmp primitives, got '
                                               "'promp'"):

@@ -5,11 +5,11 @@ import os
 import numpy as np
 import pytest
 
-from cdmp_ros.core.dmp import CDMP
+from cdmp_ros.core.dmp.dmp import CDMP
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches, merge_limits
 from cdmp_ros.core.primitive_io import dumps_primitive
-from cdmp_ros.core.stream_primitives import prepare_primitive
+from cdmp_ros.core.streaming.primitives import prepare_primitive
 from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, TIGHT_LOWER, TIGHT_UPPER,
                            UPPER, VMAX, reach_demo, wide_narrow_cdmp)
 

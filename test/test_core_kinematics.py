@@ -1,4 +1,5 @@
-"""Batched kinematics (cdmp_ros.core.kinematics) and the URDF parser (cdmp_ros.core.urdf).
+"""Batched kinematics (cdmp_ros.core.kinematics) and the URDF parser
+(cdmp_ros.core.kinematics.urdf).
 
 Independent references: the planar closed form, a double-precision homogeneous-matrix chain
 built with scipy's rotations straight from the URDF, pybullet (FK and calculateJacobian), and
@@ -13,12 +14,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.closest import (Box, Sphere, box_signed_distance,
-                                              closest_distances, link_closest_point,
-                                              point_box, segment_box, segment_sphere)
+from cdmp_ros.core.kinematics.closest import (Box, Sphere, box_signed_distance, closest_distances,
+                                              link_closest_point, point_box, segment_box,
+                                              segment_sphere)
 from cdmp_ros.core.kinematics import (PANDA_EE_OFFSET, PointOfInterest, chain_from_urdf,
                                       dual_panda_chains, panda_chain, planar_chain, pose)
-from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string
+from cdmp_ros.core.kinematics.urdf import parse_urdf, parse_urdf_string
 
 PANDA_URDF = pybullet_data.getDataPath() + '/franka_panda/panda.urdf'
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from cdmp_ros.core.dmp import CDMP, DmpConfig
+from cdmp_ros.core.dmp.dmp import CDMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.pi2 import Pi2, Pi2Config
+from cdmp_ros.core.dmp.pi2 import Pi2, Pi2Config
 
 
 def straight(n_dims=2, n_w=6):

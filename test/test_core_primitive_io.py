@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError
 from cdmp_ros.core.primitive_io import (dumps_primitive, load_primitive, loads_primitive,
                                         primitive_to_dict, save_primitive)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
-from cdmp_ros.core.promp_io import promp_body, promp_from_dict
+from cdmp_ros.core.promp.primitive_file import promp_body, promp_from_dict
 
 
 def _random_promp(rng, D=2, M=6):

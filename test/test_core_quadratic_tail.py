@@ -1,4 +1,4 @@
-"""cdmp_ros.core.quadratic_tail: the saddle-point CDF of |x - c|^2 for Gaussian x.
+"""cdmp_ros.core.promp.quadratic_tail: the saddle-point CDF of |x - c|^2 for Gaussian x.
 
 Checked against two independent computations: an exact cubature of the Gaussian density over
 the ball (closed-form radial integral along each direction, numerical integral over the
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import integrate, optimize, special
 
-from cdmp_ros.core.gaussian import gamma_cdf, quadratic_moments
-from cdmp_ros.core.quadratic_tail import quadratic_form_cdf
+from cdmp_ros.core.promp.gaussian import gamma_cdf, quadratic_moments
+from cdmp_ros.core.promp.quadratic_tail import quadratic_form_cdf
 
 
 def _erf_diff(a, b):

@@ -9,10 +9,10 @@ from hypothesis import given, settings, strategies as st
 
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.primitive_io import dumps_primitive, primitive_to_dict
-from cdmp_ros.core.stream_primitives import prepare_primitive
-from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer, SmoothStop,
-                                     StreamerConfig, StreamFlags, StreamState, _H, _h)
-from cdmp_ros.core.transform import SAT_MARGIN, TanhTransform
+from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, SmoothStop,
+                                              StreamerConfig, StreamFlags, StreamState, _H, _h)
+from cdmp_ros.core.dmp.transform import SAT_MARGIN, TanhTransform
 from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, VMAX, reach_cdmp,
                            reach_dmp)
 
@@ -228,7 +228,7 @@ def test_catch_up_equals_single_steps(cdmp_text):
 
 
 def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):
-    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+    from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
     acc = [0.0, 3.0, 0.0, -2.0, 0.0, 0.0, 1.0]
     rs, prep = make_streamer(cdmp_text, timeout=0.0, coupling=lambda y, yd: acc)
     rs.activate(prep, 0.0)
@@ -301,7 +301,7 @@ def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text, m
     """A joint pushed into its upper limit (exogenous state saturated), then a coupling away
     from it: with the cap near saturation (as ObstacleCoupling.to_internal) the reference
     leaves the limit continuously; uncapped it jumps to the other limit in one tick."""
-    import cdmp_ros.core.streaming as streaming
+    import cdmp_ros.core.streaming.streamer as streaming
 
     def largest_step(floor):
         monkeypatch.setattr(streaming, 'SATURATION_FLOOR', floor)
@@ -350,8 +350,8 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     import pybullet_data
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
     from cdmp_ros.core.kinematics.closest import Sphere
-    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
-    from cdmp_ros.core.fields import RepellerField
+    from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
+    from cdmp_ros.core.coupling.potential_fields import RepellerField
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     text = TEXT_CACHE['cdmp']
     path = _free_ee_path(chain, text)
@@ -377,10 +377,10 @@ def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
     limit-aware Eq. 12 (the default) every joint stays below 0.98 and the links keep clear of
     the sphere (farther than without coupling)."""
     import pybullet_data
-    from cdmp_ros.core.fields import RepellerField
+    from cdmp_ros.core.coupling.potential_fields import RepellerField
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.core.kinematics.closest import Sphere
-    from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
     from test_core_coupling import LIMIT_CASES
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     joint, start, goal, center = LIMIT_CASES['panda_joint4']
@@ -414,8 +414,8 @@ def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
     streamed end effector stays outside it (signed distance from OrientedBox)."""
     import pybullet_data
     from cdmp_ros.core.kinematics import OrientedBox, PointOfInterest, panda_chain
-    from cdmp_ros.core.fields import ConstantField
-    from cdmp_ros.core.obstacle_coupling import ObstacleCoupling
+    from cdmp_ros.core.coupling.potential_fields import ConstantField
+    from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
     text = TEXT_CACHE['cdmp']
     path = _free_ee_path(chain, text)
@@ -465,7 +465,7 @@ def test_prepare_rejects_other_joints(cdmp_text):
 def test_prepare_reorders_shuffled_joints():
     perm = [3, 0, 6, 1, 5, 2, 4]
     names = [PANDA_JOINTS[i] for i in perm]
-    from cdmp_ros.core.dmp import CDMP
+    from cdmp_ros.core.dmp.dmp import CDMP
     from streamer_util import reach_demo
     T, Y = reach_demo()
     shuffled = CDMP(LOWER[perm], UPPER[perm], joint_names=names).fit(T, Y[:, perm])
@@ -477,7 +477,7 @@ def test_prepare_reorders_shuffled_joints():
 
 
 def test_prepare_streams_a_promp_through_its_mean():
-    from cdmp_ros.core.promp import ProMP, RbfBasis
+    from cdmp_ros.core.promp.promp import ProMP, RbfBasis
     from streamer_util import reach_demo
     T, Y = reach_demo(duration=2.0, n=201)
     basis = RbfBasis.uniform(15)

@@ -81,7 +81,7 @@ def alive(h, proc):
 
 
 def promp_of(d):
-    from cdmp_ros.core.promp_io import promp_from_dict
+    from cdmp_ros.core.promp.primitive_file import promp_from_dict
     return promp_from_dict(d)
 
 
@@ -142,7 +142,7 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
 
 
 def test_box_obstacle_becomes_a_wall(graph, prims, chain):
-    from cdmp_ros.core.adapt_requests import obstacle_distance
+    from cdmp_ros.core.adaptation.requests import obstacle_distance
     from cdmp_ros.core.kinematics import Box
     from visualization_msgs.msg import Marker, MarkerArray
     h, proc, _ = graph
@@ -596,13 +596,13 @@ def test_startup_bad_parameters_exit_nonzero_and_a_restarted_adapter_gets_the_pr
     (as after a crash and restart) receives it from the transient-local ``primitive`` and
     publishes its adaptation; it runs beside the module's adapter, with its outputs remapped."""
     from std_msgs.msg import String
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     h, proc, _ = graph
     use(h, prims, 'promp')
     got = []
     sub = h.node.create_subscription(String, 'adapted_restart',
                                      lambda m: got.append(json.loads(m.data)),
-                                     qos_profiles.LATCHED)
+                                     qos.LATCHED)
     bad_file = tmp_path / 'bad.yaml'
     bad_file.write_text('/**:\n  ros__parameters:\n    adaptation:\n      n_steps: 1\n')
     cases = [([p], None, text) for p, text in STARTUP_CASES]

@@ -10,7 +10,7 @@ import yaml
 
 from bag_ros_util import WAIT_S, Lines, recoverable_count, wait_for
 from cdmp_ros.bag import BagReader
-from cdmp_ros.cli.bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
+from cdmp_ros.cli.cmd_bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
 from cdmp_ros.core.errors import ValidationError
 from conftest import ros_env
 

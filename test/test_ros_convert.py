@@ -204,8 +204,8 @@ def node():
 def test_parameters_mirror_the_config_with_descriptors(node):
     from rcl_interfaces.msg import ParameterType
     from rclpy.parameter import Parameter
-    from cdmp_ros.core.fields import RepellerField
-    from cdmp_ros.core.streaming import StreamerConfig
+    from cdmp_ros.core.coupling.potential_fields import RepellerField
+    from cdmp_ros.core.streaming.streamer import StreamerConfig
     from cdmp_ros.ros.params import ConfigParameters
     changes = []
     p = ConfigParameters(node, [('', StreamerConfig), ('repeller', RepellerField)],
@@ -268,10 +268,10 @@ def test_diagnostics_reporter_summarises_rejections_and_timings(node):
 def test_config_file_mirrors_every_parameter_with_its_default():
     import os
     import yaml
-    from cdmp_ros.core.coupling import DampingConfig
-    from cdmp_ros.core.fields import ConstantField, RepellerField
-    from cdmp_ros.core.obstacle_coupling import CouplingConfig
-    from cdmp_ros.core.streaming import StreamerConfig
+    from cdmp_ros.core.coupling.terms import DampingConfig
+    from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig
+    from cdmp_ros.core.streaming.streamer import StreamerConfig
     from cdmp_ros.ros.params import parameter_fields
     from conftest import REPO_ROOT
     with open(os.path.join(REPO_ROOT, 'config', 'streamer.yaml')) as f:

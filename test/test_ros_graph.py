@@ -1,7 +1,7 @@
 """Integration: the node graph (sim, streamer, adapter, learner) as real processes over DDS.
 
 One graph serves the module (localhost discovery, a private domain id), started with
-:class:`cdmp_ros.cli.bringup.Bringup` like ``cdmp bringup``. The test process is the user: it
+:class:`cdmp_ros.cli.cmd_bringup.Bringup` like ``cdmp bringup``. The test process is the user: it
 publishes obstacles and goals, listens to ``joint_reference`` (every message checked: names,
 size, finite, inside the limits) and to every node's ``diagnostics``. Every wait is on a
 condition, bounded by a generous timeout; no check depends on wall-clock durations or rates
@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from cdmp_ros.cli.bringup import Bringup, parse_graph
+from cdmp_ros.cli.cmd_bringup import Bringup, parse_graph
 from conftest import ros_env, module_domain
 from streamer_harness import Harness, max_acceleration
 from streamer_util import LOWER, PANDA_JOINTS, UPPER

@@ -23,7 +23,7 @@ import types
 import pytest
 import yaml
 
-from cdmp_ros.cli.bringup import load_graph, package_config_dir
+from cdmp_ros.cli.cmd_bringup import load_graph, package_config_dir
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LAUNCH_DIR = os.path.join(ROOT, 'launch')

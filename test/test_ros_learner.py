@@ -246,7 +246,7 @@ def test_save_writes_the_primitive_file(graph, tmp_path):
 
 
 def test_improve_runs_pi2_in_a_worker_within_the_limits(graph):
-    from cdmp_ros.core.dmp import limit_usage
+    from cdmp_ros.core.dmp.dmp import limit_usage
     from cdmp_ros.core.primitive_io import primitive_from_dict
     h, proc, _ = graph
     t0 = time.monotonic()
@@ -370,8 +370,8 @@ def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_p
 # -- files -------------------------------------------------------------------------------------
 def test_config_file_mirrors_every_parameter_with_its_default():
     import yaml
-    from cdmp_ros.core.dmp import DmpConfig
-    from cdmp_ros.core.improve import CostConfig, ImproveConfig
+    from cdmp_ros.core.dmp.dmp import DmpConfig
+    from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
     from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig
     from cdmp_ros.ros.params import parameter_fields
     with open(os.path.join(REPO_ROOT, 'config', 'learner.yaml')) as f:

@@ -180,7 +180,7 @@ def world(tmp_path_factory):
     """Every case's process, started together, and the observer with its inputs."""
     from std_msgs.msg import String
     from sensor_msgs.msg import JointState
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     tmp = str(tmp_path_factory.mktemp('shutdown'))
     obs = Observer()
     cases = {}
@@ -217,7 +217,7 @@ def world(tmp_path_factory):
         text = promp_text()
         for sig in SIGNALS:
             ns = f'/sd_adapter_{sig.lower()}'
-            p = obs.node.create_publisher(String, f'{ns}/primitive', qos_profiles.LATCHED)
+            p = obs.node.create_publisher(String, f'{ns}/primitive', qos.LATCHED)
             p.publish(String(data=text))
             pubs.append(p)
         yield obs, cases, tmp
@@ -259,10 +259,10 @@ class Goals(Chatter):
     def __init__(self, obs, topic):
         from sensor_msgs.msg import JointState
         from adapter_harness import PANDA_JOINTS, Q_GOAL
-        from cdmp_ros.ros import qos_profiles
+        from cdmp_ros.ros import qos
         self.msg = JointState(name=list(PANDA_JOINTS))
         self.q = Q_GOAL
-        self.pub = obs.node.create_publisher(JointState, topic, qos_profiles.COMMAND)
+        self.pub = obs.node.create_publisher(JointState, topic, qos.COMMAND)
         self.seq = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -405,8 +405,8 @@ def test_a_signal_during_start_up_ends_the_node_cleanly(world, node):
 def test_adapt_is_cancelled_by_should_stop():
     """The adapter's shutdown cancels a solve within one evaluation of the Lagrangian."""
     from adapter_harness import reach_promp
-    from cdmp_ros.core.adaptation import adapt
-    from cdmp_ros.core.constraints.limits import JointLimit
+    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.constraints.limits import JointLimit
     from cdmp_ros.core.errors import Cancelled
     calls = []
 

@@ -454,7 +454,7 @@ def test_runtime_parameter_changes_are_validated(graph):
 
 def test_reason_categories_and_rate_limiter():
     from cdmp_ros.core.rate_limit import RateLimiter
-    from cdmp_ros.ros.sim_support import reason_category
+    from cdmp_ros.ros.input_gate import reason_category
     assert reason_category("joint_reference.position of 'a': expected a finite value, got nan"
                            ) == 'non_finite'
     assert reason_category('x.header.stamp: stamp 3.0 s in the future') == 'stamp'

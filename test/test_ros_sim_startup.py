@@ -115,7 +115,7 @@ def test_streamer_drives_the_sim(tmp_path):
     from std_msgs.msg import String
 
     from cdmp_ros.core.primitive_io import dumps_primitive
-    from cdmp_ros.ros import qos_profiles
+    from cdmp_ros.ros import qos
     from streamer_util import Q_GOAL, Q_START, reach_cdmp, start_streamer
     sim = start_sim(DOMAIN, [f'initial_positions:={[float(v) for v in Q_START]}',
                              'diagnostics_period:=0.2'],
@@ -124,7 +124,7 @@ def test_streamer_drives_the_sim(tmp_path):
                               params_file='config/streamer.yaml')
     h = SimHarness(DOMAIN)
     try:
-        pub = h.node.create_publisher(String, 'primitive', qos_profiles.LATCHED)
+        pub = h.node.create_publisher(String, 'primitive', qos.LATCHED)
         ok = h.wait(lambda: h.wait_state(lambda m, kv: int(kv.get('references_received', 0))
                                          > 50, 0.1)
                     or sim.poll() is not None or streamer.poll() is not None, STARTUP)

@@ -13,7 +13,7 @@ from cdmp_ros.sim.ball_drop import BallDropScene, CupSpec
 
 def test_ball_lands_in_cup_only_when_released_above_it():
     setup = E.make_setup()
-    from cdmp_ros.core.ik import solve_position_ik
+    from cdmp_ros.core.kinematics.ik import solve_position_ik
     outcomes = []
     for offset in ([0.0, 0.0, 0.0], [-0.12, 0.0, 0.0]):
         target = np.asarray(CupSpec().position) + offset + [0.0, 0.0, E.RELEASE_HEIGHT]
@@ -85,7 +85,7 @@ def test_coupling_skipped_far_from_the_board_is_exact():
 def test_lifting_field_takes_exploratory_rollouts_over_the_board():
     """With a purely normal repulsion some exploratory rollouts end held against the board on
     the start side (y > 0); with the lifted field every one crosses to the cup side."""
-    from cdmp_ros.core.pi2 import Pi2
+    from cdmp_ros.core.dmp.pi2 import Pi2
     from cdmp_ros.sim.ball_drop import BoardSpec
     setup = E.make_setup()
     prim = E.initial_policy(setup)

@@ -6,8 +6,8 @@ import pytest
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.sim import (ComputedTorqueController, ComputedTorqueGains,
                           JointLimitAvoidingController, JointLimitAvoidingGains, make_controller,
-                          panda_spec, planar_arm_spec, PDController, PDGains,
-                          PositionController, World, WorldConfig)
+                          panda_spec, planar_arm_spec, PDController, PDGains, PositionController,
+                          World, WorldConfig)
 from cdmp_ros.sim.control import exogenous_to_joint, inertia_scaled_gains, joint_to_exogenous
 
 DT = 1e-3

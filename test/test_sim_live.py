@@ -12,7 +12,7 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.closest import Box, Sphere
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
-from cdmp_ros.sim.robots import PANDA_HOME as _HOME, PANDA_URDF
+from cdmp_ros.sim.robot_specs import PANDA_HOME as _HOME, PANDA_URDF
 
 PLANAR = SimConfig(robot='planar4')
 PANDA_HOME = np.array(_HOME)

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from cdmp_ros.core.coupling import end_effector_term, link_term
-from cdmp_ros.core.fields import ConstantField
+from cdmp_ros.core.coupling.terms import end_effector_term, link_term
+from cdmp_ros.core.coupling.potential_fields import ConstantField
 from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import segment_box
 from cdmp_ros.experiments.reaching_coupling import (BoardLinkCoupling, HoldGains,

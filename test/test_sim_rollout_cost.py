@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
+from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig, Improver, ScriptedCost
 from cdmp_ros.core.learning import fit_primitive
 from conftest import REPO_ROOT
 

@@ -8,9 +8,9 @@ import pybullet
 import pytest
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.sim import (add_dual_panda, ComputedTorqueController, panda_spec,
-                          planar_arm_spec, planar_arm_urdf, World, WorldConfig)
-from cdmp_ros.sim.robots import PANDA_URDF
+from cdmp_ros.sim import (add_dual_panda, ComputedTorqueController, panda_spec, planar_arm_spec,
+                          planar_arm_urdf, World, WorldConfig)
+from cdmp_ros.sim.robot_specs import PANDA_URDF
 
 
 def urdf_limits(path, joints):

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 from typing import Dict, Iterable, Iterator, List, Optional
 
 from cdmp_ros.bag.errors import BagError, BagFormatError
-from cdmp_ros.bag.metadata import (METADATA_FILE, BagMetadata, TopicInfo, parse_qos,
-                                   read_metadata)
+from cdmp_ros.bag.metadata import (METADATA_FILE, BagMetadata, TopicInfo, parse_qos, read_metadata)
 from cdmp_ros.bag.scan import MAX_CHUNK_BYTES, ChannelRec, MessageRec, ScanState, scan
 
 

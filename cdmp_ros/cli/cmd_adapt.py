@@ -28,7 +28,7 @@ def add_arguments(parser):
 
 def robot_context(robot: str, n_dims: int):
     """RobotContext for a named robot (planar4: 4 links of 1 m in the xy plane)."""
-    from cdmp_ros.core.constraints.parse import RobotContext
+    from cdmp_ros.core.adaptation.constraints.parse import RobotContext
     from cdmp_ros.core.errors import ValidationError
     from cdmp_ros.core.kinematics import dual_panda_chains, panda_chain, planar_chain
     need = {'planar4': 4, 'panda': 7, 'dual_panda': 14}.get(robot)
@@ -39,7 +39,7 @@ def robot_context(robot: str, n_dims: int):
         return RobotContext(n_dims)
     if robot == 'planar4':
         return RobotContext(n_dims, [(planar_chain([1.0] * 4), range(4))], axes=(0, 1))
-    from cdmp_ros.sim.robots import panda_urdf_path
+    from cdmp_ros.sim.robot_specs import panda_urdf_path
     if robot == 'panda':
         return RobotContext(n_dims, [(panda_chain(panda_urdf_path()), range(7))])
     left, right = dual_panda_chains(panda_urdf_path())
@@ -47,8 +47,8 @@ def robot_context(robot: str, n_dims: int):
 
 
 def run(args):
-    from cdmp_ros.core.adaptation import AdaptationConfig, adapt
-    from cdmp_ros.core.constraints.parse import parse_constraint_set
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt
+    from cdmp_ros.core.adaptation.constraints.parse import parse_constraint_set
     from cdmp_ros.core.errors import CdmpError
     from cdmp_ros.core.primitive_io import load_primitive, save_primitive
     try:

@@ -1,12 +1,331 @@
-"""``cdmp bringup GRAPH.yaml``: start a graph of nodes as separate processes (Ctrl-C stops it).
+"""``cdmp bringup GRAPH.yaml``: start a graph of cdmp_ros nodes as separate processes and stop
+them cleanly (Ctrl-C stops it); ``config/graphs/`` holds the graphs shipped with the package
+(``demo.yaml`` is the one ``cdmp demo`` starts).
 
-The graph format is documented in :mod:`cdmp_ros.cli.bringup`; ``config/graphs/`` holds the
-graphs shipped with the package (``demo.yaml`` is the one ``cdmp demo`` starts).
+There is no ``ros2 launch`` on PyPI, so ``cdmp bringup GRAPH.yaml`` does the part of it this
+package needs. A graph file::
+
+    # every key but ``nodes`` is optional
+    environment:                 # added to every process (values are strings)
+      ROS_DOMAIN_ID: '42'
+    stop_timeout: 5.0            # s between SIGINT and SIGKILL at shutdown
+    nodes:
+      - name: sim                # process label (and ``__node`` remap when ``rename: true``)
+        executable: sim          # a cdmp_ros executable: learner, adapter, streamer, sim, ...
+        params_file: streamer.yaml   # relative to the graph file, else to config/ of the package
+        parameters: {rate: 500.0}    # -p name:=value (YAML scalars or lists)
+        remappings: {joint_reference: /arm/joint_reference}
+        namespace: /arm          # optional
+        required: true           # the graph stops when this process exits (default true)
+        delay: 0.0               # s after the previous node was started
+
+Each process is ``python -m cdmp_ros.nodes.<executable> --ros-args ...`` with the environment
+of the caller plus ``environment``. If ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset it is set
+to ``LOCALHOST`` (say ``SUBNET`` explicitly to reach other machines). Output lines are prefixed
+with the node name. Ctrl-C (SIGINT) or SIGTERM stops every process: the same signal is
+forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL after
+``stop_timeout``; the exit code is 0 when every process stopped cleanly (exit code 0, or ended
+by that signal in the first instants of the interpreter, before the node's entry point
+installed its handlers, see :mod:`cdmp_ros.ros.node_main`).
 """
 import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import yaml
+
+from cdmp_ros.core.errors import ValidationError
+
+#: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
+EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
+#: Exit codes of a clean stop: 0, or killed by the SIGINT / SIGTERM we sent before the process
+#: had installed its handlers (the interpreter still starting).
+CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
+_NODE_KEYS = {'name', 'executable', 'params_file', 'parameters', 'remappings', 'namespace',
+              'required', 'delay', 'arguments'}
+_GRAPH_KEYS = {'environment', 'stop_timeout', 'nodes'}
 
 NAME = 'bringup'
 HELP = 'start a graph of cdmp_ros nodes (a YAML file) as processes; Ctrl-C stops them cleanly'
+
+
+def package_config_dir() -> str:
+    """``config/`` of the source tree, else ``share/cdmp_ros/config`` of the install."""
+    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    src = os.path.join(here, 'config')
+    if os.path.isdir(src):
+        return src
+    return os.path.join(sys.prefix, 'share', 'cdmp_ros', 'config')
+
+
+def _scalar(value) -> str:
+    """A parameter value in ``-p name:=value`` syntax (YAML)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_scalar(v) for v in value) + ']'
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    raise ValidationError(f'parameter value {value!r}: expected a scalar or a list')
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One process of a graph (see the module docstring)."""
+
+    name: str
+    executable: str
+    params_file: Optional[str] = None
+    parameters: Dict[str, object] = field(default_factory=dict)
+    remappings: Dict[str, str] = field(default_factory=dict)
+    namespace: Optional[str] = None
+    required: bool = True
+    delay: float = 0.0
+    arguments: Sequence[str] = ()
+
+    def command(self) -> List[str]:
+        """The argv of the process."""
+        cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{self.executable}', *self.arguments,
+               '--ros-args']
+        if self.params_file:
+            cmd += ['--params-file', self.params_file]
+        for k, v in self.parameters.items():
+            cmd += ['-p', f'{k}:={_scalar(v)}']
+        for a, b in self.remappings.items():
+            cmd += ['-r', f'{a}:={b}']
+        if self.namespace:
+            cmd += ['-r', f'__ns:={self.namespace}']
+        return cmd
+
+
+@dataclass(frozen=True)
+class Graph:
+    """A parsed graph file."""
+
+    nodes: List[NodeSpec]
+    environment: Dict[str, str] = field(default_factory=dict)
+    stop_timeout: float = 5.0
+
+
+def _node(i: int, d, base_dir: str) -> NodeSpec:
+    where = f'nodes[{i}]'
+    if not isinstance(d, dict):
+        raise ValidationError(f'{where}: expected a mapping, got {type(d).__name__}')
+    unknown = sorted(set(d) - _NODE_KEYS)
+    if unknown:
+        raise ValidationError(f'{where}: unknown keys {unknown}; allowed {sorted(_NODE_KEYS)}')
+    exe = d.get('executable')
+    if exe not in EXECUTABLES:
+        raise ValidationError(f'{where}.executable: expected one of {list(EXECUTABLES)}, '
+                              f'got {exe!r}')
+    name = str(d.get('name', exe))
+    params_file = d.get('params_file')
+    if params_file is not None:
+        params_file = str(params_file)
+        candidates = [params_file] if os.path.isabs(params_file) else [
+            os.path.join(base_dir, params_file), os.path.join(package_config_dir(), params_file)]
+        found = [c for c in candidates if os.path.isfile(c)]
+        if not found:
+            raise ValidationError(f'{where}.params_file: {params_file!r} not found (looked in '
+                                  f'{candidates})')
+        params_file = os.path.abspath(found[0])
+    for key in ('parameters', 'remappings'):
+        if not isinstance(d.get(key, {}), dict):
+            raise ValidationError(f'{where}.{key}: expected a mapping, got '
+                                  f'{type(d[key]).__name__}')
+    params = dict(d.get('parameters') or {})
+    for k, v in params.items():
+        _scalar(v)  # raises naming the value
+    delay = d.get('delay', 0.0)
+    if not isinstance(delay, (int, float)) or isinstance(delay, bool) or not \
+            0.0 <= delay <= 600.0:
+        raise ValidationError(f'{where}.delay: expected seconds in [0, 600], got {delay!r}')
+    args = d.get('arguments', [])
+    if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
+        raise ValidationError(f'{where}.arguments: expected a list of strings, got {args!r}')
+    required = d.get('required', True)
+    if not isinstance(required, bool):
+        raise ValidationError(f'{where}.required: expected true or false, got {required!r}')
+    return NodeSpec(name=name, executable=exe, params_file=params_file, parameters=params,
+                    remappings={str(a): str(b) for a, b in (d.get('remappings') or {}).items()},
+                    namespace=d.get('namespace'), required=required, delay=float(delay),
+                    arguments=tuple(args))
+
+
+def parse_graph(data, base_dir: str = '.') -> Graph:
+    """Validate a graph mapping (as loaded from YAML); raises ValidationError naming the key."""
+    if not isinstance(data, dict):
+        raise ValidationError(f'graph: expected a mapping, got {type(data).__name__}')
+    unknown = sorted(set(data) - _GRAPH_KEYS)
+    if unknown:
+        raise ValidationError(f'graph: unknown keys {unknown}; allowed {sorted(_GRAPH_KEYS)}')
+    nodes = data.get('nodes')
+    if not isinstance(nodes, list) or not nodes:
+        raise ValidationError('graph.nodes: expected a non-empty list of nodes')
+    specs = [_node(i, d, base_dir) for i, d in enumerate(nodes)]
+    names = [s.name for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValidationError(f'graph.nodes: duplicate names {dup}')
+    env = data.get('environment') or {}
+    if not isinstance(env, dict):
+        raise ValidationError('graph.environment: expected a mapping of strings')
+    timeout = data.get('stop_timeout', 5.0)
+    if not isinstance(timeout, (int, float)) or not 0.1 <= timeout <= 120.0:
+        raise ValidationError(f'graph.stop_timeout: expected seconds in [0.1, 120], '
+                              f'got {timeout!r}')
+    return Graph(nodes=specs, environment={str(k): str(v) for k, v in env.items()},
+                 stop_timeout=float(timeout))
+
+
+def load_graph(path: str) -> Graph:
+    """Read and validate a graph file."""
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise ValidationError(f'graph file {path!r}: {exc.strerror}') from None
+    except yaml.YAMLError as exc:
+        raise ValidationError(f'graph file {path!r}: not valid YAML: {exc}') from None
+    return parse_graph(data, os.path.dirname(os.path.abspath(path)))
+
+
+def graph_environment(extra: Dict[str, str]) -> Dict[str, str]:
+    """The caller's environment + ``extra``; discovery on localhost unless said otherwise."""
+    env = dict(os.environ)
+    env.update(extra)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env.setdefault('PYTHONUNBUFFERED', '1')
+    return env
+
+
+class Bringup:
+    """The running processes of a graph.
+
+    Use as a context manager, or call :meth:`start`, then :meth:`wait` (until a required
+    process exits or a signal arrives) and :meth:`stop`.
+    """
+
+    def __init__(self, graph: Graph, log=None, extra_env: Optional[Dict[str, str]] = None):
+        self.graph = graph
+        self.log = log if log is not None else sys.stdout
+        self.env = graph_environment({**graph.environment, **(extra_env or {})})
+        self.procs: Dict[str, subprocess.Popen] = {}
+        self._threads: List[threading.Thread] = []
+        self._lock = threading.Lock()
+
+    def _pump(self, name: str, stream) -> None:
+        width = max(len(n.name) for n in self.graph.nodes)
+        for line in iter(stream.readline, ''):
+            with self._lock:
+                self.log.write(f'[{name:<{width}}] {line}')
+                self.log.flush()
+        stream.close()
+
+    def start(self) -> None:
+        for spec in self.graph.nodes:
+            if spec.delay:
+                time.sleep(spec.delay)
+            proc = subprocess.Popen(spec.command(), env=self.env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True,
+                                    start_new_session=True)
+            self.procs[spec.name] = proc
+            t = threading.Thread(target=self._pump, args=(spec.name, proc.stdout), daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def exited(self) -> Dict[str, int]:
+        """Processes that have exited, with their exit codes."""
+        return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
+
+    def wait(self, stop_event: Optional[threading.Event] = None,
+             timeout: Optional[float] = None) -> Optional[str]:
+        """Block until a required process exits (its name is returned), ``stop_event`` is set
+        or ``timeout`` passes (None is returned)."""
+        end = None if timeout is None else time.monotonic() + timeout
+        required = {s.name for s in self.graph.nodes if s.required}
+        while True:
+            for name in self.exited():
+                if name in required:
+                    return name
+            if stop_event is not None and stop_event.is_set():
+                return None
+            if end is not None and time.monotonic() >= end:
+                return None
+            time.sleep(0.05)
+
+    def stop(self, sig: int = signal.SIGINT) -> Dict[str, int]:
+        """Send ``sig`` (SIGINT or SIGTERM) to every running process, SIGKILL the ones still
+        alive after ``stop_timeout``; return every exit code (negative = killed by that
+        signal)."""
+        for p in self.procs.values():
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, sig)
+                except ProcessLookupError:
+                    pass
+        end = time.monotonic() + self.graph.stop_timeout
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=max(0.0, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                p.wait()
+        for t in self._threads:
+            t.join(timeout=1.0)
+        return {n: p.returncode for n, p in self.procs.items()}
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+        return False
+
+
+def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
+    """``cdmp bringup``: start, wait for Ctrl-C / SIGTERM / a required exit / ``duration``,
+    stop; 0 when every process ended cleanly."""
+    graph = load_graph(path)
+    stop = threading.Event()
+    received = []  # the signal to forward
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    out = log if log is not None else sys.stdout
+    try:
+        b = Bringup(graph, log=out)
+        out.write(f'bringup: starting {len(graph.nodes)} nodes from {path} '
+                  f'(ROS_DOMAIN_ID={b.env.get("ROS_DOMAIN_ID", "0")}, discovery '
+                  f'{b.env["ROS_AUTOMATIC_DISCOVERY_RANGE"]}); Ctrl-C stops them\n')
+        b.start()
+        ended = b.wait(stop, duration)
+        if ended is not None:
+            out.write(f'bringup: required node {ended!r} exited with code '
+                      f'{b.procs[ended].returncode}; stopping the graph\n')
+        codes = b.stop(received[0] if received else signal.SIGINT)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    bad = {n: c for n, c in codes.items() if c not in CLEAN_EXIT_CODES}
+    out.write('bringup: ' + ('all nodes stopped cleanly\n' if not bad else
+                             f'nodes that did not stop cleanly: {bad}\n'))
+    out.flush()
+    return 0 if not bad else 1
 
 
 def add_arguments(parser):
@@ -21,7 +340,6 @@ def add_arguments(parser):
 
 
 def resolve_graph(name: str) -> str:
-    from cdmp_ros.cli.bringup import package_config_dir
     if os.path.isfile(name):
         return name
     shipped = os.path.join(package_config_dir(), 'graphs', name + ('' if name.endswith(
@@ -30,7 +348,6 @@ def resolve_graph(name: str) -> str:
 
 
 def run(args):
-    from cdmp_ros.cli.bringup import load_graph, run_graph
     path = resolve_graph(args.graph)
     if args.check:
         graph = load_graph(path)

@@ -35,10 +35,10 @@ import numpy as np
 
 from cdmp_ros.bag import BagReader, bag_info
 from cdmp_ros.bag.cdr import decode_joint_state
-from cdmp_ros.cli.bringup import Bringup, load_graph, package_config_dir
+from cdmp_ros.cli.cmd_bringup import Bringup, load_graph, package_config_dir
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.run_metrics import tracking_error
-from cdmp_ros.core.dmp import limit_usage
+from cdmp_ros.core.dmp.dmp import limit_usage
 
 #: Topics the demo records.
 RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primitive',

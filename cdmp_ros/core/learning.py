@@ -1,14 +1,14 @@
 """Learning primitives from demonstrations: the learner's configuration and its fit.
 
 :func:`fit_primitive` fits a DMP, a CDMP (paper 000, Eq. 13-29, weights by ridge regression
-jointly over the demonstrations, :meth:`cdmp_ros.core.dmp.DMP.fit_demonstrations`) or a ProMP
-(paper 003, Eq. 1-4, EM with MAP priors, :meth:`cdmp_ros.core.promp.ProMP.fit`) from a list
+jointly over the demonstrations, :meth:`cdmp_ros.core.dmp.dmp.DMP.fit_demonstrations`) or a ProMP
+(paper 003, Eq. 1-4, EM with MAP priors, :meth:`cdmp_ros.core.promp.promp.ProMP.fit`) from a list
 of demonstrations ``(T, Y)`` of possibly different lengths and durations.
 
 :class:`LearnerConfig` and :class:`PrompLearnConfig` are mirrored 1:1 by the ROS parameters of
 the learner node (ranges and descriptions in the field metadata, like
-:class:`cdmp_ros.core.streaming.StreamerConfig`); the DMP constants are the
-:class:`~cdmp_ros.core.dmp.DmpConfig` of the core.
+:class:`cdmp_ros.core.streaming.streamer.StreamerConfig`); the DMP constants are the
+:class:`~cdmp_ros.core.dmp.dmp.DmpConfig` of the core.
 """
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
@@ -16,12 +16,11 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.config_fields import (check_fields, check_names, param,
-                                         robot_description_param)
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+from cdmp_ros.core.config_fields import (check_fields, check_names, param, robot_description_param)
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 from cdmp_ros.core.validation import as_array, check_limits
 
 KINDS = ('cdmp', 'dmp', 'promp')

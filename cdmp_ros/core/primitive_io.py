@@ -10,8 +10,8 @@ from typing import Any, Dict, Optional, Union
 
 import numpy as np
 
-from cdmp_ros.core.basis import PhaseBasis
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+from cdmp_ros.core.dmp.basis import PhaseBasis
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError
 from cdmp_ros.core.file_checks import check_document, field_path
 from cdmp_ros.core.resources import schema_path
@@ -125,7 +125,7 @@ def primitive_to_dict(prim) -> Dict[str, Any]:
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': prim.kind,
                          'joint_names': list(prim.joint_names), 'n_dims': prim.n_dims}
     if prim.kind == 'promp':
-        from cdmp_ros.core.promp_io import promp_to_dict
+        from cdmp_ros.core.promp.primitive_file import promp_to_dict
         body = promp_to_dict(prim)
         d.update({k: v for k, v in body.items() if k not in d})
         validate_primitive_dict(d)
@@ -155,7 +155,7 @@ def primitive_from_dict(d: Any):
     """Build a DMP, CDMP or ProMP from a dict; raises :class:`PrimitiveFileError`."""
     validate_primitive_dict(d)
     if d['kind'] == 'promp':
-        from cdmp_ros.core.promp_io import promp_from_validated
+        from cdmp_ros.core.promp.primitive_file import promp_from_validated
         return promp_from_validated(d)
     dm = d['dmp']
     try:

@@ -91,7 +91,7 @@ class Setup:
 def make_setup():
     """Kinematics, limits and the initial policy's goal (IK above the estimated cup)."""
     import pybullet_data
-    from cdmp_ros.core.ik import solve_position_ik
+    from cdmp_ros.core.kinematics.ik import solve_position_ik
     from cdmp_ros.core.kinematics import PANDA_EE_OFFSET, panda_chain, PointOfInterest
     from cdmp_ros.sim.ball_drop import CupSpec
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda',
@@ -113,7 +113,7 @@ def make_setup():
 def initial_policy(setup, kind='cdmp', n_weights=10):
     """Straight line per joint from the start to the estimated goal (minimum-jerk timing, at
     rest at both ends), fitted by a (C)DMP."""
-    from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+    from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
     T = np.linspace(0.0, DURATION, 201)
     s = T / DURATION
     Y = Q_START + np.outer(10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5, setup.q_goal_est - Q_START)
@@ -134,7 +134,7 @@ def costs_of(result, traj, theta, dt, x0):
 
 def pi2_config(n_rollouts, **overrides):
     """The PI2 settings of the experiment (exogenous units for the CDMP)."""
-    from cdmp_ros.core.pi2 import Pi2Config
+    from cdmp_ros.core.dmp.pi2 import Pi2Config
     kw = dict(PI2_SETTINGS, n_rollouts=n_rollouts)
     kw.update(overrides)
     return Pi2Config(**kw)
@@ -143,8 +143,8 @@ def pi2_config(n_rollouts, **overrides):
 def learning_run(setup, scene, coupling, seed, n_updates, n_rollouts, kind='cdmp',
                  progress=None, config=None):
     """One PI2 learning run; returns per-trial records and the final policy's evaluation."""
-    from cdmp_ros.core.dmp import limit_usage
-    from cdmp_ros.core.pi2 import Pi2
+    from cdmp_ros.core.dmp.dmp import limit_usage
+    from cdmp_ros.core.dmp.pi2 import Pi2
     prim = initial_policy(setup, kind)
     dt = scene.time_step
     norm = prim.config.alpha_y * prim.config.beta_y
@@ -190,8 +190,8 @@ def ee_board_coupling(setup, board, gain=6e-3, influence_distance=0.1, max_speed
     ``max_speed`` [m/s] (the coupling is zero meanwhile; a call with an earlier ``t`` starts a
     new rollout).
     """
-    from cdmp_ros.core.coupling import end_effector_term
-    from cdmp_ros.core.fields import RepellerField
+    from cdmp_ros.core.coupling.terms import end_effector_term
+    from cdmp_ros.core.coupling.potential_fields import RepellerField
     from cdmp_ros.core.kinematics.closest import box_signed_distance
     field = RepellerField(gain=gain, influence_distance=influence_distance)
     lo = np.asarray(board.center) - board.half_extents
@@ -282,8 +282,8 @@ def run(args):
 
 def dmp_exploration_violations(setup, args):
     """Beyond the paper: the same exploration on a plain DMP; count rollouts leaving limits."""
-    from cdmp_ros.core.dmp import limit_usage
-    from cdmp_ros.core.pi2 import Pi2, Pi2Config
+    from cdmp_ros.core.dmp.dmp import limit_usage
+    from cdmp_ros.core.dmp.pi2 import Pi2, Pi2Config
     prim = initial_policy(setup, kind='dmp')
     pi2 = Pi2(prim, Pi2Config(n_rollouts=args.rollouts, shape_std=30.0, goal_std=0.08,
                               noise_decay=0.95), rng=np.random.default_rng(args.seed),

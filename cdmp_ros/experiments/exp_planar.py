@@ -52,7 +52,7 @@ ELBOW_DOWN = np.array([-1.0, 0.6, 0.6, 0.6])
 def original_promp(chain, start, rng, n_basis=8, n_demos=12, spread=0.25, end_guess=ELBOW_UP):
     """Learn the original ProMP from synthetic demonstrations and condition on the end
     configuration (inverse kinematics of (1.73, 0) from ``end_guess``)."""
-    from cdmp_ros.core.promp import ProMP, RbfBasis
+    from cdmp_ros.core.promp.promp import ProMP, RbfBasis
     end = _ik(chain, np.asarray(end_guess, float), END_XY)
     T = np.linspace(0.0, 1.0, 80)
     s = 10 * T ** 3 - 15 * T ** 4 + 6 * T ** 5
@@ -69,7 +69,7 @@ def original_promp(chain, start, rng, n_basis=8, n_demos=12, spread=0.25, end_gu
 
 def base_constraints(chain, start, ee, offset=None):
     """Start joint limits (t = 0) and the end-effector waypoint at t = 1 (lambda0 = 100)."""
-    from cdmp_ros.core.constraints import JointLimit, Waypoint
+    from cdmp_ros.core.adaptation.constraints import JointLimit, Waypoint
     dofs = range(4) if offset is None else range(offset, offset + 4)
     cons = [JointLimit(d, start[i] - 0.05, start[i] + 0.05, support=(0.0, 0.0), alpha=ALPHA,
                        lambda0=100.0, name=f'start_q{i + 1}') for i, d in enumerate(dofs)]
@@ -82,8 +82,8 @@ def tasks(chain):
     """The four task constraint sets of Fig. 3 (name -> (start, end guess, constraints)).
     The corner and the wall use an elbow-down end configuration: with the elbow-up one the
     final arm itself violates them (its links 2-3 end inside the corner / beyond the wall)."""
-    from cdmp_ros.core.constraints import (ChainPoint, Hyperplane, NonConvexCorner, Repeller,
-                                           Waypoint)
+    from cdmp_ros.core.adaptation.constraints import (ChainPoint, Hyperplane, NonConvexCorner,
+                                                      Repeller, Waypoint)
     from cdmp_ros.core.kinematics import PointOfInterest
     ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
     x2 = ChainPoint(chain, PointOfInterest('link3'), axes=(0, 1))
@@ -105,7 +105,7 @@ def tasks(chain):
 
 def solve_all(seed=0, n_samples=10000, n_steps=50):
     """Run every experiment; returns (rows, artefacts for plotting)."""
-    from cdmp_ros.core.adaptation import AdaptationConfig, adapt, monte_carlo_satisfaction
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
     from cdmp_ros.core.kinematics import planar_chain
     rng = np.random.default_rng(seed)
     chain = planar_chain([1.0] * 4)
@@ -137,10 +137,10 @@ def solve_all(seed=0, n_samples=10000, n_steps=50):
 
 def mutual(chain, rng, n_samples, n_steps):
     """III-A5: two planar arms (bases 3 m apart, facing) with crossing reaching movements."""
-    from cdmp_ros.core.adaptation import AdaptationConfig, adapt, monte_carlo_satisfaction
-    from cdmp_ros.core.constraints import ChainPoint, MutualAvoidance
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+    from cdmp_ros.core.adaptation.constraints import ChainPoint, MutualAvoidance
     from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
-    from cdmp_ros.core.promp import ProMP
+    from cdmp_ros.core.promp.promp import ProMP
     p1, _ = original_promp(chain, START_A, rng)
     # robot 2: mirrored about x = 1.5 (base at (3, 0), facing -x), same movement mirrored
     M, D = p1.n_basis, 8
@@ -194,7 +194,7 @@ def mutual(chain, rng, n_samples, n_steps):
 
 
 def _ut_ellipses(p, point, s):
-    from cdmp_ros.core.gaussian import UnscentedTransform
+    from cdmp_ros.core.promp.gaussian import UnscentedTransform
     dofs = list(point.dofs)
     m = p.mean(s)[:, dofs]
     S = p.cov(s)[:, dofs][:, :, dofs]

@@ -3,7 +3,7 @@ walls) on random 2-D problems generated per ../shared/promp_benchmark_protocol.m
 
 Metrics: failed = more than 30 % of 10,000 sampled trajectories violate a constraint;
 violation % and KL / n_basis are averaged over the problems that did not fail; solve time is
-the wall-clock time of :func:`cdmp_ros.core.adaptation.adapt` (median and p90).
+the wall-clock time of :func:`cdmp_ros.core.adaptation.solver.adapt` (median and p90).
 """
 import os
 import time
@@ -72,7 +72,7 @@ def parse_margins(text):
 def solve_row(table, K, n, rng, prior='scripts', n_samples=10000, progress=None,
               relative_step=False, confidence_margin=1.0):
     """Generate and solve ``n`` problems; returns per-problem records."""
-    from cdmp_ros.core.adaptation import adapt
+    from cdmp_ros.core.adaptation.solver import adapt
     from cdmp_ros.experiments.promp_problems import make_problem, violation_rate
     records = []
     for _ in range(n):

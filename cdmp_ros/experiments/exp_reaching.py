@@ -64,7 +64,7 @@ class Setup:
     """Scene, chain in the board frame, primitives and the unmodified end-effector path."""
 
     def __init__(self, world, args):
-        from cdmp_ros.core.dmp import CDMP, DMP
+        from cdmp_ros.core.dmp.dmp import CDMP, DMP
         from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
         from cdmp_ros.experiments.reaching_coupling import world_to_frame
         from cdmp_ros.sim.control import ComputedTorqueController
@@ -90,7 +90,7 @@ class Setup:
         self.ee_ref_velocity = np.einsum('kij,kj->ki', J[:, 0], ref.Yd)
 
     def coupling(self, factor=1.0, hold=True):
-        from cdmp_ros.core.fields import ConstantField
+        from cdmp_ros.core.coupling.potential_fields import ConstantField
         from cdmp_ros.experiments.reaching_coupling import BoardLinkCoupling, HoldGains
         kp = self.args.hold_kp if hold else 0.0
         field = ConstantField(factor * self.args.field, self.args.influence,
@@ -142,7 +142,7 @@ class Setup:
 
 
 def run(args):
-    from cdmp_ros.core.dmp import limit_usage
+    from cdmp_ros.core.dmp.dmp import limit_usage
     from cdmp_ros.sim import World, WorldConfig
     os.makedirs(args.out, exist_ok=True)
     t_start = time.perf_counter()

@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from cdmp_ros.core.dmp import CDMP, DMP, DmpConfig
+from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.experiments.results import row, write_results
 
 NAME = 'toy'

@@ -5,10 +5,10 @@ from typing import List
 
 import numpy as np
 
-from cdmp_ros.core.adaptation import AdaptationConfig, sample_points
-from cdmp_ros.core.constraints import DofPoint, Hyperplane, Repeller, UnboundWaypoint
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, sample_points
+from cdmp_ros.core.adaptation.constraints import DofPoint, Hyperplane, Repeller, UnboundWaypoint
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 ALPHA = 0.999
 XY = DofPoint([0, 1])
@@ -117,7 +117,7 @@ def panda_problem(chain, rng: np.random.Generator, n_basis: int = 10, n_steps: i
     -------
     prior : ProMP; constraints : list; config : AdaptationConfig
     """
-    from cdmp_ros.core.constraints import ChainPoint, JointLimit
+    from cdmp_ros.core.adaptation.constraints import ChainPoint, JointLimit
     from cdmp_ros.core.kinematics import PointOfInterest
     lo, hi = np.asarray(chain.lower), np.asarray(chain.upper)
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)

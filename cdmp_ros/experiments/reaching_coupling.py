@@ -14,7 +14,7 @@ Per tick, on plain floats (see :class:`BoardLinkCoupling`):
   convex, found by golden-section search); within ``field.influence_distance`` the constant
   field of IV-B gives the Cartesian acceleration ``dx_dd_l`` of that point, mapped by
   ``(J_o (I - J^+ J))^+`` into the null space of the end-effector task (near a joint limit in
-  its limit-aware form, :mod:`cdmp_ros.core.coupling`, as the streamer's coupling);
+  its limit-aware form, :mod:`cdmp_ros.core.coupling.terms`, as the streamer's coupling);
 - end effector (Eq. 7, optional hold): ``dx_dd_e = k_p (x_ref - x) + k_d (xd_ref - xd)``
   towards the end-effector path of the unmodified motion (its forward kinematics, the "virtual
   trajectory" of paper 000, Fig. 4), mapped by ``J^+``. It keeps the end effector on its goal
@@ -31,11 +31,11 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.coupling import DampingConfig, LimitScale, coupling_3d
+from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import ConstantField
+from cdmp_ros.core.coupling.potential_fields import ConstantField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
-from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.validation import as_array, check_positive
 
 Segment = Tuple[str, Tuple[float, float, float], Tuple[float, float, float]]
@@ -250,5 +250,5 @@ class BoardLinkCoupling:
         """Coupling term ``P`` of Eq. 21 (CDMP, ``y_delta`` given) or Eq. 13 (DMP, None):
         ``tau^2 dq_dd / (y_delta (1 - tanh(xi)^2))`` resp. ``tau^2 dq_dd`` (Eq. 29 solved for
         the exogenous acceleration), with the streamer's cap near saturation
-        (:meth:`cdmp_ros.core.obstacle_coupling.ObstacleCoupling.to_internal`)."""
+        (:meth:`cdmp_ros.core.coupling.obstacle.ObstacleCoupling.to_internal`)."""
         return ObstacleCoupling.to_internal(dq_dd, xi, tau, y_delta)

@@ -2,7 +2,7 @@
 
 Run: ``ros2 run cdmp_ros adapter --ros-args --params-file config/adapter.yaml`` or
 ``python -m cdmp_ros.nodes.adapter --ros-args -p adaptation.alpha:=0.99``. The maths is in
-:mod:`cdmp_ros.core.adapt_requests`, the ROS glue in :mod:`cdmp_ros.ros.adapter_node`.
+:mod:`cdmp_ros.core.adaptation.requests`, the ROS glue in :mod:`cdmp_ros.ros.adapter_node`.
 
 BLAS is limited to one thread (``OPENBLAS_NUM_THREADS=1`` unless set by the caller) before
 numpy is imported: the adaptation is a sequence of small matrix products, for which a

@@ -3,7 +3,7 @@
 Run: ``ros2 run cdmp_ros learner --ros-args --params-file config/learner.yaml`` or
 ``python -m cdmp_ros.nodes.learner --ros-args -p kind:=promp``. Services (std_srvs/Trigger):
 ``~/refit``, ``~/save``, ``~/improve``. The logic is in :mod:`cdmp_ros.core.learning`,
-:mod:`cdmp_ros.core.demonstrations` and :mod:`cdmp_ros.core.improve`, the ROS glue in
+:mod:`cdmp_ros.core.demonstrations` and :mod:`cdmp_ros.core.dmp.improve`, the ROS glue in
 :mod:`cdmp_ros.ros.learner_node`. Spun in the graceful loop of
 :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM stop a running improvement first).
 

@@ -2,7 +2,7 @@
 
 Run: ``ros2 run cdmp_ros streamer --ros-args --params-file config/streamer.yaml`` or
 ``python -m cdmp_ros.nodes.streamer --ros-args -p rate:=1000.0``. The logic is in
-:mod:`cdmp_ros.core.streaming`, the ROS glue in :mod:`cdmp_ros.ros.streamer_node`.
+:mod:`cdmp_ros.core.streaming.streamer`, the ROS glue in :mod:`cdmp_ros.ros.streamer_node`.
 
 The references are published by the node's own tick thread (sleeping to absolute deadlines,
 optionally under SCHED_FIFO: ``-p realtime_priority:=50``, see

@@ -7,9 +7,9 @@ from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 
-from cdmp_ros.core.adapt_requests import permutation, reorder_promp
-from cdmp_ros.core.constraints.parse import (RobotContext, parse_constraint_set,
-                                             validate_constraint_set)
+from cdmp_ros.core.adaptation.requests import permutation, reorder_promp
+from cdmp_ros.core.adaptation.constraints.parse import (RobotContext, parse_constraint_set,
+                                                        validate_constraint_set)
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
 

@@ -10,7 +10,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   (``retarget_dmp_on_goal`` false: only for ``goal_point``). Obstacles are handled by the
   streamer's coupling terms; the adapter only shows them on ``visualization``.
 - ProMPs: every change of the primitive, the obstacles, the goal or the constraint set submits
-  an adaptation request (:mod:`cdmp_ros.core.adapt_requests`) to the solver thread
+  an adaptation request (:mod:`cdmp_ros.core.adaptation.requests`) to the solver thread
   (:mod:`cdmp_ros.ros.adapter_worker`: latest request wins, stale converged results are still
   published; results for a primitive replaced meanwhile are dropped). Only converged
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
@@ -26,7 +26,7 @@ size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_by
 joint count), then the per-element validation (:mod:`cdmp_ros.ros.convert`,
 :mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``diagnostics``.
 
-QoS (:mod:`cdmp_ros.ros.qos_profiles`): ``primitive`` subscribed and ``adapted_primitive``
+QoS (:mod:`cdmp_ros.ros.qos`): ``primitive`` subscribed and ``adapted_primitive``
 published transient-local (a restarted adapter gets the latched primitive; a restarted
 streamer gets the latest adapted one); ``visualization`` transient-local (a late RViz sees
 the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
@@ -46,22 +46,22 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.adapt_requests import (AdaptRequest, clip_goal, retarget_clipped,
-                                          retarget_primitive_dict, rollout_path,
-                                          solve_goal_point)
-from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.adaptation.requests import (AdaptRequest, clip_goal, retarget_clipped,
+                                               retarget_primitive_dict, rollout_path,
+                                               solve_goal_point)
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.primitive_io import primitive_from_dict
-from cdmp_ros.ros import qos_profiles
-from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints,
-                                         parse_primitive, primitive_goal)
+from cdmp_ros.ros import qos
+from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
+                                         primitive_goal)
 from cdmp_ros.ros.adapter_viz import build_markers
 from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
                                          violated)
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
-from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate,
-                                     joint_names, json_bytes, marker_count, message_bytes)
+from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate, joint_names,
+                                     json_bytes, marker_count, message_bytes)
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
@@ -104,10 +104,10 @@ class AdapterNode(Node):
                        'outcome_unconverged': 0, 'outcome_rejected': 0,
                        'requests_outdated': 0}
 
-        self.pub = self.create_publisher(String, 'adapted_primitive', qos_profiles.LATCHED)
-        self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos_profiles.LATCHED)
+        self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
+        self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
-                                              qos_profiles.COMMAND)
+                                              qos.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
         self.reporter.set_state(OK, 'waiting for a primitive', outcome='none',
                                 limits_source=self.urdf_path)
@@ -115,17 +115,17 @@ class AdapterNode(Node):
         self._set_rates(cfg)
         gate, n = self.gate, len(self.joint_names)
         json_size = json_bytes(lambda: self.config.max_json_bytes)
-        gate.subscribe(String, 'primitive', self._on_primitive, qos_profiles.LATCHED,
+        gate.subscribe(String, 'primitive', self._on_primitive, qos.LATCHED,
                        size=json_size)
-        gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+        gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos.COMMAND,
                        size=marker_count(lambda: self.config.max_obstacles))
-        gate.subscribe(JointState, 'goal', self._on_goal, qos_profiles.COMMAND,
+        gate.subscribe(JointState, 'goal', self._on_goal, qos.COMMAND,
                        size=joint_names(lambda: n), stamped=True)
-        gate.subscribe(PointStamped, 'goal_point', self._on_goal_point, qos_profiles.COMMAND,
+        gate.subscribe(PointStamped, 'goal_point', self._on_goal_point, qos.COMMAND,
                        size=message_bytes(lambda: SMALL_MESSAGE_BYTES), stamped=True)
-        gate.subscribe(String, 'constraints', self._on_constraints, qos_profiles.COMMAND,
+        gate.subscribe(String, 'constraints', self._on_constraints, qos.COMMAND,
                        size=json_size)
-        gate.subscribe(JointState, 'joint_states', self._on_joint_states, qos_profiles.SENSOR,
+        gate.subscribe(JointState, 'joint_states', self._on_joint_states, qos.SENSOR,
                        size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
         self._results_ready = self.create_guard_condition(self._on_results)
         self.worker = SolveWorker(lambda job: solve_job(job, self.chain, self.worker.stopping),

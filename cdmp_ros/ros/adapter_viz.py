@@ -5,7 +5,7 @@ One MarkerArray replaces the previous one (its first marker is a DELETEALL):
 - ns ``path``: LINE_STRIP of the planned end-effector path (the ProMP mean, or the DMP/CDMP
   rollout from the current state), green;
 - ns ``uncertainty`` (ProMPs): one SPHERE per sample time, diameter 2 * band_sigma standard
-  deviations of the end effector (linearised, :func:`cdmp_ros.core.adapt_requests.ee_band`);
+  deviations of the end effector (linearised, :func:`cdmp_ros.core.adaptation.requests.ee_band`);
 - ns ``obstacles``: the obstacles as the adapter understood them (SPHERE / CUBE), red;
 - ns ``goal``: the Cartesian goal (goal_point), if any.
 """

@@ -21,9 +21,9 @@ from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
-from cdmp_ros.core.adapt_requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
-                                          promp_message, run_request)
-from cdmp_ros.core.adapter_config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
+                                               promp_message, run_request)
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError
 
 

@@ -32,8 +32,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
-from cdmp_ros.core.stream_primitives import prepare_primitive
-from cdmp_ros.ros import qos_profiles
+from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.ros import qos
 from cdmp_ros.ros.robot_model import default_urdf_path
 
 #: A reference whose velocity stays below this for REST_TIME is at rest (rad/s).
@@ -88,13 +88,13 @@ class DemoDriver(Node):
         self.drop = []
         self.snapshot = None
         self.done = False
-        self.obs_pub = self.create_publisher(MarkerArray, 'obstacles', qos_profiles.COMMAND)
-        self.goal_pub = self.create_publisher(JointState, 'goal', qos_profiles.COMMAND)
-        self.create_subscription(String, 'primitive', self._on_primitive, qos_profiles.LATCHED)
+        self.obs_pub = self.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        self.goal_pub = self.create_publisher(JointState, 'goal', qos.COMMAND)
+        self.create_subscription(String, 'primitive', self._on_primitive, qos.LATCHED)
         self.create_subscription(JointState, 'joint_reference', self._on_ref,
-                                 qos_profiles.REFERENCE)
+                                 qos.REFERENCE)
         self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag,
-                                 qos_profiles.COMMAND)
+                                 qos.COMMAND)
         self.snap = self.create_client(Trigger, '/sim/snapshot')
         self.refit = self.create_client(Trigger, '/learner/refit')
         self.refit_future = None

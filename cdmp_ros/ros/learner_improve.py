@@ -1,6 +1,6 @@
 """The learner's ``~/improve`` worker and its demonstration sources (no rclpy here).
 
-:class:`ImproveWorker` runs :class:`cdmp_ros.core.improve.Improver` in a daemon thread so the
+:class:`ImproveWorker` runs :class:`cdmp_ros.core.dmp.improve.Improver` in a daemon thread so the
 node keeps serving its topics and services; the node polls :meth:`ImproveWorker.progress` and
 :meth:`ImproveWorker.result` from its executor thread (all ROS calls stay there). The ``sim``
 cost builds its pybullet world inside the worker thread and closes it there. Setting
@@ -17,8 +17,8 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 from cdmp_ros.core.demonstrations import Demo, map_demonstration
 from cdmp_ros.core.errors import Cancelled, CdmpError, ValidationError
-from cdmp_ros.core.improve import (CostConfig, ImproveConfig, ImproveResult, Improver,
-                                   ScriptedCost, UpdateReport)
+from cdmp_ros.core.dmp.improve import (CostConfig, ImproveConfig, ImproveResult, Improver,
+                                       ScriptedCost, UpdateReport)
 from cdmp_ros.core.resources import share_dirs
 
 

@@ -16,9 +16,9 @@
   while one runs is refused).
 
 Parameters mirror :class:`~cdmp_ros.core.learning.LearnerConfig` (top level),
-:class:`~cdmp_ros.core.dmp.DmpConfig` (``dmp.*``), :class:`~cdmp_ros.core.learning.
-PrompLearnConfig` (``promp.*``), :class:`~cdmp_ros.core.improve.ImproveConfig`
-(``improve.*``) and :class:`~cdmp_ros.core.improve.CostConfig` (``cost.*``), plus the
+:class:`~cdmp_ros.core.dmp.dmp.DmpConfig` (``dmp.*``), :class:`~cdmp_ros.core.learning.
+PrompLearnConfig` (``promp.*``), :class:`~cdmp_ros.core.dmp.improve.ImproveConfig`
+(``improve.*``) and :class:`~cdmp_ros.core.dmp.improve.CostConfig` (``cost.*``), plus the
 read-only ``limits.lower`` / ``limits.upper`` (empty: the limits of ``urdf_path``).
 """
 import collections
@@ -37,13 +37,13 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from cdmp_ros.core.demonstrations import DemonstrationSegmenter
-from cdmp_ros.core.dmp import DmpConfig
+from cdmp_ros.core.dmp.dmp import DmpConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.improve import CostConfig, ImproveConfig
+from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
 from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig, fit_primitive
 from cdmp_ros.core.primitive_io import primitive_to_dict, save_primitive
 from cdmp_ros.core.validation import check_limits
-from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import JointStateMapper, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names
@@ -75,9 +75,9 @@ class LearnerNode(Node):
                                                 cfg.demonstration_gap, cfg.min_samples,
                                                 cfg.max_samples, cfg.limit_tolerance)
         self.topic_demos = collections.deque(maxlen=cfg.max_demonstrations)
-        self.pub = self.create_publisher(String, 'primitive', qos_profiles.LATCHED)
+        self.pub = self.create_publisher(String, 'primitive', qos.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
-                                              qos_profiles.COMMAND)
+                                              qos.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'learner')
         self.gate = InputGate(self, self.reporter, lambda: self.config)
         self.gate.set_rates({'demonstration': cfg.max_input_rate})

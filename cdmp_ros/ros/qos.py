@@ -1,4 +1,16 @@
-"""QoS profiles: rclpy <-> rosbag2 metadata dicts, and the recorder's adaptive choice.
+"""QoS of cdmp_ros: the profiles of its topics, rclpy <-> rosbag2 metadata dicts, and the
+recorder's adaptive choice.
+
+Topic profiles (design.md, Topics):
+
+- ``joint_reference``: :data:`REFERENCE`, reliable, volatile, keep last 10: matches reliable
+  and best-effort controller subscriptions; never replays stale references.
+- ``joint_states`` (subscribed): :data:`SENSOR`, best effort, keep last 5: matches any
+  publisher; only the newest sample matters.
+- ``goal``, ``obstacles``, ``diagnostics``: :data:`COMMAND`, reliable, volatile, keep last 10
+  (as ``ros2 topic pub`` and ``diagnostic_updater``).
+- ``primitive``, ``adapted_primitive``: :data:`LATCHED`, reliable, transient local, keep last
+  1: a late subscriber (a restarted streamer) still gets the current primitive.
 
 The recorder subscribes like ``ros2 bag record``: reliable only if every publisher offers
 reliable, transient-local only if every publisher offers it (so latched topics such as
@@ -11,6 +23,29 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSPro
                        ReliabilityPolicy)
 
 from cdmp_ros.bag.metadata import INFINITE
+
+
+REFERENCE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+SENSOR = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                    reliability=ReliabilityPolicy.BEST_EFFORT,
+                    durability=DurabilityPolicy.VOLATILE)
+COMMAND = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.VOLATILE)
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: The sim's ``joint_states`` and ``ee_pose``: reliable, volatile, keep last 50.
+SIM_STATE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+#: ``/clock`` of the sim (``publish_clock``): reliable, volatile, keep last 1.
+CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                   reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.VOLATILE)
 
 #: Default depth of the recorder's subscription queues (messages per topic).
 RECORDER_DEPTH = 10000

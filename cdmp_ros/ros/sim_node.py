@@ -3,11 +3,11 @@
 Topics (relative names, remappable):
 
 - subscribes ``joint_reference`` (sensor_msgs/JointState; QoS reliable, volatile, keep last
-  10 = :data:`~cdmp_ros.ros.qos_profiles.REFERENCE`, lossless from the streamer) and
-  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos_profiles.COMMAND`);
+  10 = :data:`~cdmp_ros.ros.qos.REFERENCE`, lossless from the streamer) and
+  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos.COMMAND`);
 - publishes ``joint_states`` (names, position, velocity, effort) and ``ee_pose``
   (geometry_msgs/PoseStamped of the tool centre point, in ``base_frame``) at
-  ``publish_rate`` of simulated time (QoS :data:`~cdmp_ros.ros.sim_support.STATE_QOS`:
+  ``publish_rate`` of simulated time (QoS :data:`~cdmp_ros.ros.qos.SIM_STATE`:
   reliable, volatile, keep last 50, so the burst of one late tick, up to
   ``max_catch_up * publish_rate`` messages, reaches a reliable subscriber whole; matches
   reliable and best-effort subscribers), ``diagnostics`` (COMMAND) and, with
@@ -57,14 +57,14 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.ros import qos_profiles
+from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.sim_support import CLOCK_QOS, STATE_QOS
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
+
 
 #: Timer period and stepping slice [s] when ``real_time`` is false.
 FAST_PERIOD, FAST_SLICE = 0.002, 0.0015
@@ -130,22 +130,22 @@ class SimNode(Node):
         self.mapper = JointStateMapper(sim.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(sim.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
-        self.js_pub = self.create_publisher(JointState, 'joint_states', STATE_QOS)
-        self.pose_pub = self.create_publisher(PoseStamped, 'ee_pose', STATE_QOS)
+        self.js_pub = self.create_publisher(JointState, 'joint_states', qos.SIM_STATE)
+        self.pose_pub = self.create_publisher(PoseStamped, 'ee_pose', qos.SIM_STATE)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
-                                              qos_profiles.COMMAND)
+                                              qos.COMMAND)
         self.clock_pub = None
         if cfg.publish_clock:
             from rosgraph_msgs.msg import Clock as ClockMsg
             self._clock_msg = ClockMsg()
-            self.clock_pub = self.create_publisher(ClockMsg, '/clock', CLOCK_QOS)
+            self.clock_pub = self.create_publisher(ClockMsg, '/clock', qos.CLOCK)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
         self.gate = InputGate(self, self.reporter, lambda: self.config, now_ns=self._now_ns)
         self._set_rates(cfg)
         self.gate.subscribe(JointState, 'joint_reference', self._on_reference,
-                            qos_profiles.REFERENCE, size=joint_names(lambda: len(sim.joint_names)),
+                            qos.REFERENCE, size=joint_names(lambda: len(sim.joint_names)),
                             stamped=True)
-        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos.COMMAND,
                             size=marker_count(lambda: self.config.max_obstacles))
         self.create_service(Trigger, '~/snapshot', self._on_snapshot)
         self.create_service(Trigger, '~/reset', self._on_reset)

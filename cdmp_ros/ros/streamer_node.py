@@ -1,4 +1,4 @@
-"""The streamer node: ROS glue around :class:`cdmp_ros.core.streaming.ReferenceStreamer`.
+"""The streamer node: ROS glue around :class:`cdmp_ros.core.streaming.streamer.ReferenceStreamer`.
 
 Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``,
 and with ``controller_output`` the same references for a ros2_control controller in its joint
@@ -43,16 +43,16 @@ from std_msgs.msg import Float64MultiArray, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.coupling import DampingConfig
+from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
-from cdmp_ros.core.obstacle_coupling import CouplingConfig, ObstacleCoupling
-from cdmp_ros.core.stream_primitives import prepare_primitive
-from cdmp_ros.core.streamer_config import DEFAULT_CONTROLLER_TOPICS
-from cdmp_ros.core.streaming import (CouplingSource, ReferenceStreamer,
-                                     StreamerConfig, StreamFlags, StreamState)
-from cdmp_ros.ros import qos_profiles
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
+from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, StreamerConfig,
+                                              StreamFlags, StreamState)
+from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
@@ -95,9 +95,9 @@ class StreamerNode(Node):
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
 
-        self.pub = self.create_publisher(JointState, 'joint_reference', qos_profiles.REFERENCE)
+        self.pub = self.create_publisher(JointState, 'joint_reference', qos.REFERENCE)
         self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
-                                              qos_profiles.COMMAND)
+                                              qos.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
         self.reporter.values['limits_source'] = self.urdf_path
         # the reporter's own lock: building and publishing diagnostics (milliseconds on a
@@ -112,14 +112,14 @@ class StreamerNode(Node):
         cfg_now = lambda: self.config  # noqa: E731
         for topic in PRIMITIVE_TOPICS:
             self.gate.subscribe(String, topic, lambda m, t=topic: self._on_primitive(t, m),
-                                qos_profiles.LATCHED,
+                                qos.LATCHED,
                                 size=json_bytes(lambda: cfg_now().max_json_bytes))
-        self.gate.subscribe(JointState, 'goal', self._on_goal, qos_profiles.COMMAND,
+        self.gate.subscribe(JointState, 'goal', self._on_goal, qos.COMMAND,
                             size=joint_names(lambda: n), stamped=True)
         self.gate.subscribe(JointState, 'joint_states', self._on_joint_states,
-                            qos_profiles.SENSOR, size=joint_names(lambda: n + EXTRA_JOINTS),
+                            qos.SENSOR, size=joint_names(lambda: n + EXTRA_JOINTS),
                             stamped=True)
-        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos_profiles.COMMAND,
+        self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos.COMMAND,
                             size=marker_count(lambda: cfg_now().max_obstacles))
 
         self.worker = PrimitiveWorker(self._prepare)
@@ -187,12 +187,12 @@ class StreamerNode(Node):
         if cfg.controller_output == 'forward_command':
             writer = ForwardCommandWriter(Float64MultiArray(), cfg.joint_names, joints)
             pub = self.create_publisher(Float64MultiArray, self.controller_topic,
-                                        qos_profiles.COMMAND)
+                                        qos.COMMAND)
         elif cfg.controller_output == 'joint_trajectory':
             writer = JointTrajectoryWriter(JointTrajectory(), JointTrajectoryPoint(),
                                            cfg.joint_names, joints, cfg.dt, cfg.base_frame)
             pub = self.create_publisher(JointTrajectory, self.controller_topic,
-                                        qos_profiles.COMMAND)
+                                        qos.COMMAND)
         else:
             return None, None
         self.get_logger().info(f'{cfg.controller_output} controller output on '

@@ -18,8 +18,8 @@ from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
                                   PositionController)
 from cdmp_ros.sim.obstacles import Contact, DistanceReport, LinkDistance, ObstacleInfo
 from cdmp_ros.sim.robot import JointReference, Robot
-from cdmp_ros.sim.robots import (add_dual_panda, panda_spec, planar_arm_spec, planar_arm_urdf,
-                                 planar_arm_urdf_path, RobotSpec)
+from cdmp_ros.sim.robot_specs import (add_dual_panda, panda_spec, planar_arm_spec, planar_arm_urdf,
+                                      planar_arm_urdf_path, RobotSpec)
 from cdmp_ros.sim.world import World, WorldConfig
 
 __all__ = [

@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdmp_ros.core.kinematics import PANDA_EE_OFFSET
 from cdmp_ros.core.validation import as_array
 from cdmp_ros.sim.control import ComputedTorqueController
-from cdmp_ros.sim.robots import panda_spec
+from cdmp_ros.sim.robot_specs import panda_spec
 from cdmp_ros.sim.world import World, WorldConfig
 
 BALL_RADIUS = 0.012

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.transform import TanhTransform
+from cdmp_ros.core.dmp.transform import TanhTransform
 from cdmp_ros.core.validation import as_array, check_positive
 
 Gain = Union[float, Sequence[float]]
@@ -60,7 +60,7 @@ def joint_to_exogenous(q: ArrayLike, lower: ArrayLike, upper: ArrayLike,
                        margin: float = 0.0) -> NDArray[np.float64]:
     """Exogenous coordinates ``xi = arctanh(delta^-1 (q - q_o))``, Eq. (5), paper 000.
 
-    A thin wrapper over :meth:`cdmp_ros.core.transform.TanhTransform.to_exogenous`:
+    A thin wrapper over :meth:`cdmp_ros.core.dmp.transform.TanhTransform.to_exogenous`:
     ``q_o = (q_min + q_max) / 2`` and ``delta = (q_max - q_min) / 2`` (Eq. 3). Positions are
     first clipped to ``q_o +- (1 - margin) delta`` so that a reference at or beyond a limit
     maps to a finite ``xi``; ``margin = 0`` leaves 1e-12 of the half-range.
@@ -82,7 +82,7 @@ def joint_to_exogenous(q: ArrayLike, lower: ArrayLike, upper: ArrayLike,
 def exogenous_to_joint(xi: ArrayLike, lower: ArrayLike, upper: ArrayLike
                        ) -> NDArray[np.float64]:
     """``q = delta tanh(xi) + q_o``, Eq. (3), paper 000 (wraps
-    :meth:`~cdmp_ros.core.transform.TanhTransform.to_joint`, which saturates ``xi`` so that
+    :meth:`~cdmp_ros.core.dmp.transform.TanhTransform.to_joint`, which saturates ``xi`` so that
     ``q`` stays at least 1e-9 of the half-range inside the limits)."""
     return _transform(lower, upper).to_joint(xi)
 

@@ -44,7 +44,7 @@ from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
                                   JointLimitAvoidingGains, PositionControlGains,
                                   PositionController)
 from cdmp_ros.sim.node_config import SimConfig
-from cdmp_ros.sim.robots import add_dual_panda, panda_spec, planar_arm_spec
+from cdmp_ros.sim.robot_specs import add_dual_panda, panda_spec, planar_arm_spec
 from cdmp_ros.sim.world import World, WorldConfig
 
 Obstacle = Union[Sphere, Box, OrientedBox]

@@ -8,10 +8,9 @@ descriptors), except ``initial_positions``, a float array that the node declares
 from dataclasses import dataclass, field
 from typing import Optional, Tuple
 
-from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields,
-                                         max_obstacles_param, obstacle_distance_param,
-                                         obstacle_size_param, param as _param,
-                                         stamp_age_param, stamp_lead_param)
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, max_obstacles_param,
+                                         obstacle_distance_param, obstacle_size_param,
+                                         param as _param, stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array
 

@@ -3,7 +3,7 @@
 Every rollout's joint reference ``(Y, Yd, Ydd)`` is tracked by the Franka Panda of
 ``pybullet_data`` in a private headless (DIRECT) world with computed-torque control (paper
 000, Eq. 2), one physics step per rollout step. The per-step cost is the scripted cost
-(:class:`cdmp_ros.core.improve.ScriptedCost`: jerk, end-effector clearance from the obstacle,
+(:class:`cdmp_ros.core.dmp.improve.ScriptedCost`: jerk, end-effector clearance from the obstacle,
 final joint error) evaluated on the **measured** joint positions, plus
 ``torque_weight * |tau_t|^2 dt`` on the commanded torques.
 
@@ -15,11 +15,11 @@ from typing import Optional
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.dmp import Trajectory
+from cdmp_ros.core.dmp.dmp import Trajectory
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.improve import ScriptedCost
+from cdmp_ros.core.dmp.improve import ScriptedCost
 from cdmp_ros.sim.control import ComputedTorqueController
-from cdmp_ros.sim.robots import panda_spec
+from cdmp_ros.sim.robot_specs import panda_spec
 from cdmp_ros.sim.world import World, WorldConfig
 
 

@@ -26,7 +26,7 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 from cdmp_ros.sim.camera import CameraConfig
 from cdmp_ros.sim.obstacles import ObstacleInfo
-from cdmp_ros.sim.robots import PANDA_HOME, panda_spec
+from cdmp_ros.sim.robot_specs import PANDA_HOME, panda_spec
 
 # Hand pointing down (rotation by pi about x), quaternion (x, y, z, w).
 HAND_DOWN = (1.0, 0.0, 0.0, 0.0)

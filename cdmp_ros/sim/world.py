@@ -26,7 +26,7 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 from cdmp_ros.sim.obstacles import Obstacles
 from cdmp_ros.sim.robot import Robot
-from cdmp_ros.sim.robots import RobotSpec
+from cdmp_ros.sim.robot_specs import RobotSpec
 
 
 @dataclass(frozen=True)
@@ -148,7 +148,7 @@ class World:
         Parameters
         ----------
         spec : RobotSpec
-            What to load (see :func:`cdmp_ros.sim.robots.panda_spec`, ``planar_arm_spec``).
+            What to load (see :func:`cdmp_ros.sim.robot_specs.panda_spec`, ``planar_arm_spec``).
         base_position : (3,) array-like
             Base position in the world frame [m].
         base_orientation : (4,) array-like

@@ -6,10 +6,9 @@ pure-Python fast path. Build chains with :func:`planar_chain`, :func:`chain_from
 :func:`panda_chain` (the Panda URDF path is passed in by the caller; core never imports
 pybullet). Closest points between link segments and obstacles: :mod:`.closest`.
 """
-from cdmp_ros.core.kinematics.builders import (DUAL_PANDA_DISTANCE, PANDA_EE_OFFSET,
-                                               PANDA_JOINTS, chain_from_urdf,
-                                               dual_panda_chains, panda_chain, planar_chain,
-                                               pose)
+from cdmp_ros.core.kinematics.builders import (DUAL_PANDA_DISTANCE, PANDA_EE_OFFSET, PANDA_JOINTS,
+                                               chain_from_urdf, dual_panda_chains, panda_chain,
+                                               planar_chain, pose)
 from cdmp_ros.core.kinematics.chain import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import (Box, ClosestPoint, OrientedBox, Sphere,
                                               closest_distances, link_closest_point)

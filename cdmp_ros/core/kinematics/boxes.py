@@ -1,6 +1,6 @@
 """Closest points to axis-aligned boxes on plain floats (single points and segments).
 
-The single-configuration coupling (:mod:`cdmp_ros.core.coupling_kernel`) calls these every
+The single-configuration coupling (:mod:`cdmp_ros.core.coupling.kernel`) calls these every
 tick; :mod:`.closest` holds the batched numpy versions and uses these for one segment.
 """
 import math

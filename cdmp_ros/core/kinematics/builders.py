@@ -6,7 +6,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.chain import Chain
-from cdmp_ros.core.urdf import parse_urdf, parse_urdf_string, rpy_to_matrix
+from cdmp_ros.core.kinematics.urdf import parse_urdf, parse_urdf_string, rpy_to_matrix
 from cdmp_ros.core.validation import as_array
 
 #: Panda tool centre point in the ``panda_hand`` frame: between the fingertips, the origin of

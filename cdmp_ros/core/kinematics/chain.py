@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics import fast
+from cdmp_ros.core.kinematics import codegen
 
 
 @dataclass(frozen=True)
@@ -372,7 +372,7 @@ class Chain:
         return out
 
     def fast_kernel(self, points: Sequence[PointOfInterest]):
-        """The generated single-configuration kernel of ``points`` (see :mod:`.fast`).
+        """The generated single-configuration kernel of ``points`` (see :mod:`.codegen`).
 
         ``kernel(q)`` takes a list of n_dofs floats and returns flat lists ``x``
         (3 * n_points) and ``jac`` (n_points * 3 * n_dofs, row-major (n_points, 3, n_dofs)).
@@ -382,8 +382,8 @@ class Chain:
         kernel = self._kernels.get(key)
         if kernel is None:
             frames, coords = self.resolve(key)
-            kernel = fast.compile_kernel(self.B, self.base_transform, self.prismatic,
-                                         frames.tolist(), coords)
+            kernel = codegen.compile_kernel(self.B, self.base_transform, self.prismatic,
+                                            frames.tolist(), coords)
             if len(self._kernels) > 64:
                 self._kernels.clear()
             self._kernels[key] = kernel

@@ -25,7 +25,7 @@ from typing import List, Optional
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.basis import U_END
+from cdmp_ros.core.dmp.basis import U_END
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 
@@ -76,7 +76,7 @@ class StepOutput:
 
 
 class DmpStepper:
-    """Integrates a fitted :class:`~cdmp_ros.core.dmp.DMP` or ``CDMP`` one step per call.
+    """Integrates a fitted :class:`~cdmp_ros.core.dmp.dmp.DMP` or ``CDMP`` one step per call.
 
     Parameters
     ----------

@@ -12,12 +12,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from cdmp_ros.core.adaptation_config import (AdaptationConfig, AdaptationReport,
-                                             ConstraintReport)
-from cdmp_ros.core.adaptation_problem import Problem
-from cdmp_ros.core.constraints.base import WeightConstraint
+from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport)
+from cdmp_ros.core.adaptation.problem import Problem
+from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
 from cdmp_ros.core.errors import Cancelled
-from cdmp_ros.core.promp import ProMP
+from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
            'sample_points', 'monte_carlo_satisfaction']

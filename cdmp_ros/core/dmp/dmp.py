@@ -1,7 +1,7 @@
 """Dynamic Movement Primitives and Constrained DMPs (paper 000, Eq. 13-29).
 
 A :class:`DMP` integrates the transformation system in joint space; a :class:`CDMP` integrates
-the same system in the exogenous space ``xi`` of the tanh map (:mod:`cdmp_ros.core.transform`),
+the same system in the exogenous space ``xi`` of the tanh map (:mod:`cdmp_ros.core.dmp.transform`),
 so every produced position lies strictly inside ``(y_min, y_max)``.
 
 With the scaled velocity ``z = tau * dx/dt`` the transformation system (Eq. 13/21) reads
@@ -12,7 +12,7 @@ semi-implicit Euler with a fixed step ``dt``.
 
 Two integrators share these equations: :meth:`DMP.rollout` (vectorised over time when no
 state-dependent coupling is given, through the equivalent second-order linear recursion and
-``scipy.signal.lfilter``) and :class:`cdmp_ros.core.stepper.DmpStepper` (one step per call, for
+``scipy.signal.lfilter``) and :class:`cdmp_ros.core.dmp.stepper.DmpStepper` (one step per call, for
 streaming). They agree to rounding (tested).
 """
 from dataclasses import dataclass
@@ -22,10 +22,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.signal import lfilter
 
-from cdmp_ros.core.basis import PhaseBasis
+from cdmp_ros.core.dmp.basis import PhaseBasis
 from cdmp_ros.core.config_fields import check_fields, param
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.transform import TanhTransform, XI_SAT
+from cdmp_ros.core.dmp.transform import TanhTransform, XI_SAT
 from cdmp_ros.core.validation import as_array, check_positive
 
 #: Clamp of |tau * dz/dt| (internal units); keeps any finite input finite.
@@ -60,7 +60,7 @@ class DmpConfig:
         matrix.
     demo_margin : float
         CDMP: fraction of the half range kept free when clipping demonstrations, goals and
-        starts that touch or cross a limit (see :mod:`cdmp_ros.core.transform`).
+        starts that touch or cross a limit (see :mod:`cdmp_ros.core.dmp.transform`).
     """
 
     n_weights_per_dim: int = param(30, 'Gaussian kernels per degree of freedom.', 1, 1000)
@@ -244,7 +244,7 @@ class DMP:
             Temporal scaling (duration of the movement); default the fitted ``tau_``.
         start_y, goal_y : array-like, shape (n_dims,), optional
             Start and goal; default the fitted ones. CDMP: values at or beyond a limit are
-            clipped (see :mod:`cdmp_ros.core.transform`).
+            clipped (see :mod:`cdmp_ros.core.dmp.transform`).
         duration : float, optional
             Integrated time span; default ``tau``.
         start_yd : array-like, shape (n_dims,), optional
@@ -258,7 +258,7 @@ class DMP:
             Exploration noise on the internal goal (Eq. 33).
         velocity_limits : array-like, shape (n_dims,), optional
             Per-joint velocity limits: the phase is slowed so that ``|yd|`` stays within them
-            (see :class:`cdmp_ros.core.stepper.DmpStepper`).
+            (see :class:`cdmp_ros.core.dmp.stepper.DmpStepper`).
 
         Returns
         -------
@@ -344,7 +344,7 @@ class DMP:
 
     def _rollout_stepwise(self, dt, tau, n_steps, start_y, start_yd, goal_y, eps, g_noise,
                           coupling, velocity_limits):
-        from cdmp_ros.core.stepper import DmpStepper
+        from cdmp_ros.core.dmp.stepper import DmpStepper
         noise_phi = None
         if eps is not None:
             Phi = self.basis.features(np.arange(n_steps) * (dt / tau))
@@ -372,8 +372,8 @@ class DMP:
     def stepper(self, dt: float, start_y: Optional[ArrayLike] = None,
                 start_yd: Optional[ArrayLike] = None, goal_y: Optional[ArrayLike] = None,
                 tau: Optional[float] = None, velocity_limits: Optional[ArrayLike] = None):
-        """A :class:`cdmp_ros.core.stepper.DmpStepper` for streaming this primitive."""
-        from cdmp_ros.core.stepper import DmpStepper
+        """A :class:`cdmp_ros.core.dmp.stepper.DmpStepper` for streaming this primitive."""
+        from cdmp_ros.core.dmp.stepper import DmpStepper
         return DmpStepper(self, dt, start_y=start_y, start_yd=start_yd, goal_y=goal_y,
                           tau=tau, velocity_limits=velocity_limits)
 

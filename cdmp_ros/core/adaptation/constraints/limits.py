@@ -3,10 +3,10 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from cdmp_ros.core.constraints.base import Constraint
-from cdmp_ros.core.constraints.points import DofPoint
+from cdmp_ros.core.adaptation.constraints.base import Constraint
+from cdmp_ros.core.adaptation.constraints.points import DofPoint
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.gaussian import normal_cdf, normal_pdf
+from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 
 Bound = Union[None, float, Callable]
 

@@ -5,10 +5,9 @@ from typing import Tuple
 
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
                                          max_json_bytes_param, max_obstacles_param,
-                                         obstacle_distance_param,
-                                         obstacle_size_param, param as _param,
-                                         robot_description_param,
-                                         stamp_age_param, stamp_lead_param)
+                                         obstacle_distance_param, obstacle_size_param,
+                                         param as _param, robot_description_param, stamp_age_param,
+                                         stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 

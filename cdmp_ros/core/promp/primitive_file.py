@@ -10,7 +10,7 @@ from typing import Any, Dict
 import numpy as np
 
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
-from cdmp_ros.core.promp import ProMP, RbfBasis
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
 def promp_body(promp: ProMP) -> Dict[str, Any]:

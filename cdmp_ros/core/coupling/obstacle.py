@@ -13,7 +13,7 @@ Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest
 over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
 the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``. Near a
 joint limit (usage above ``CouplingConfig.limit_onset``) the link terms are the joint-limit
-weighted form of Eq. (12) (:mod:`cdmp_ros.core.coupling`)::
+weighted form of Eq. (12) (:mod:`cdmp_ros.core.coupling.terms`)::
 
     dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l,   D = diag(sqrt(s_i)),
     s_i = (1 - rho_i)^2 (1 + 2 rho_i),   rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
@@ -22,7 +22,7 @@ with ``u_i`` the limit usage of joint i, ``u_on``/``u_lock`` = ``limit_onset``/`
 (``D = I`` below the onset: Eq. 12 unchanged).
 
 With three task rows and velocity-independent fields the whole evaluation runs in one
-generated function (:mod:`cdmp_ros.core.coupling_kernel`; no Jacobian at all when no field is
+generated function (:mod:`cdmp_ros.core.coupling.kernel`; no Jacobian at all when no field is
 active); otherwise :meth:`ObstacleCoupling.joint_acceleration_generic` (kernel of both segment
 ends, ``J_o = (1 - t) J_a + t J_b``, exact because point Jacobians of one rigid link are affine
 in the point). :meth:`ObstacleCoupling.to_internal` maps the result to the stepper's exogenous
@@ -35,10 +35,10 @@ from typing import List, Optional, Sequence, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.coupling import DampingConfig, LimitScale, coupling_3d, scalar_coupling
-from cdmp_ros.core.coupling_kernel import ClosestPointGate, compile_coupling
+from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d, scalar_coupling
+from cdmp_ros.core.coupling.kernel import ClosestPointGate, compile_coupling
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
                                               segment_box_scalar)
@@ -58,7 +58,7 @@ class CouplingConfig:
     Attributes
     ----------
     damping : DampingConfig
-        Pseudo-inverse damping (:mod:`cdmp_ros.core.coupling`).
+        Pseudo-inverse damping (:mod:`cdmp_ros.core.coupling.terms`).
     link_radius : float
         Radius [m] of the capsules modelling the links (distances are to the capsule surface).
     end_effector : bool
@@ -66,7 +66,7 @@ class CouplingConfig:
         null space of the end-effector task.
     limit_aware : bool
         Weight the link terms (Eq. 12) away from joints near their limits (weighted least
-        norm, module docstring of :mod:`cdmp_ros.core.coupling`); False: Eq. (12) as is.
+        norm, module docstring of :mod:`cdmp_ros.core.coupling.terms`); False: Eq. (12) as is.
     limit_onset : float
         Joint limit usage ``|q - q_o| / y_delta`` above which that weighting starts.
     limit_lock : float
@@ -204,7 +204,7 @@ class ObstacleCoupling:
                                    obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
         """:meth:`joint_acceleration` without the generated kernel (any task axes, fields
         that depend on the velocity): kernel of both segment ends, ``J_o`` interpolated, and
-        :func:`~cdmp_ros.core.coupling.coupling_3d` / ``scalar_coupling``."""
+        :func:`~cdmp_ros.core.coupling.terms.coupling_3d` / ``scalar_coupling``."""
         n = self.chain.n_dofs
         ql = q.tolist() if isinstance(q, np.ndarray) else list(q)
         qdl = (qd.tolist() if isinstance(qd, np.ndarray) else list(qd)) if qd is not None \

@@ -23,7 +23,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.dmp import Trajectory
+from cdmp_ros.core.dmp.dmp import Trajectory
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 
@@ -94,7 +94,7 @@ class Trial:
 
 
 class Pi2:
-    """PI2 on a fitted :class:`~cdmp_ros.core.dmp.DMP` or ``CDMP`` (updated in place).
+    """PI2 on a fitted :class:`~cdmp_ros.core.dmp.dmp.DMP` or ``CDMP`` (updated in place).
 
     Parameters
     ----------

@@ -48,7 +48,7 @@ plain floats. With damping active ``I - J^+ J`` is no longer idempotent, so Eq. 
 agree only where the end-effector Jacobian is undamped.
 
 This module holds the numpy reference implementations (batched over leading axes) and the
-scalar kernels; :mod:`cdmp_ros.core.obstacle_coupling` assembles them with the kinematics and
+scalar kernels; :mod:`cdmp_ros.core.coupling.obstacle` assembles them with the kinematics and
 the potential fields.
 """
 import math

@@ -22,14 +22,14 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.adaptation import AdaptationConfig, AdaptationReport, adapt
-from cdmp_ros.core.adapter_config import AdaptRequestConfig
-from cdmp_ros.core.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport, adapt
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig
+from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.ik import IkResult, solve_position_ik
+from cdmp_ros.core.kinematics.ik import IkResult, solve_position_ik
 from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
 from cdmp_ros.core.kinematics.closest import box_signed_distance
-from cdmp_ros.core.promp import ProMP
+from cdmp_ros.core.promp.promp import ProMP
 from cdmp_ros.core.validation import as_array
 
 Obstacle = Union[Sphere, Box, OrientedBox]
@@ -80,7 +80,8 @@ def solve_goal_point(chain, target: ArrayLike, seeds: Sequence[ArrayLike], tol: 
                      max_iter: int = 200, margin: float = 1e-3) -> IkResult:
     """Joint goal putting the end effector at ``target`` (3,) [m] in the base frame.
 
-    Damped least-squares IK (:func:`cdmp_ros.core.ik.solve_position_ik`) from each seed in
+    Damped least-squares IK (:func:`cdmp_ros.core.kinematics.ik.solve_position_ik`) from each
+    seed in
     turn (e.g. the current joint state, the primitive's goal); the first solution within
     ``tol`` is returned.
 
@@ -164,7 +165,7 @@ def box_wall(box: Union[Box, OrientedBox], X: ArrayLike, margin: float = 0.0
     -------
     normal : (3,)
         Unit normal pointing into the forbidden side (into the box), as
-        :class:`~cdmp_ros.core.constraints.Hyperplane` expects: the wall holds when
+        :class:`~cdmp_ros.core.adaptation.constraints.Hyperplane` expects: the wall holds when
         ``normal . (x - offset) <= 0``.
     offset : (3,)
         A point of the plane (the face centre moved out by ``margin``).
@@ -236,7 +237,7 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         A link of ``cfg.avoid_links`` that the chain does not have, or a user constraint set
         that does not fit the primitive.
     """
-    from cdmp_ros.core.constraints.parse import RobotContext, parse_constraint_set
+    from cdmp_ros.core.adaptation.constraints.parse import RobotContext, parse_constraint_set
     prior = req.prior
     n = prior.n_dims
     if n != chain.n_dofs:
@@ -336,7 +337,7 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
     A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
     only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
     satisfaction probabilities without keeping the solver thread from newer requests.
-    ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.adapt` (raises
+    ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.solver.adapt` (raises
     :class:`~cdmp_ros.core.errors.Cancelled` when it returns True).
     """
     prob = build_problem(req, chain, cfg)
@@ -353,7 +354,7 @@ def promp_message(promp: ProMP) -> str:
     construction; the validation of a 7-DoF ProMP's 70 x 70 covariance costs ~55 ms, a fifth
     of the adapter's latency budget). A test checks both give the same document."""
     from cdmp_ros.core.primitive_io import FORMAT_VERSION
-    from cdmp_ros.core.promp_io import promp_to_dict
+    from cdmp_ros.core.promp.primitive_file import promp_to_dict
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': 'promp',
                          'joint_names': list(promp.joint_names), 'n_dims': promp.n_dims}
     d.update(promp_to_dict(promp))

@@ -6,9 +6,9 @@ from typing import Optional
 
 import numpy as np
 
-from cdmp_ros.core.constraints.base import Constraint
-from cdmp_ros.core.constraints.points import DifferencePoint, Point
-from cdmp_ros.core.gaussian import gamma_cdf, quadratic_moments
+from cdmp_ros.core.adaptation.constraints.base import Constraint
+from cdmp_ros.core.adaptation.constraints.points import DifferencePoint, Point
+from cdmp_ros.core.promp.gaussian import gamma_cdf, quadratic_moments
 from cdmp_ros.core.validation import as_array, check_positive
 
 

@@ -8,12 +8,12 @@ from typing import List, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.adaptation_config import AdaptationConfig
-from cdmp_ros.core.constraints.base import Constraint, WeightConstraint
-from cdmp_ros.core.constraints.points import ChainPoint, DofPoint, StackedChainPoints
+from cdmp_ros.core.adaptation.config import AdaptationConfig
+from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
+from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint, StackedChainPoints
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.gaussian import UnscentedTransform
-from cdmp_ros.core.promp import ProMP
+from cdmp_ros.core.promp.gaussian import UnscentedTransform
+from cdmp_ros.core.promp.promp import ProMP
 
 
 def _contiguous_dofs(point):

@@ -1,11 +1,11 @@
 """Generated single-configuration obstacle coupling (paper 000, Eq. 7 and Eq. 12).
 
 :func:`compile_coupling` generates, once per chain and set of link segments, one straight-line
-Python function that evaluates the whole coupling of :class:`~cdmp_ros.core.obstacle_coupling.
+Python function that evaluates the whole coupling of :class:`~cdmp_ros.core.coupling.obstacle.
 ObstacleCoupling` for one configuration on plain floats:
 
 1. forward kinematics of the end effector and of the segment end points (the frame recursion of
-   :mod:`cdmp_ros.core.kinematics.fast`, constants folded);
+   :mod:`cdmp_ros.core.kinematics.codegen`, constants folded);
 2. a call ``gate(x, obstacles)`` (closest points and potential fields, written in Python by the
    caller) that returns None when no field is active (then no Jacobian is computed at all) or
    the end-effector acceleration and, per link, the closest point ``p`` (world) and its
@@ -13,30 +13,30 @@ ObstacleCoupling` for one configuration on plain floats:
 3. the end-effector Jacobian and, per active link, the Jacobian ``J_o`` of the point ``p``
    rigidly attached to the link (columns ``z_j x (p - o_j)`` of the joints that move it only:
    the others are zero and are folded away);
-4. Eq. (7) and Eq. (12) with the damped inverses of :func:`cdmp_ros.core.coupling.
-   _inverse_h3`, exactly as :func:`cdmp_ros.core.coupling.coupling_3d` (same formulas, with
+4. Eq. (7) and Eq. (12) with the damped inverses of :func:`cdmp_ros.core.coupling.terms.
+   _inverse_h3`, exactly as :func:`cdmp_ros.core.coupling.terms.coupling_3d` (same formulas, with
    every 3-vector and 3x3 matrix held in local variables, and the dot products unrolled);
 5. near a joint limit (``limit(q)`` returns the inverse weights ``s``, module docstring of
-   :mod:`cdmp_ros.core.coupling`), Eq. (12) in its limit-aware form
+   :mod:`cdmp_ros.core.coupling.terms`), Eq. (12) in its limit-aware form
    ``D (J_o D (I - (J D)^+ J D))^+ dx`` with ``D^2 = diag(s)``: the same link block on the
    weighted Gram matrices ``J S J^T``, ``J S J_o^T``, ``J_o S J_o^T`` (``S = diag(s)``), its
    result ``S (J_o^T u - J^T W u)`` accumulated apart from Eq. (7).
 
 The arithmetic is that of the reference paths up to the order of floating-point summation
 (test/test_core_coupling.py compares it with the batched numpy reference and with
-:func:`~cdmp_ros.core.coupling.coupling_3d`). The generated source is kept in
+:func:`~cdmp_ros.core.coupling.terms.coupling_3d`). The generated source is kept in
 ``coupled.source``.
 """
 import math
 from typing import Callable, List, Optional, Sequence, Tuple
 
-from cdmp_ros.core.coupling import _inverse_h3
+from cdmp_ros.core.coupling.terms import _inverse_h3
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.fields import ZERO, RepellerField
+from cdmp_ros.core.coupling.potential_fields import ZERO, RepellerField
 from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
                                               segment_box_scalar)
-from cdmp_ros.core.kinematics.fast import (_Emitter, build, emit_frames, emit_jacobian,
-                                           emit_point, literal, prune)
+from cdmp_ros.core.kinematics.codegen import (_Emitter, build, emit_frames, emit_jacobian,
+                                              emit_point, literal, prune)
 
 _LINK_TEMPLATE = '''\
 # W = H^-1 K
@@ -176,7 +176,7 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
     Parameters
     ----------
     B, base, prismatic
-        The chain's internal frames (as :func:`cdmp_ros.core.kinematics.fast.compile_kernel`).
+        The chain's internal frames (as :func:`cdmp_ros.core.kinematics.codegen.compile_kernel`).
     ee : (frame, coords)
         Internal frame and coordinates of the end-effector point.
     segments : sequence of (frame, start, end)
@@ -196,7 +196,7 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         closest point ``p_i`` on the link (world) and its acceleration ``d_i``. ``eps2`` and
         ``lam2`` are ``epsilon^2`` and ``lambda_max^2`` of the damping. The result is
         ``J^+ e + sum_i (J_o,i (I - J^+ J))^+ d_i`` (Eq. 7 + Eq. 12, paper 000). ``limit``
-        (a :class:`~cdmp_ros.core.coupling.LimitScale`), called with ``q`` once a field is
+        (a :class:`~cdmp_ros.core.coupling.terms.LimitScale`), called with ``q`` once a field is
         active, returns None (Eq. 12 as is) or the inverse weights ``s`` of the limit-aware
         Eq. (12), ``sum_i D (J_o,i D (I - (J D)^+ J D))^+ d_i`` with ``D^2 = diag(s)``.
     """
@@ -277,13 +277,14 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
 
 
 class ClosestPointGate:
-    """The ``gate`` of :func:`compile_coupling` for :class:`~cdmp_ros.core.obstacle_coupling.
+    """The ``gate`` of :func:`compile_coupling` for :class:`~cdmp_ros.core.coupling.obstacle.
     ObstacleCoupling`: closest points (spheres inline, boxes by
     :func:`~cdmp_ros.core.kinematics.closest.segment_box_scalar`) and potential fields.
 
     Returns None when no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] *
     n_links``; ``distances`` then holds the signed distance of the end effector and of every
-    link to its nearest obstacle. A :class:`~cdmp_ros.core.fields.RepellerField` without
+    link to its nearest obstacle. A :class:`~cdmp_ros.core.coupling.potential_fields.RepellerField`
+    without
     damping on spheres is inlined (the arithmetic of its ``acceleration``); other fields are
     called (velocity-dependent fields are not supported: they need ``J qd`` before the gate).
     """

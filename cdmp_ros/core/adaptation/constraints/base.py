@@ -11,7 +11,7 @@ from typing import Optional, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.constraints.points import Point
+from cdmp_ros.core.adaptation.constraints.points import Point
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 

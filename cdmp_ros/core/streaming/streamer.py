@@ -1,7 +1,7 @@
 """Online streaming of the active primitive: the logic of the streamer node, without ROS.
 
 :class:`ReferenceStreamer` owns the joint reference ``(y, yd)`` that the streamer publishes.
-Every tick it advances the active primitive's :class:`~cdmp_ros.core.stepper.DmpStepper` with
+Every tick it advances the active primitive's :class:`~cdmp_ros.core.dmp.stepper.DmpStepper` with
 the obstacle coupling term of the current reference (paper 000, Eq. 7/12 mapped into the
 exogenous space, Eq. 21), and guarantees what the node promises:
 
@@ -27,10 +27,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.obstacle_coupling import SATURATION_FLOOR
-from cdmp_ros.core.stream_primitives import PreparedPrimitive
-from cdmp_ros.core.streamer_config import StreamerConfig
-from cdmp_ros.core.transform import SAT_MARGIN, XI_SAT, TanhTransform
+from cdmp_ros.core.coupling.obstacle import SATURATION_FLOOR
+from cdmp_ros.core.streaming.primitives import PreparedPrimitive
+from cdmp_ros.core.streaming.config import StreamerConfig
+from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
 
 #: ``coupling(y, yd) -> joint accelerations (n_dims,)`` or None (no obstacle): the coupling

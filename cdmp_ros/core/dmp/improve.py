@@ -1,6 +1,6 @@
 """Improving a learned (C)DMP with PI2 (paper 000, III-C): the learner's ``~/improve``.
 
-:class:`Improver` runs ``updates`` PI2 updates (:class:`cdmp_ros.core.pi2.Pi2`, Eq. 32-39) of
+:class:`Improver` runs ``updates`` PI2 updates (:class:`cdmp_ros.core.dmp.pi2.Pi2`, Eq. 32-39) of
 ``rollouts_per_update`` exploratory rollouts each on a copy of the primitive, against a cost
 function ``cost(trajectory) -> (n_steps,)`` (immediate costs, terminal cost on the last
 entry). Exploration is on the internal parameters, so for a CDMP it happens in the exogenous
@@ -28,10 +28,10 @@ from typing import Callable, List, Optional
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.dmp import Trajectory, limit_usage
+from cdmp_ros.core.dmp.dmp import Trajectory, limit_usage
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.learning import check_fields, param
-from cdmp_ros.core.pi2 import Pi2, Pi2Config
+from cdmp_ros.core.dmp.pi2 import Pi2, Pi2Config
 from cdmp_ros.core.validation import check_limits
 
 COSTS = ('scripted', 'sim')

@@ -5,8 +5,8 @@ from typing import Optional
 
 import numpy as np
 
-from cdmp_ros.core.constraints.base import WeightConstraint
-from cdmp_ros.core.gaussian import gamma_cdf
+from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
+from cdmp_ros.core.promp.gaussian import gamma_cdf
 from cdmp_ros.core.validation import check_positive
 
 

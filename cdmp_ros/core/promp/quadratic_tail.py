@@ -3,7 +3,8 @@
 For x ~ N(m, S) in k dimensions, Q follows a generalised chi-square law: with S = U diag(lam) U^T
 and delta = U^T (m - c), Q = sum_i lam_i (z_i + delta_i / sqrt(lam_i))^2, z ~ N(0, I). Paper 003
 replaces this law by a Gamma distribution with the same mean and variance (its Eq. 15 moment
-match, :func:`cdmp_ros.core.gaussian.gamma_cdf`); that law's tail is lighter than the true one
+match, :func:`cdmp_ros.core.promp.gaussian.gamma_cdf`); that law's tail is lighter than the true
+one
 exactly where a confidence alpha = 0.999 lives, so constraints met "with probability alpha" under
 the Gamma match are violated 1.4-2.5 times more often than asked (see ../shared/design.md,
 Numerics notes).
@@ -35,7 +36,7 @@ from typing import Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.gaussian import normal_cdf, normal_pdf
+from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 
 # Below this |w| the saddle point is at the mean of Q and Lugannani-Rice is 0/0: the normal
 # approximation with the exact mean and variance of Q is used there (P ~ 0.5, far from any
@@ -179,7 +180,7 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray
 
 def _center_normal(m, S, center, x, rows, P, dP_dm, dP_dS):
     """Normal approximation with the exact mean and variance of Q on the given rows."""
-    from cdmp_ros.core.gaussian import quadratic_moments
+    from cdmp_ros.core.promp.gaussian import quadratic_moments
     c = np.broadcast_to(center, m.shape)[rows]
     E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m[rows], S[rows], c)
     sd = np.sqrt(V)

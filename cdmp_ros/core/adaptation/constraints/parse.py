@@ -9,12 +9,12 @@ from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from cdmp_ros.core.constraints.hyperplane import Hyperplane, NonConvexCorner
-from cdmp_ros.core.constraints.limits import JointLimit
-from cdmp_ros.core.constraints.points import ChainPoint, DofPoint, Point
-from cdmp_ros.core.constraints.smoothness import SmoothnessConstraint
-from cdmp_ros.core.constraints.spheres import (MutualAvoidance, Repeller, UnboundWaypoint,
-                                               Waypoint)
+from cdmp_ros.core.adaptation.constraints.hyperplane import Hyperplane, NonConvexCorner
+from cdmp_ros.core.adaptation.constraints.limits import JointLimit
+from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint, Point
+from cdmp_ros.core.adaptation.constraints.smoothness import SmoothnessConstraint
+from cdmp_ros.core.adaptation.constraints.spheres import (MutualAvoidance, Repeller,
+                                                          UnboundWaypoint, Waypoint)
 from cdmp_ros.core.errors import ConstraintSetError, ValidationError
 from cdmp_ros.core.file_checks import check_document
 from cdmp_ros.core.resources import schema_path
@@ -171,7 +171,7 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
     -------
     constraints : list
     optimizer : dict
-        Keyword overrides for :class:`cdmp_ros.core.adaptation.AdaptationConfig`.
+        Keyword overrides for :class:`cdmp_ros.core.adaptation.solver.AdaptationConfig`.
     """
     if isinstance(doc, (str, bytes)):
         try:

@@ -1,0 +1,2 @@
+"""DMPs and CDMPs (paper 000): basis, tanh transform, batch integration, the streaming stepper
+and PI2."""

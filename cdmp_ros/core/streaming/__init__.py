@@ -1,0 +1,1 @@
+"""Online streaming of the active primitive (the streamer node's logic without ROS)."""
