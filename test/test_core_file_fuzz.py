@@ -9,8 +9,10 @@ refuses with a CdmpError, and what it returns is finite."""
 import copy
 import json
 import math
+import zlib
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt
@@ -252,3 +254,50 @@ def test_the_schema_ranges_mirror_the_dataclass_and_parameter_ranges():
         assert (opt[name]['minimum'], opt[name]['maximum']) == (lo, hi), name
         if adapter.get(name) is not None:
             assert adapter[name] == (lo, hi), name
+
+
+def _large_promp_dict():
+    """A ProMP file whose arrays are long enough for check_document's compaction."""
+    M = 40
+    p = ProMP(2, RbfBasis.uniform(M), np.r_[np.linspace(-3, 3, M), np.zeros(M)],
+              0.64 * np.eye(2 * M), joint_names=['x', 'y'])
+    return primitive_to_dict(p)
+
+
+@pytest.mark.parametrize('field', ['mean_w', 'cov_w', 'centers'])
+@pytest.mark.parametrize('bad', ['string', True, None, 1e13, -1e13, [1.0], 'short', 'long'])
+def test_compacted_arrays_are_refused_as_jsonschema_refuses_them(field, bad, monkeypatch):
+    """check_document checks long numeric arrays itself (file_checks._compact); every bad
+    element or size must still be refused, with the message of the uncompacted check."""
+    from cdmp_ros.core import file_checks
+    rng = np.random.default_rng(zlib.crc32(f'{field} {bad!r}'.encode()))
+    d = _large_promp_dict()
+    body = d['promp']
+    target = {'mean_w': body['mean_w'], 'centers': body['basis']['centers'],
+              'cov_w': body['cov_w'][int(rng.integers(len(body['cov_w'])))]}[field]
+    assert len(target) >= file_checks._COMPACT_MIN
+    if bad == 'short':
+        del target[int(rng.integers(len(target))):]
+    elif bad == 'long':
+        target.extend([0.0] * 1000)
+    else:
+        target[int(rng.integers(len(target)))] = bad
+    with pytest.raises(PrimitiveFileError) as fast:
+        primitive_from_dict(copy.deepcopy(d))
+    monkeypatch.setattr(file_checks, '_compact', lambda doc, schema, root: doc)
+    with pytest.raises(PrimitiveFileError) as slow:
+        primitive_from_dict(copy.deepcopy(d))
+    assert str(fast.value) == str(slow.value)
+
+
+def test_compaction_accepts_what_jsonschema_accepts_and_checks_less():
+    from cdmp_ros.core import file_checks
+    from cdmp_ros.core.primitive_io import primitive_schema
+    d = _large_promp_dict()
+    schema = primitive_schema()
+    small = file_checks._compact(d, schema, schema)
+    assert len(small['promp']['cov_w']) < len(d['promp']['cov_w'])
+    assert len(small['promp']['mean_w']) < len(d['promp']['mean_w'])
+    assert d['promp']['cov_w'][0] is not small['promp']['cov_w'][0]  # the input is untouched
+    assert len(d['promp']['cov_w']) == 80
+    primitive_from_dict(d)

@@ -54,6 +54,11 @@ def _non_finite(doc: Any, path: list, skip: Sequence[str], depth: int = 0):
     if isinstance(doc, dict):
         items = ((k, v) for k, v in doc.items() if not (depth == 0 and k in skip))
     elif isinstance(doc, list):
+        try:  # a list of numbers in one C-level pass: a NaN or an infinity makes the sum so
+            if math.isfinite(sum(doc, 0.0)):  # (an overflow only sends it to the scan below)
+                return None
+        except TypeError:  # not only numbers
+            pass
         items = enumerate(doc)
     else:
         return None
@@ -63,6 +68,101 @@ def _non_finite(doc: Any, path: list, skip: Sequence[str], depth: int = 0):
             if bad is not None:
                 return bad
     return None
+
+
+#: Numeric arrays at least this long are checked by :func:`_compact` instead of jsonschema.
+_COMPACT_MIN = 32
+_NUMBER_KEYS = {'type', 'minimum', 'maximum', 'exclusiveMinimum', 'exclusiveMaximum',
+                'description'}
+_ARRAY_KEYS = {'type', 'items', 'minItems', 'maxItems', 'description'}
+
+
+def _resolve(schema: Any, root_schema: dict) -> Any:
+    """``schema`` with a local ``$ref`` (``#/$defs/name``) merged with its sibling keywords."""
+    while isinstance(schema, dict) and '$ref' in schema:
+        ref = schema['$ref']
+        if not ref.startswith('#/'):
+            return schema
+        target = root_schema
+        for part in ref[2:].split('/'):
+            target = target[part]
+        schema = {**target, **{k: v for k, v in schema.items() if k != '$ref'}}
+    return schema
+
+
+def _numbers_ok(values: list, item: dict) -> bool:
+    """All of ``values`` are JSON numbers within the bounds of the ``item`` schema."""
+    if not all(type(x) is float or type(x) is int for x in values):  # bool is not a number
+        return False
+    if not values:
+        return True
+    lo, hi = min(values), max(values)
+    return (lo >= item.get('minimum', -math.inf) and hi <= item.get('maximum', math.inf)
+            and lo > item.get('exclusiveMinimum', -math.inf)
+            and hi < item.get('exclusiveMaximum', math.inf))
+
+
+def _sized(values: list, schema: dict) -> bool:
+    return schema.get('minItems', 0) <= len(values) <= schema.get('maxItems', math.inf)
+
+
+def _number_array(schema: Any, root_schema: dict, depth: int) -> Optional[list]:
+    """The chain of array schemas if ``schema`` is an array (of arrays, ``depth`` levels) of
+    plain numbers with only range and size keywords, else None."""
+    chain = []
+    for _ in range(depth):
+        schema = _resolve(schema, root_schema)
+        if not (isinstance(schema, dict) and schema.get('type') == 'array'
+                and set(schema) <= _ARRAY_KEYS and isinstance(schema.get('items'), dict)):
+            return None
+        chain.append(schema)
+        schema = schema['items']
+    schema = _resolve(schema, root_schema)
+    if not (isinstance(schema, dict) and schema.get('type') == 'number'
+            and set(schema) <= _NUMBER_KEYS):
+        return None
+    return chain + [schema]
+
+
+def _compact(doc: Any, schema: Any, root_schema: dict) -> Any:
+    """``doc`` with its long arrays of numbers (and matrices of them) checked here, against
+    their schema's type, range and size keywords, and replaced by a short prefix that the
+    schema accepts alike; everything else is left for jsonschema (one pass over a ProMP's
+    covariance in C-level ``min``/``max`` instead of a jsonschema call per number). An array
+    that fails is kept whole, so jsonschema reports it with its usual message."""
+    schema = _resolve(schema, root_schema)
+    if not isinstance(schema, dict):
+        return doc
+    if isinstance(doc, list) and len(doc) >= _COMPACT_MIN:
+        vector = _number_array(schema, root_schema, 1)
+        if vector is not None:
+            if _sized(doc, vector[0]) and _numbers_ok(doc, vector[1]):
+                return doc[:max(vector[0].get('minItems', 1), 1)]
+            return doc
+        matrix = _number_array(schema, root_schema, 2)
+        if matrix is not None:
+            rows_ok = _sized(doc, matrix[0]) and all(
+                isinstance(r, list) and _sized(r, matrix[1]) and _numbers_ok(r, matrix[2])
+                for r in doc)
+            if rows_ok:
+                keep = max(matrix[1].get('minItems', 1), 1)
+                return [r[:keep] for r in doc[:max(matrix[0].get('minItems', 1), 1)]]
+            return doc
+    if isinstance(doc, dict) and isinstance(schema.get('properties'), dict):
+        props = schema['properties']
+        out = None
+        for k, v in doc.items():
+            if k in props and isinstance(v, (list, dict)):
+                c = _compact(v, props[k], root_schema)
+                if c is not v:
+                    out = dict(doc) if out is None else out
+                    out[k] = c
+        return doc if out is None else out
+    if isinstance(doc, list) and isinstance(schema.get('items'), dict):
+        out = [_compact(v, schema['items'], root_schema) if isinstance(v, (list, dict)) else v
+               for v in doc]
+        return doc if all(a is b for a, b in zip(out, doc)) else out
+    return doc
 
 
 def _closest(e: jsonschema.ValidationError) -> jsonschema.ValidationError:
@@ -168,7 +268,9 @@ def check_document(doc: Any, schema: dict, root: str, error: Type[ValidationErro
     if key not in _VALIDATORS:
         _VALIDATORS[key] = (schema, jsonschema.Draft202012Validator(schema))
     validator = _VALIDATORS[key][1]
-    errors = list(validator.iter_errors(doc))
+    errors = list(validator.iter_errors(_compact(doc, schema, schema)))
+    if errors:  # the full document, so that paths and messages are jsonschema's own
+        errors = list(validator.iter_errors(doc))
     if errors:
         errors.sort(key=order or (lambda e: (len(e.absolute_path), e.message)))
         where, text = _describe(errors[0], root)
