@@ -29,6 +29,7 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/cdmp demo --out $(OUT)
+	$(VENV)/bin/cdmp demo --kind promp --out $(OUT)_promp
 
 test: $(STAMP)
 	$(PY) -m pytest test $(PYTEST_ARGS)

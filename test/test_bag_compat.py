@@ -198,3 +198,23 @@ def test_our_reader_reads_mcap_ros2_file(tmp_path):
     got = [(m.log_time, list(deserialize_message(m.data, JointState).position))
            for m in BagReader(path).messages()]
     assert got == sent
+
+
+def test_diagnostic_arrays_decode_as_rclpy_serialises_them():
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rclpy.serialization import serialize_message
+    from cdmp_ros.bag.cdr import decode_diagnostic_array
+    from cdmp_ros.bag.errors import BagFormatError
+    m = DiagnosticArray()
+    m.header.stamp.sec, m.header.frame_id = 5, 'base'
+    m.status = [DiagnosticStatus(level=b'\x01', name='streamer: inputs', message='ok ü',
+                                 hardware_id='hw', values=[KeyValue(key='a', value='1'),
+                                                           KeyValue(key='bb', value='')]),
+                DiagnosticStatus(level=b'\x02', name='y')]
+    data = serialize_message(m)
+    assert decode_diagnostic_array(data) == [
+        {'level': 1, 'name': 'streamer: inputs', 'message': 'ok ü', 'hardware_id': 'hw',
+         'values': {'a': '1', 'bb': ''}},
+        {'level': 2, 'name': 'y', 'message': '', 'hardware_id': '', 'values': {}}]
+    with pytest.raises(BagFormatError, match='DiagnosticArray: CDR data ends'):
+        decode_diagnostic_array(data[:-3])

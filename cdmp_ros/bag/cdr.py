@@ -176,3 +176,35 @@ def encode_clock(stamp_ns: int) -> bytes:
     out.i32(sec)
     out.u32(nsec)
     return bytes(out.buf)
+
+
+def decode_diagnostic_array(data: bytes) -> List[dict]:
+    """Deserialize CDR bytes of a ``diagnostic_msgs/msg/DiagnosticArray``.
+
+    Returns
+    -------
+    list of dict
+        One per status: ``level`` (int), ``name``, ``message``, ``hardware_id`` and
+        ``values`` (a dict of the key/value pairs).
+    """
+    inp = _In(data, 'diagnostic_msgs/msg/DiagnosticArray')
+    inp.i32()
+    inp.u32()
+    inp.string()
+    n = inp.u32()
+    inp.need(n)  # each status needs at least its level byte: bounds a bogus count
+    out = []
+    for _ in range(n):
+        inp.need(1)
+        level = inp.data[inp.pos]
+        inp.pos += 1
+        name, message, hardware_id = inp.string(), inp.string(), inp.string()
+        k = inp.u32()
+        inp.need(8 * k)  # two length words per pair at least
+        values = {}
+        for _ in range(k):
+            key = inp.string()
+            values[key] = inp.string()
+        out.append({'level': int(level), 'name': name, 'message': message,
+                    'hardware_id': hardware_id, 'values': values})
+    return out

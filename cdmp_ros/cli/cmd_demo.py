@@ -17,6 +17,12 @@ def add_arguments(parser):
     parser.add_argument('--out', default='out/demo', help='output directory (default out/demo)')
     parser.add_argument('--timeout', type=float, default=45.0,
                         help='seconds allowed for the scripted run (default 45)')
+    parser.add_argument('--kind', choices=('cdmp', 'promp'), default='cdmp',
+                        help='cdmp (default): the learner fits a CDMP; a sphere dropped into '
+                             'the path is avoided by the coupling terms, then the goal changes. '
+                             'promp: the learner fits a ProMP; every obstacle message triggers a '
+                             'constrained adaptation (paper 003) that the streamer follows; '
+                             'exits non-zero if none happened')
     parser.add_argument('--graph', default=None,
                         help='graph file to start instead of config/graphs/demo.yaml')
 
@@ -25,7 +31,7 @@ def run(args):
     import json
     import math
     from cdmp_ros.cli.demo_run import markdown, run_demo
-    s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph)
+    s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph, kind=args.kind)
     print()
     print(markdown(s))
     print(f'wall time {s["wall_time_s"]:.1f} s; summary: {args.out}/summary.json, plots: '
@@ -37,6 +43,8 @@ def run(args):
         bad.append(f'a joint left its limits by more than {LIMIT_TOLERANCE} rad')
     if math.isnan(s['min_obstacle_distance_m']) or s['min_obstacle_distance_m'] <= 0.0:
         bad.append('the robot touched the obstacle (or the distance is unknown)')
+    if args.kind == 'promp' and not s['promp']['adaptations']:
+        bad.append('no constrained adaptation was published after the obstacle appeared')
     if bad:
         print('demo: FAILED: ' + '; '.join(bad))
         print(json.dumps({k: s[k] for k in ('min_obstacle_distance_m', 'max_limit_usage',

@@ -40,6 +40,9 @@ from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.run_metrics import tracking_error
 from cdmp_ros.core.dmp.dmp import limit_usage
 
+#: What the learner fits: ``cdmp`` (obstacle drop and goal change) or ``promp`` (constrained
+#: adaptation on every obstacle message).
+KINDS = ('cdmp', 'promp')
 #: Topics the demo records.
 RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primitive',
             '/adapted_primitive', '/ee_pose', '/diagnostics', '/visualization']
@@ -176,6 +179,22 @@ def markdown(s: Dict) -> str:
             ('reference rate', f'{s["reference_rate_hz"]:.1f} Hz'),
             ('messages recorded', f'{s["messages_recorded"]}'),
             ('bag', s['bag'])]
+    p = s.get('promp')
+    if p:
+        lat = p['adaptation_latency_ms']
+        rows[-1:-1] = [
+            ('constrained adaptations after the drop', f'{p["adaptations"]}'),
+            ('obstacle -> first adapted reference', (
+                f'{np.median(lat):.1f} ms median, {max(lat):.1f} ms max ({len(lat)} '
+                'adaptations switched in)') if lat else 'not reported')]
+        for key, label in (('prior_violation', 'prior'), ('adapted_violation', 'adapted')):
+            v = p.get(key)
+            if v:
+                rows[-1:-1] = [(f'P(hand or link within {p["violation_radius_m"] * 100:.0f} cm '
+                                f'of the sphere), {label}, sampled',
+                                f'trajectory {v["trajectory"]:.4f} (95 % bound '
+                                f'{v["trajectory_upper95"]:.4f}), per step max '
+                                f'{v["per_step_max"]:.4f}; {v["n_samples"]} samples')]
     lines = ['| quantity | value |', '|---|---|'] + [f'| {a} | {b} |' for a, b in rows]
     return '\n'.join(lines) + '\n'
 
@@ -191,8 +210,14 @@ def demo_environment() -> Dict[str, str]:
 
 
 def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
-             driver_args: List[str] = (), log=None) -> Dict:
-    """Run the demo; return the summary (also written to ``out``)."""
+             driver_args: List[str] = (), log=None, kind: str = 'cdmp') -> Dict:
+    """Run the demo; return the summary (also written to ``out``).
+
+    ``kind``: ``cdmp`` (the learner fits a CDMP; obstacle drop, then a goal change) or
+    ``promp`` (the learner fits a ProMP, every obstacle message triggers a constrained
+    adaptation that the streamer follows; :mod:`cdmp_ros.cli.demo_promp`)."""
+    if kind not in KINDS:
+        raise CdmpError(f'demo: kind: expected one of {list(KINDS)}, got {kind!r}')
     from cdmp_ros.core.kinematics import panda_chain
     import pybullet_data
 
@@ -205,7 +230,11 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
         shutil.rmtree(bag)
     graph = load_graph(graph_file or os.path.join(package_config_dir(), 'graphs', 'demo.yaml'))
     overrides = {'recorder': {'output': bag, 'topics': RECORDED},
-                 'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')}}
+                 'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')},
+                 'learner': {'kind': kind}}
+    if kind == 'promp':
+        driver_args = ['--no-goal-change', *driver_args]
+    adapter_spec = next((spec for spec in graph.nodes if spec.executable == 'adapter'), None)
     nodes = []
     for spec in graph.nodes:
         extra = overrides.get(spec.executable)
@@ -248,13 +277,20 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
         drv = json.load(f)
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
     summary = summarise(out, bag, drv, chain.lower, chain.upper)
+    summary['kind'] = kind
     summary['wall_time_s'] = time.monotonic() - t_start
     summary['node_exit_codes'] = codes
     plot(out, bag, drv, chain.lower, chain.upper, chain)
+    if kind == 'promp':
+        from cdmp_ros.cli.demo_promp import adapter_parameters, plot_promp_paths, promp_summary
+        params = adapter_parameters(adapter_spec) if adapter_spec else {}
+        summary['promp'] = promp_summary(bag, drv, chain, params)
+        summary['plots'].append(os.path.join(out, 'promp_paths.png'))
+        plot_promp_paths(summary['plots'][-1], bag, drv, chain)
     with open(os.path.join(out, 'summary.json'), 'w') as f:
         json.dump(summary, f, indent=1, default=float)
     with open(os.path.join(out, 'summary.md'), 'w') as f:
-        f.write('# cdmp demo\n\n' + markdown(summary) + '\n![joints](joints.png) '
-                '![end effector](ee_path.png)' + (' ![snapshot](snapshot.png)\n' if
-                                                  summary['snapshot'] else '\n'))
+        f.write(f'# cdmp demo --kind {kind}\n\n' + markdown(summary) + '\n' + ' '.join(
+            f'![{os.path.basename(p)[:-4]}]({os.path.basename(p)})' for p in
+            summary['plots'] + ([summary['snapshot']] if summary['snapshot'] else [])) + '\n')
     return summary

@@ -11,7 +11,8 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
 2. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
    ``DROP_PERIOD``);
-3. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``);
+3. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
+   skipped with ``--no-goal-change``);
 4. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
    with the event times, the obstacle, and the last ``diagnostics`` status of every node.
 """
@@ -65,6 +66,8 @@ def parse_args(argv):
                     help='rad added to the primitive goal for the goal change (default: the '
                          'hand ~25 cm to the left and ~10 cm higher, every link outside the '
                          'field of the sphere at the new goal)')
+    ap.add_argument('--no-goal-change', action='store_true',
+                    help='end after the first motion rests (cdmp demo --kind promp)')
     ap.add_argument('--frame', default='panda_link0')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     return ap.parse_args(argv)
@@ -196,7 +199,10 @@ class DemoDriver(Node):
                 self._event('drop_end')
                 self.phase = 'wait_rest_1'
         elif self.phase == 'wait_rest_1':
-            if self._rested():
+            if self._rested() and a.no_goal_change:
+                self._event('first_motion_rest')
+                self.phase = 'finish'
+            elif self._rested():
                 self._event('first_motion_rest')
                 goal = np.asarray(self.prim.goal_y_) + np.asarray(a.goal_offset)
                 msg = JointState(name=list(self.chain.joint_names),

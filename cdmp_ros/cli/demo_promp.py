@@ -1,0 +1,192 @@
+"""The constrained-ProMP part of ``cdmp demo --kind promp``: what the adaptations did, read
+back from the recorded bag and checked by sampling.
+
+In this demo the learner fits a ProMP (paper 003) to the five demonstrations; the adapter
+adapts it to every obstacle message (repellers on the end effector and on the links of
+``adaptation.avoid_links``, two-sided joint limits; ``config/adapter.yaml``), and the
+streamer follows the adapted mean. From the bag:
+
+- ``adaptations``: the ``adapted_primitive`` messages published after the drop started;
+- ``adapted_violation``: for the last of them and for the prior, the fraction of 2,000
+  trajectories sampled from the distribution (independently of the adapter's own check) in
+  which the end effector or an avoided link origin comes within the sphere's radius plus the
+  adapter's ``obstacle_margin`` at any of 100 phases (``trajectory``), and the largest such
+  fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
+- ``adaptation_latency_ms``: per switched-in adaptation, the streamer's own figure (the stamp
+  of its first reference computed from the adapted primitive minus the stamp of the obstacle
+  message that triggered it), from its diagnostics in the bag;
+- ``promp_paths.png``: the prior's and the last adaptation's mean end-effector paths with
+  their 2-sigma bands (linearised through the kinematics Jacobian), and the obstacle.
+"""
+import json
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+import yaml
+
+from cdmp_ros.bag import BagReader
+from cdmp_ros.bag.cdr import decode_string
+from cdmp_ros.core.adaptation.requests import ee_band
+from cdmp_ros.core.kinematics import PointOfInterest
+from cdmp_ros.core.promp.primitive_file import promp_from_dict
+from cdmp_ros.core.primitive_io import validate_primitive_dict
+
+#: Trajectories sampled per distribution and phases per trajectory in the violation check.
+N_SAMPLES = 2000
+N_PHASES = 100
+
+
+def _primitives(bag: str, topic: str) -> List[tuple]:
+    """``(log_time_ns, dict)`` of every primitive message on ``topic`` in the bag."""
+    out = []
+    for m in BagReader(bag).messages([topic]):
+        d = json.loads(decode_string(m.data))
+        validate_primitive_dict(d)
+        out.append((m.log_time, d))
+    return out
+
+
+def upper95(k: int, n: int) -> float:
+    """One-sided 95 % Clopper-Pearson upper bound of a binomial proportion k / n."""
+    from scipy.stats import beta
+    return 1.0 if k >= n else float(beta.ppf(0.95, k + 1, n - k))
+
+
+def sphere_violation(promp, chain, links: Sequence[str], center, radius: float,
+                     rng: np.random.Generator, n_samples: int = N_SAMPLES,
+                     n_phases: int = N_PHASES) -> Dict[str, float]:
+    """Sampled probability that the end effector or a link origin enters the ball
+    ``|x - center| < radius`` (see the module docstring)."""
+    s = np.linspace(0.0, 1.0, n_phases)
+    Y = promp.sample_trajectories(s, n_samples, rng)                  # (K, n, D)
+    pois = [PointOfInterest('ee')] + [PointOfInterest(link) for link in links]
+    X = chain.forward(Y.reshape(-1, Y.shape[-1]), pois)               # (K n, P, 3)
+    d = np.linalg.norm(X - np.asarray(center, dtype=float), axis=-1).reshape(
+        n_samples, n_phases, len(pois))
+    inside = (d < radius).any(axis=2)                                 # (K, n)
+    per_step = inside.sum(axis=0)
+    k_traj = int(inside.any(axis=1).sum())
+    k_step = int(per_step.max())
+    return {'n_samples': n_samples, 'n_phases': n_phases,
+            'trajectory': k_traj / n_samples, 'trajectory_upper95': upper95(k_traj, n_samples),
+            'per_step_max': k_step / n_samples,
+            'per_step_max_upper95': upper95(k_step, n_samples),
+            'min_distance_mean_path_m': float(np.linalg.norm(
+                chain.forward(promp.mean(s), pois) - np.asarray(center), axis=-1).min())}
+
+
+def _diagnostic_values(bag: str, prefix: str) -> List[Dict[str, str]]:
+    """Key/values of every recorded diagnostics status whose name starts with ``prefix``."""
+    from cdmp_ros.bag.cdr import decode_diagnostic_array
+    out = []
+    for m in BagReader(bag).messages(['/diagnostics']):
+        for st in decode_diagnostic_array(m.data):
+            if st['name'].split(':')[0].strip().lstrip('/').startswith(prefix):
+                out.append(st['values'])
+    return out
+
+
+def adaptation_latencies(bag: str) -> List[float]:
+    """The streamer's obstacle -> first adapted reference latencies [ms], one per switched-in
+    adaptation (its diagnostics carry the last one with the adaptation's generation)."""
+    seen, out = set(), []
+    for values in _diagnostic_values(bag, 'streamer'):
+        gen, lat = values.get('adapted_generation'), values.get('adaptation_latency_ms_last')
+        if gen is None or lat is None or gen in seen:
+            continue
+        try:
+            ms = float(lat)
+        except ValueError:
+            continue
+        if np.isfinite(ms):
+            seen.add(gen)
+            out.append(ms)
+    return out
+
+
+def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
+                  rng: Optional[np.random.Generator] = None) -> Dict:
+    """The ProMP figures of the summary (see the module docstring)."""
+    rng = rng or np.random.default_rng(0)
+    drop = driver.get('events_ns', {}).get('drop_start')
+    prior = _primitives(bag, '/primitive')
+    adapted = _primitives(bag, '/adapted_primitive')
+    after = [d for t, d in adapted if isinstance(drop, int) and t >= drop]
+    obs = driver.get('obstacle', {})
+    ad = adapter_params.get('adaptation', {})
+    links = list(ad.get('avoid_links', ['panda_link4']))
+    radius = float(obs.get('radius', 0.0)) + float(ad.get('obstacle_margin', 0.02))
+    out = {'adaptations': len(after), 'adaptation_latency_ms': adaptation_latencies(bag),
+           'violation_radius_m': radius, 'violation_points': ['ee'] + links}
+    if prior and obs.get('center') is not None:
+        out['prior_violation'] = sphere_violation(
+            _promp(prior[0][1], chain), chain, links, obs['center'], radius, rng)
+    if after and obs.get('center') is not None:
+        out['adapted_violation'] = sphere_violation(
+            _promp(after[-1], chain), chain, links, obs['center'], radius, rng)
+    return out
+
+
+def _promp(d: Dict, chain):
+    """The ProMP of a primitive dict, in the chain's joint order."""
+    from cdmp_ros.core.adaptation.requests import reorder_promp
+    p = promp_from_dict(d)
+    p.joint_names = list(d['joint_names'])
+    return reorder_promp(p, chain.joint_names)
+
+
+def adapter_parameters(spec) -> Dict:
+    """The adapter's parameters in a graph: its parameter file's ``ros__parameters`` (under
+    ``/**`` or its node name) with the graph's inline ``parameters`` (dotted names) on top."""
+    params: Dict = {}
+    if spec.params_file:
+        with open(spec.params_file) as f:
+            doc = yaml.safe_load(f) or {}
+        for key in ('/**', 'adapter', '/adapter', spec.name, '/' + spec.name):
+            if isinstance(doc.get(key), dict):
+                params = dict(doc[key].get('ros__parameters', {}))
+    for name, value in spec.parameters.items():
+        node = params
+        *path, last = name.split('.')
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return params
+
+
+def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:
+    """``promp_paths.png``: prior and adapted mean end-effector paths with 2-sigma bands."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    drop = driver.get('events_ns', {}).get('drop_start')
+    prior = _primitives(bag, '/primitive')
+    adapted = [d for t, d in _primitives(bag, '/adapted_primitive')
+               if isinstance(drop, int) and t >= drop]
+    s = np.linspace(0.0, 1.0, 100)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    obs = driver.get('obstacle', {})
+    for label, d, color in (('prior', prior[0][1] if prior else None, 'tab:blue'),
+                            ('adapted (last)', adapted[-1] if adapted else None, 'tab:orange')):
+        if d is None:
+            continue
+        X, r = ee_band(_promp(d, chain), chain, s)
+        for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+            ax.plot(X[:, i], X[:, j], color=color, label=f'{label} mean')
+            for k in range(0, len(s), 3):
+                ax.add_patch(plt.Circle((X[k, i], X[k, j]), r[k], color=color, alpha=0.06,
+                                        lw=0))
+    names = 'xyz'
+    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+        if obs.get('center') is not None:
+            c = obs['center']
+            ax.add_patch(plt.Circle((c[i], c[j]), obs['radius'], color='r', alpha=0.5,
+                                    label='obstacle'))
+        ax.set_xlabel(f'{names[i]} [m]')
+        ax.set_ylabel(f'{names[j]} [m]')
+        ax.set_aspect('equal', adjustable='datalim')
+    axes[0].legend(fontsize=7)
+    fig.suptitle('end-effector mean paths with 2-sigma bands (shaded), prior and adapted')
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
