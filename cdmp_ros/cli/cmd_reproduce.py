@@ -3,28 +3,17 @@
 Experiments are discovered: every module ``cdmp_ros/experiments/exp_<name>.py`` defines
 ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
 """
-import importlib
-import pkgutil
-
 import cdmp_ros.experiments as exp_pkg
+from cdmp_ros.cli.main import add_subcommands
 
 NAME = 'reproduce'
 HELP = 'reproduce a paper experiment (writes results.json, results.md and figures to --out)'
 
 
-def _experiments():
-    for info in sorted(pkgutil.iter_modules(exp_pkg.__path__), key=lambda i: i.name):
-        if info.name.startswith('exp_'):
-            yield importlib.import_module(f'cdmp_ros.experiments.{info.name}')
-
-
 def add_arguments(parser):
     sub = parser.add_subparsers(dest='experiment', metavar='<experiment>')
     sub.required = True
-    for module in _experiments():
-        p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
-        module.add_arguments(p)
-        p.set_defaults(_experiment_run=module.run)
+    add_subcommands(sub, exp_pkg, 'exp_', '_experiment_run')
 
 
 def run(args):

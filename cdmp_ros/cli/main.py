@@ -14,10 +14,16 @@ import cdmp_ros.cli as cli_pkg
 from cdmp_ros.core.errors import CdmpError
 
 
-def _subcommand_modules():
-    for info in sorted(pkgutil.iter_modules(cli_pkg.__path__), key=lambda i: i.name):
-        if info.name.startswith('cmd_'):
-            yield importlib.import_module(f'cdmp_ros.cli.{info.name}')
+def add_subcommands(sub, package, prefix: str, dest: str) -> None:
+    """One sub-parser per discovered module ``<package>/<prefix><name>.py`` (sorted by module
+    name), each defining ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args)``; the
+    module's ``run`` is stored as ``args.<dest>``. Used by ``cdmp`` and ``cdmp reproduce``."""
+    for info in sorted(pkgutil.iter_modules(package.__path__), key=lambda i: i.name):
+        if info.name.startswith(prefix):
+            module = importlib.import_module(f'{package.__name__}.{info.name}')
+            p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
+            module.add_arguments(p)
+            p.set_defaults(**{dest: module.run})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,10 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'ProMP). Run "cdmp <command> --help" for the options of a command.')
     sub = parser.add_subparsers(dest='command', metavar='<command>')
     sub.required = True
-    for module in _subcommand_modules():
-        p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
-        module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+    add_subcommands(sub, cli_pkg, 'cmd_', '_run')
     return parser
 
 
