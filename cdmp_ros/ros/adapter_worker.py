@@ -82,7 +82,7 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None)
         'trigger_stamp_ns': int(job.trigger_stamp_ns), 'outcome': res.outcome,
         'obstacles_used': res.problem.obstacles_used,
         'obstacles_ignored': res.problem.obstacles_ignored, 'notes': res.problem.notes}
-    text = promp_message(adapted)
+    text = promp_message(adapted, job.request.limits)  # the limits it was adapted within
     nc = job.node_config
     path = ee_path(chain, adapted.mean(np.linspace(0.0, 1.0, nc.path_points)))
     band = None

@@ -11,7 +11,8 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 - every box obstacle near the path becomes a virtual wall (Eq. 16) on the same points: the
   plane of the box face, pushed out by ``obstacle_margin``, that leaves the prior mean path the
   most room (a convex box is avoided by staying on the free side of one of its faces);
-- the robot's joint limits become two-sided joint-limit constraints (Eq. 12);
+- the joint limits (the tighter of the primitive's and the robot's, ``AdaptRequest.limits``)
+  become two-sided joint-limit constraints (Eq. 12);
 - the user's constraint set (``msg_schemas/constraints.schema.json``) is added as is.
 """
 import dataclasses
@@ -206,6 +207,9 @@ class AdaptRequest:
         Joint goal (conditioning at phase 1).
     start_y : (n_dims,), optional
         Current joint state (conditioning at phase 0).
+    limits : ((n_dims,), (n_dims,)), optional
+        Lower and upper bounds of the joint-limit constraints: the tighter of the primitive's
+        and the robot's (:func:`cdmp_ros.core.joint_limits.merge_limits`). None: the chain's.
     """
 
     prior: ProMP
@@ -213,6 +217,7 @@ class AdaptRequest:
     constraint_doc: Optional[dict] = None
     goal_y: Optional[NDArray[np.float64]] = None
     start_y: Optional[NDArray[np.float64]] = None
+    limits: Optional[Tuple[NDArray[np.float64], NDArray[np.float64]]] = None
 
 
 @dataclass
@@ -267,8 +272,9 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     names = ['ee'] + list(cfg.avoid_links)
     points = [ChainPoint(chain, p) for p in pois]  # shared: one FK / UT per time step
     constraints: list = []
-    if cfg.joint_limits:
-        constraints += [JointLimit(j, float(chain.lower[j]), float(chain.upper[j]),
+    if cfg.joint_limits:  # Eq. (12), paper 003
+        lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
+        constraints += [JointLimit(j, float(lower[j]), float(upper[j]),
                                    alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
                         for j in range(n)]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
@@ -348,15 +354,21 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 
 
-def promp_message(promp: ProMP) -> str:
+def promp_message(promp: ProMP, limits: Optional[Tuple[ArrayLike, ArrayLike]] = None) -> str:
     """JSON text of a ProMP primitive, as :func:`cdmp_ros.core.primitive_io.dumps_primitive`
     writes it but without validating it against the schema again (the object is valid by
     construction; the validation of a 7-DoF ProMP's 70 x 70 covariance costs ~55 ms, a fifth
-    of the adapter's latency budget). A test checks both give the same document."""
+    of the adapter's latency budget). A test checks both give the same document.
+
+    ``limits`` (lower, upper), if given, are written as the file's ``limits`` (the position
+    limits the primitive was adapted within)."""
     from cdmp_ros.core.primitive_io import FORMAT_VERSION
     from cdmp_ros.core.promp.primitive_file import promp_to_dict
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': 'promp',
                          'joint_names': list(promp.joint_names), 'n_dims': promp.n_dims}
+    if limits is not None:
+        d['limits'] = {'lower': [float(v) for v in limits[0]],
+                       'upper': [float(v) for v in limits[1]]}
     d.update(promp_to_dict(promp))
     return json.dumps(d)
 
