@@ -8,7 +8,8 @@ parameters' limits, and reports ``limits_source: robot_description`` and every d
   beyond the robot's panda_joint1 limit. The adapted ProMP carries the tighter limits of the
   two and its mean (and the bulk of its samples) stays inside them.
 - learner: ``limits.lower/upper`` wider than the robot on panda_joint1, narrower on
-  panda_joint2: the fitted CDMP has the tighter of the two.
+  panda_joint2: the fitted CDMP, and a ProMP fitted after ``kind:=promp``, have the tighter
+  of the two as their file's ``limits``.
 - sim: a reference beyond the robot's panda_joint1 limit is clipped into it (reported) and the
   arm settles there, not at the requested position.
 """
@@ -145,6 +146,15 @@ def test_learner_fits_within_the_tighter_limits(tmp_path):
         assert 'panda_joint2 lower: primitive -1, robot -1.8326 -> -1 (primitive)' in mismatch
         assert len(mismatch.split('; ')) == 4, mismatch
         assert 'limits.lower/upper differ from the robot' in log.read_text()
+        # a ProMP fitted by the learner carries the same limits in its file
+        assert h.set_parameter('kind', 'promp').successful
+        n0 = h.n_primitives()
+        assert h.call('refit').success
+        assert h.wait(lambda: h.n_primitives() > n0, STARTUP)
+        d = h.last_primitive()
+        assert d['kind'] == 'promp'
+        assert d['limits']['lower'] == pytest.approx(tight_lo.tolist(), abs=1e-12)
+        assert d['limits']['upper'] == pytest.approx(tight_hi.tolist(), abs=1e-12)
     finally:
         h.close()
         code = stop_process(proc)

@@ -64,6 +64,9 @@ def reorder_promp(promp: ProMP, joint_names: Sequence[str]) -> ProMP:
     out = ProMP(promp.n_dims, promp.basis, promp.mean_w[idx], promp.cov_w[np.ix_(idx, idx)],
                 promp.sigma_y[perm], promp.duration, list(joint_names))
     out.metadata = dict(promp.metadata)
+    lim = out.metadata.get('limits')
+    if isinstance(lim, dict):  # per-joint lists (see promp_to_dict): reordered too
+        out.metadata['limits'] = {k: [lim[k][i] for i in perm] for k in ('lower', 'upper')}
     return out
 
 
@@ -354,21 +357,15 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 
 
-def promp_message(promp: ProMP, limits: Optional[Tuple[ArrayLike, ArrayLike]] = None) -> str:
+def promp_message(promp: ProMP) -> str:
     """JSON text of a ProMP primitive, as :func:`cdmp_ros.core.primitive_io.dumps_primitive`
     writes it but without validating it against the schema again (the object is valid by
     construction; the validation of a 7-DoF ProMP's 70 x 70 covariance costs ~55 ms, a fifth
-    of the adapter's latency budget). A test checks both give the same document.
-
-    ``limits`` (lower, upper), if given, are written as the file's ``limits`` (the position
-    limits the primitive was adapted within)."""
+    of the adapter's latency budget). A test checks both give the same document."""
     from cdmp_ros.core.primitive_io import FORMAT_VERSION
     from cdmp_ros.core.promp.primitive_file import promp_to_dict
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': 'promp',
                          'joint_names': list(promp.joint_names), 'n_dims': promp.n_dims}
-    if limits is not None:
-        d['limits'] = {'lower': [float(v) for v in limits[0]],
-                       'upper': [float(v) for v in limits[1]]}
     d.update(promp_to_dict(promp))
     return json.dumps(d)
 
