@@ -88,3 +88,28 @@ def test_robot_description_takes_precedence_over_urdf_path():
         load_panda_chain('', PANDA_JOINTS, '<robot name="x"><link name="a"/></robot>')
     with pytest.raises(ValidationError, match='urdf_path'):
         load_panda_chain(os.devnull + '.missing', PANDA_JOINTS)
+
+
+def test_a_promp_file_carries_the_limits_it_was_fitted_within():
+    """A ProMP's limits live in ``metadata['limits']`` (the learner's fit limits, the adapter's
+    merged ones) and are written as the file's ``limits``: read back, reordered (with the
+    weights) and written the same way by the adapter's promp_message."""
+    import json
+    from cdmp_ros.core.adaptation.requests import promp_message, reorder_promp
+    from cdmp_ros.core.learning import fit_primitive
+    from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
+    lo, hi = TIGHT_LOWER, TIGHT_UPPER
+    demos = [reach_demo(Q_START, Q_GOAL + 0.01 * k, 2.0, 101) for k in range(3)]
+    prim = fit_primitive('promp', demos, PANDA_JOINTS, lo, hi)
+    d = primitive_to_dict(prim)
+    assert d['limits'] == {'lower': lo.tolist(), 'upper': hi.tolist()}
+    assert json.loads(promp_message(prim)) == json.loads(dumps_primitive(prim))
+    back = primitive_from_dict(d)
+    assert primitive_to_dict(back)['limits'] == d['limits']
+    rev = reorder_promp(back, PANDA_JOINTS[::-1])
+    d_rev = primitive_to_dict(rev)
+    assert d_rev['limits'] == {'lower': lo[::-1].tolist(), 'upper': hi[::-1].tolist()}
+    assert d_rev['joint_names'] == list(PANDA_JOINTS[::-1])
+    # the file's field wins over stale metadata
+    d2 = dict(d, limits={'lower': LOWER.tolist(), 'upper': UPPER.tolist()})
+    assert primitive_to_dict(primitive_from_dict(d2))['limits']['upper'] == UPPER.tolist()

@@ -38,8 +38,9 @@ class LearnerConfig:
     joint_names: Tuple[str, ...] = param(
         PANDA_JOINTS, 'Joints of the primitive, in its order; demonstrations are mapped by '
         'name.', read_only=True)
-    urdf_path: str = param('', 'Robot URDF giving the joint limits when limits.lower/upper '
-                           'are empty. Empty: the Panda of pybullet_data.', read_only=True)
+    urdf_path: str = param('', 'Robot URDF giving the joint limits (limits.lower/upper, when '
+                           'set, only tighten them). Empty: the Panda of pybullet_data.',
+                           read_only=True)
     robot_description: str = robot_description_param()
     demonstration_bags: Tuple[str, ...] = param(
         DEFAULT_BAGS, 'Bags (or directories of bag directories) fitted with the topic '

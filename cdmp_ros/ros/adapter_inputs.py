@@ -11,6 +11,7 @@ from cdmp_ros.core.adaptation.requests import permutation, reorder_promp
 from cdmp_ros.core.adaptation.constraints.parse import (RobotContext, parse_constraint_set,
                                                         validate_constraint_set)
 from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.joint_limits import merge_limits
 from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
 
 
@@ -45,6 +46,34 @@ def parse_primitive(text: str, joint_names: Sequence[str], max_bytes: int) -> Di
         raise ValidationError(f'primitive: cannot be used: {exc!r}') from None
     return {'kind': d['kind'], 'd': d, 'prim': prim, 'perm': perm,
             'sha1': hashlib.sha1(text.encode('utf-8', 'surrogatepass')).hexdigest()}
+
+
+def primitive_limits(p: Dict[str, Any], chain):
+    """The limits a primitive parsed by :func:`parse_primitive` is adapted within (robot
+    joint order): the tighter of its own ``limits`` (if any) and the robot's, per joint and
+    bound, never wider (:func:`cdmp_ros.core.joint_limits.merge_limits`).
+
+    Returns
+    -------
+    lower, upper : ndarray, shape (n_dims,)
+    mismatches : list of LimitMismatch
+        Every bound on which the primitive and the robot differ (empty without limits).
+
+    Raises
+    ------
+    ValidationError
+        Naming ``primitive.limits`` when they leave no room on a joint within the robot's.
+    """
+    lim = p['d'].get('limits')
+    if lim is None:
+        return chain.lower.copy(), chain.upper.copy(), []
+    perm = p['perm']
+    try:
+        return merge_limits(chain.joint_names, chain.lower, chain.upper,
+                            np.asarray(lim['lower'], dtype=float)[perm],
+                            np.asarray(lim['upper'], dtype=float)[perm])
+    except ValidationError as exc:
+        raise ValidationError(f'primitive.limits and the robot limits: {exc}') from None
 
 
 def parse_constraints(text: str, promp, chain, max_bytes: int) -> Optional[dict]:

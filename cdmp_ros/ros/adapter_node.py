@@ -18,7 +18,13 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms; and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
-  current joint_states).
+  current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
+  the robot's limits came from) and limit_mismatch (every bound on which the primitive's
+  limits differ from the robot's, with both values and the one used, or ``none``).
+- Joint limits: a primitive is adapted within the tighter of its own limits and the robot's,
+  per joint and bound, never wider (:func:`cdmp_ros.ros.adapter_inputs.primitive_limits`);
+  they bound the joint-limit constraints of a ProMP adaptation and are written as the
+  adapted ProMP's ``limits``. A difference is logged as a warning and reported.
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
@@ -51,10 +57,11 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, clip_goal, retarget
                                                solve_goal_point)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.primitive_io import primitive_from_dict
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
-                                         primitive_goal)
+                                         primitive_goal, primitive_limits)
 from cdmp_ros.ros.adapter_viz import build_markers
 from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
                                          violated)
@@ -110,7 +117,7 @@ class AdapterNode(Node):
                                               qos.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
         self.reporter.set_state(OK, 'waiting for a primitive', outcome='none',
-                                limits_source=self.urdf_path)
+                                limits_source=self.urdf_path, limit_mismatch='none')
         self.gate = InputGate(self, self.reporter, lambda: self.config)
         self._set_rates(cfg)
         gate, n = self.gate, len(self.joint_names)
@@ -188,13 +195,21 @@ class AdapterNode(Node):
     def _on_primitive(self, msg: String) -> None:
         try:
             prim = parse_primitive(msg.data, self.joint_names, self.config.max_json_bytes)
+            lo, hi, mismatches = primitive_limits(prim, self.chain)
         except CdmpError as exc:
             self.gate.reject('primitive', str(exc))
             return
+        prim['limits'] = (lo, hi)
         self.primitive_id += 1
         self.primitive = prim
         self.goal_y = self.goal_point = None
+        self.reporter.values['limit_mismatch'] = describe_mismatches(mismatches)
         self.get_logger().info(f'new {prim["kind"]} primitive ({len(msg.data)} bytes)')
+        if mismatches:
+            self.get_logger().warning(
+                f'the primitive limits differ from the robot ({self.urdf_path}) on '
+                f'{len(mismatches)} bounds, the tighter are used: '
+                f'{describe_mismatches(mismatches)}')
         self._trigger('primitive', 0)
 
     def _on_constraints(self, msg: String) -> None:
@@ -236,7 +251,9 @@ class AdapterNode(Node):
         return [q for q in (self.q, g, mid) if q is not None]
 
     def _set_goal(self, topic: str, g: np.ndarray, point, stamp_ns: int) -> None:
-        lo, hi = self.chain.lower, self.chain.upper
+        # the limits the primitive is adapted within (the robot's before the first primitive)
+        p = self.primitive
+        lo, hi = p['limits'] if p is not None else (self.chain.lower, self.chain.upper)
         gc, clipped = clip_goal(g, lo, hi, self.config.goal_margin)
         if clipped:
             changes = ', '.join(f'{self.joint_names[j]} {g[j]:.4g} -> {gc[j]:.4g}'
@@ -285,7 +302,7 @@ class AdapterNode(Node):
         cfg = self.config
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
         req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
-                           self.goal_y, start)
+                           self.goal_y, start, p['limits'])
         self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
                                time.monotonic(), self.primitive_id, p['sha1']))
 

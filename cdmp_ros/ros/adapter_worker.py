@@ -75,6 +75,9 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None)
     t_solve, c_solve = time.perf_counter() - t0, time.thread_time() - c0
     adapted = res.adapted
     adapted.metadata = dict(job.request.prior.metadata or {})
+    if job.request.limits is not None:  # the limits it was adapted within: the file's limits
+        adapted.metadata['limits'] = {'lower': [float(v) for v in job.request.limits[0]],
+                                      'upper': [float(v) for v in job.request.limits[1]]}
     report = res.report.as_dict()
     adapted.metadata['adaptation'] = report
     adapted.metadata['adapter'] = {

@@ -19,7 +19,15 @@ Parameters mirror :class:`~cdmp_ros.core.learning.LearnerConfig` (top level),
 :class:`~cdmp_ros.core.dmp.dmp.DmpConfig` (``dmp.*``), :class:`~cdmp_ros.core.learning.
 PrompLearnConfig` (``promp.*``), :class:`~cdmp_ros.core.dmp.improve.ImproveConfig`
 (``improve.*``) and :class:`~cdmp_ros.core.dmp.improve.CostConfig` (``cost.*``), plus the
-read-only ``limits.lower`` / ``limits.upper`` (empty: the limits of ``urdf_path``).
+read-only ``limits.lower`` / ``limits.upper`` (empty: the limits of the robot).
+
+Joint limits: the robot's come from ``robot_description`` (when non-empty) or ``urdf_path``
+(:mod:`cdmp_ros.ros.robot_model`); explicit ``limits.lower`` / ``limits.upper`` are merged with
+them, the tighter per joint and bound, never wider (:func:`cdmp_ros.core.joint_limits.
+merge_limits`): the demonstrations are checked against, and the primitives fitted within, the
+merged limits. Diagnostics: ``limits_source`` (the robot model's source; ``limits.lower/upper``
+only when the robot model cannot be loaded) and ``limit_mismatch`` (every bound on which the
+parameters differ from the robot, with both values and the one used; also a log warning).
 """
 import collections
 import os
@@ -39,6 +47,7 @@ from std_srvs.srv import Trigger
 from cdmp_ros.core.demonstrations import DemonstrationSegmenter
 from cdmp_ros.core.dmp.dmp import DmpConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.joint_limits import describe_mismatches, merge_limits
 from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
 from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig, fit_primitive
 from cdmp_ros.core.primitive_io import primitive_to_dict, save_primitive
@@ -96,8 +105,9 @@ class LearnerNode(Node):
         self.poll_timer = self.create_timer(POLL_PERIOD, self._poll)
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.reporter.set_state(WARN, 'no primitive yet',
-                                limits_source=('limits.lower/upper' if self._explicit_limits
-                                               else self.limits_source))
+                                limits_source=('limits.lower/upper' if self.chain is None
+                                               else self.limits_source),
+                                limit_mismatch=describe_mismatches(self.limit_mismatches))
         if cfg.fit_on_start:
             ok, text = self.refit('start')
             (self.get_logger().info if ok else self.get_logger().warning)(text)
@@ -110,7 +120,8 @@ class LearnerNode(Node):
             desc = ParameterDescriptor(
                 name=f'limits.{key}', type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=True,
                 description=f'{key.capitalize()} joint limits [rad] in the order of '
-                            'joint_names; empty: the limits of urdf_path.')
+                            'joint_names; merged with the robot limits (robot_description or '
+                            'urdf_path), the tighter used; empty: the robot limits.')
             try:
                 p = self.declare_parameter(f'limits.{key}', Parameter.Type.DOUBLE_ARRAY, desc)
             except (ParameterException, TypeError, ValueError) as exc:
@@ -119,9 +130,10 @@ class LearnerNode(Node):
         return out
 
     def _limits(self, cfg: LearnerConfig):
-        """(chain or None, lower, upper): explicit limits, else those of the URDF."""
+        """(chain or None, lower, upper): the robot's limits, tightened by the explicit ones
+        (never widened; the differences in ``self.limit_mismatches``)."""
         lower, upper = self._declare_limits()
-        self._explicit_limits = False
+        self.limit_mismatches = []
         # the robot model: robot_description, else urdf_path (as the streamer and adapter)
         path = self.limits_source = limits_source(cfg.urdf_path, cfg.robot_description)
         chain, chain_error = None, None
@@ -135,7 +147,18 @@ class LearnerNode(Node):
                 raise ValidationError(f'limits.lower/upper: expected {n} values each (one per '
                                       f'joint), got {len(lower)} and {len(upper)}')
             lo, hi = check_limits(lower, upper, n)
-            self._explicit_limits = True
+            if chain is not None:  # the tighter of the parameters and the robot
+                try:
+                    lo, hi, self.limit_mismatches = merge_limits(
+                        cfg.joint_names, chain.lower, chain.upper, lo, hi)
+                except ValidationError as exc:
+                    raise ValidationError(f'limits.lower/upper and the robot limits of '
+                                          f'{path!r}: {exc}') from None
+            if self.limit_mismatches:
+                self.get_logger().warning(
+                    f'limits.lower/upper differ from the robot ({path}) on '
+                    f'{len(self.limit_mismatches)} bounds, the tighter are used: '
+                    f'{describe_mismatches(self.limit_mismatches)}')
         elif chain is not None:
             lo, hi = chain.lower.copy(), chain.upper.copy()
         else:

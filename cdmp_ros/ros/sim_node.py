@@ -38,9 +38,21 @@ with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_dista
 ``tracking_error_max_rad``) plus ``state`` (waiting / tracking / holding), ``robot``,
 ``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
 ``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
-``resets``, ``rejected_total`` and ``rejected_<reason>`` per category of
+``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``rejected_total`` and
+``rejected_<reason>`` per category of
 :data:`cdmp_ros.ros.input_gate.REASONS`; ``sim: input <topic>`` per topic with rejections
 (``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
+
+Joint limits (``robot`` panda): the simulated robot holds the tighter of its pybullet model's
+limits and those of the robot that runs, read as in the other nodes from
+``robot_description`` (when non-empty) or ``urdf_path`` (:mod:`cdmp_ros.ros.robot_model`);
+``limits_source`` names that source, ``limit_mismatch`` lists every bound on which it differs
+from the pybullet model (also logged as a warning). The pybullet body itself stays the model
+of ``robot``: pybullet loads a URDF file with its meshes and inertias, and a robot_description
+refers to its meshes by ``package://`` URIs that only a ROS installation resolves (the Panda's
+model is also a generated copy with fixed fingers); so the limits, not the geometry, come
+from ``robot_description``. For ``dual_panda`` and ``planar4`` the limits are those of the
+URDF files pybullet loads (``limits_source``: those files).
 """
 import math
 import time
@@ -57,17 +69,26 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.joint_limits import LimitMismatch
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
+from cdmp_ros.sim.robot_specs import PANDA_JOINTS
 
 
 #: Timer period and stepping slice [s] when ``real_time`` is false.
 FAST_PERIOD, FAST_SLICE = 0.002, 0.0015
+
+
+def describe_sim_mismatch(m: LimitMismatch) -> str:
+    """One differing bound: the pybullet model's value, the robot's, the one used."""
+    return (f'{m.joint} {m.bound}: pybullet {m.primitive:.6g}, robot {m.robot:.6g} -> '
+            f'{m.used:.6g}')
 
 
 class SimNode(Node):
@@ -77,7 +98,14 @@ class SimNode(Node):
         super().__init__('sim', **kwargs)
         self.params = ConfigParameters(self, [('', SimConfig)], on_change=self._on_params)
         cfg: SimConfig = self.params['']
-        self.sim = LiveSim(cfg)
+        robot_limits = None
+        if cfg.robot == 'panda':  # the limits of the robot that runs (see the module docstring)
+            chain = load_panda_chain(cfg.urdf_path, PANDA_JOINTS, cfg.robot_description)
+            robot_limits = (chain.lower, chain.upper, chain.velocity_limits)
+        self.sim = LiveSim(cfg, robot_limits)
+        self.limits_source = (limits_source(cfg.urdf_path, cfg.robot_description)
+                              if robot_limits is not None
+                              else ', '.join(r.spec.urdf_path for r in self.sim.robots))
         try:
             self._declare_initial_positions()
             self._setup(cfg)
@@ -140,6 +168,13 @@ class SimNode(Node):
             self._clock_msg = ClockMsg()
             self.clock_pub = self.create_publisher(ClockMsg, '/clock', qos.CLOCK)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
+        mismatch = '; '.join(describe_sim_mismatch(m) for m in sim.limit_mismatches) or 'none'
+        self.reporter.set_state(OK, 'starting', limits_source=self.limits_source,
+                                limit_mismatch=mismatch)
+        if sim.limit_mismatches:
+            self.get_logger().warning(f'the limits of {self.limits_source} differ from the '
+                                      f'pybullet model on {len(sim.limit_mismatches)} bounds, '
+                                      f'the tighter are used: {mismatch}')
         self.gate = InputGate(self, self.reporter, lambda: self.config, now_ns=self._now_ns)
         self._set_rates(cfg)
         self.gate.subscribe(JointState, 'joint_reference', self._on_reference,

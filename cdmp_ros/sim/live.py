@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 import pybullet
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.joint_limits import merge_limits
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 from cdmp_ros.core.validation import as_array
 from cdmp_ros.sim.camera import CameraConfig, snapshot
@@ -144,13 +145,20 @@ class LiveSim:
     ----------
     config : SimConfig
         ``initial_positions`` (if given) must have one value per joint, inside the limits.
+    robot_limits : (lower, upper, velocity_limits), each (n_dofs,), optional
+        The limits of the robot that runs (its ``robot_description`` or ``urdf_path``): the
+        simulated robot holds the tighter of these and its pybullet model's, per joint and
+        bound (references are clipped into them, violations counted against them).
 
     Attributes
     ----------
     joint_names : tuple of str
     n_dofs : int
     lower, upper, velocity_limits : (n_dofs,) ndarray
-        From the URDF(s).
+        From the URDF(s) pybullet loads, tightened by ``robot_limits``.
+    limit_mismatches : list of LimitMismatch
+        Where ``robot_limits`` differ from the pybullet model's (``robot`` = ``robot_limits``,
+        ``primitive`` = the pybullet model).
     base_frame : str
         ``config.base_frame`` or the robot base (see :func:`build_robots`).
     initial_positions : (n_dofs,) ndarray
@@ -159,7 +167,8 @@ class LiveSim:
     stats : SimStats
     """
 
-    def __init__(self, config: SimConfig):
+    def __init__(self, config: SimConfig,
+                 robot_limits: Optional[Tuple[ArrayLike, ArrayLike, ArrayLike]] = None):
         self.config = config
         self.world = World(WorldConfig(time_step=config.physics_dt, real_time=False))
         try:
@@ -169,6 +178,13 @@ class LiveSim:
             self.lower = np.concatenate([r.lower for r in self.robots])
             self.upper = np.concatenate([r.upper for r in self.robots])
             self.velocity_limits = np.concatenate([r.velocity_limits for r in self.robots])
+            self.limit_mismatches = []
+            if robot_limits is not None:  # the tighter of the two, never wider
+                lo, hi, vmax = robot_limits
+                self.lower, self.upper, self.limit_mismatches = merge_limits(
+                    self.joint_names, lo, hi, self.lower, self.upper)
+                self.velocity_limits = np.minimum(
+                    self.velocity_limits, as_array('robot_limits[2]', vmax, (self.n_dofs,)))
             self._centre = 0.5 * (self.upper + self.lower)
             self._half = 0.5 * (self.upper - self.lower)
             self._inv_half = 1.0 / self._half

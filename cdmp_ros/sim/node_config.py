@@ -32,6 +32,15 @@ class SimConfig:
         'panda', 'Robot to simulate: panda (Franka Panda of pybullet_data), dual_panda (two '
         'Pandas 1.13 m apart, joints prefixed left_/right_), planar4 (planar 4-link arm of '
         'paper 003).', read_only=True, choices=ROBOTS)
+    urdf_path: str = _param(
+        '', 'Robot URDF whose joint limits (position, velocity) the simulated robot holds: '
+        'the tighter of these and the limits of its pybullet model (robot panda only; the '
+        'pybullet body stays the model of robot). Empty: the Panda of pybullet_data.',
+        read_only=True)
+    robot_description: str = _param(
+        '', 'The robot URDF as XML text, as a ROS system passes it to its nodes; when '
+        'non-empty it takes precedence over urdf_path for the joint limits (diagnostics: '
+        'limits_source).', read_only=True)
     control: str = _param(
         'position', 'Tracking law: position (pybullet position motors), computed_torque '
         '(Eq. 2, paper 000), exogenous (joint-limit-avoiding law in tanh coordinates, Eq. 4, '
@@ -109,6 +118,9 @@ class SimConfig:
 
     def __post_init__(self):
         check_fields(self)
+        if self.robot != 'panda' and (self.urdf_path or self.robot_description.strip()):
+            raise ValidationError(f'urdf_path / robot_description: expected empty values for '
+                                  f'robot {self.robot!r} (they give the limits of a panda)')
         ratio = self.physics_rate / self.publish_rate
         if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6 * ratio:
             raise ValidationError(f'publish_rate: expected physics_rate ({self.physics_rate:g})'

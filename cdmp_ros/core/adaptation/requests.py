@@ -11,7 +11,8 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 - every box obstacle near the path becomes a virtual wall (Eq. 16) on the same points: the
   plane of the box face, pushed out by ``obstacle_margin``, that leaves the prior mean path the
   most room (a convex box is avoided by staying on the free side of one of its faces);
-- the robot's joint limits become two-sided joint-limit constraints (Eq. 12);
+- the joint limits (the tighter of the primitive's and the robot's, ``AdaptRequest.limits``)
+  become two-sided joint-limit constraints (Eq. 12);
 - the user's constraint set (``msg_schemas/constraints.schema.json``) is added as is.
 """
 import dataclasses
@@ -63,6 +64,9 @@ def reorder_promp(promp: ProMP, joint_names: Sequence[str]) -> ProMP:
     out = ProMP(promp.n_dims, promp.basis, promp.mean_w[idx], promp.cov_w[np.ix_(idx, idx)],
                 promp.sigma_y[perm], promp.duration, list(joint_names))
     out.metadata = dict(promp.metadata)
+    lim = out.metadata.get('limits')
+    if isinstance(lim, dict):  # per-joint lists (see promp_to_dict): reordered too
+        out.metadata['limits'] = {k: [lim[k][i] for i in perm] for k in ('lower', 'upper')}
     return out
 
 
@@ -206,6 +210,9 @@ class AdaptRequest:
         Joint goal (conditioning at phase 1).
     start_y : (n_dims,), optional
         Current joint state (conditioning at phase 0).
+    limits : ((n_dims,), (n_dims,)), optional
+        Lower and upper bounds of the joint-limit constraints: the tighter of the primitive's
+        and the robot's (:func:`cdmp_ros.core.joint_limits.merge_limits`). None: the chain's.
     """
 
     prior: ProMP
@@ -213,6 +220,7 @@ class AdaptRequest:
     constraint_doc: Optional[dict] = None
     goal_y: Optional[NDArray[np.float64]] = None
     start_y: Optional[NDArray[np.float64]] = None
+    limits: Optional[Tuple[NDArray[np.float64], NDArray[np.float64]]] = None
 
 
 @dataclass
@@ -267,8 +275,9 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     names = ['ee'] + list(cfg.avoid_links)
     points = [ChainPoint(chain, p) for p in pois]  # shared: one FK / UT per time step
     constraints: list = []
-    if cfg.joint_limits:
-        constraints += [JointLimit(j, float(chain.lower[j]), float(chain.upper[j]),
+    if cfg.joint_limits:  # Eq. (12), paper 003
+        lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
+        constraints += [JointLimit(j, float(lower[j]), float(upper[j]),
                                    alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
                         for j in range(n)]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))

@@ -27,10 +27,16 @@ def promp_body(promp: ProMP) -> Dict[str, Any]:
 
 
 def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
-    """File fields owned by the ProMP: ``duration``, ``promp`` and (if any) ``metadata``."""
-    d = {'duration': float(promp.duration), 'promp': promp_body(promp)}
-    if getattr(promp, 'metadata', None):
-        d['metadata'] = dict(promp.metadata)
+    """File fields owned by the ProMP: ``duration``, ``promp``, (if any) ``metadata``, and
+    ``limits`` when the metadata holds the position limits the ProMP was fitted or adapted
+    within (``metadata['limits']``, ``{'lower': [...], 'upper': [...]}``)."""
+    d = {'duration': float(promp.duration)}
+    meta = getattr(promp, 'metadata', None)
+    if meta and isinstance(meta.get('limits'), dict):
+        d['limits'] = {k: [float(v) for v in meta['limits'][k]] for k in ('lower', 'upper')}
+    d['promp'] = promp_body(promp)
+    if meta:
+        d['metadata'] = dict(meta)
     return d
 
 
@@ -79,6 +85,8 @@ def promp_from_validated(d: Dict[str, Any], n_dims: int = None,
                   body.get('sigma_y'), 1.0 if duration is None else duration, joint_names)
         if isinstance(d.get('metadata'), dict):
             p.metadata = dict(d['metadata'])
+        if isinstance(d.get('limits'), dict):  # kept for promp_to_dict (see there)
+            p.metadata = dict(getattr(p, 'metadata', None) or {}, limits=dict(d['limits']))
         return p
     except KeyError as exc:
         raise PrimitiveFileError(f'{prefix}: missing field {exc.args[0]!r}') from None
