@@ -5,7 +5,8 @@
 
 Every node reads its parameter file from ``share/cdmp_ros/config`` (override one with
 ``<node>_params:=/path/to/file.yaml``); ``rate`` sets the streamer's ``rate`` and ``robot`` the
-sim's ``robot``. With ``use_sim:=false`` the sim node is not started: the streamer, the adapter
+sim's ``robot``, ``robot_description`` (URDF XML) the model every node takes its joint limits
+from. With ``use_sim:=false`` the sim node is not started: the streamer, the adapter
 and the learner read the measured state from the robot's own ``joint_states``. The graph
 without ROS is ``cdmp bringup``; ``demo.launch.py`` is the graph of ``cdmp demo``.
 """
@@ -41,6 +42,13 @@ def generate_launch_description():
             'namespace', default_value='',
             description="Namespace of every node and topic, e.g. '/arm' ('' = none)."),
         DeclareLaunchArgument(
+            'robot_description', default_value='',
+            description='URDF XML of the robot that runs (as robot_state_publisher takes it, '
+                        "e.g. robot_description:=\"$(xacro my_robot.urdf.xacro)\"); given to "
+                        'every node, which then take their joint limits and kinematics from it '
+                        "instead of urdf_path (the sim: robot 'panda' only). '' = the "
+                        "parameter files' urdf_path."),
+        DeclareLaunchArgument(
             'use_sim', default_value='true', choices=['true', 'false'],
             description='Start the pybullet sim node (false: a real robot publishes '
                         'joint_states and consumes the references).'),
@@ -49,21 +57,24 @@ def generate_launch_description():
         f'{node}_params', default_value=os.path.join(config, file),
         description=f'Parameter file of the {node} node.') for node, file in PARAMS.items()]
 
+    description = {'robot_description': ParameterValue(
+        LaunchConfiguration('robot_description'), value_type=str)}
+
     def params(node):
         return LaunchConfiguration(f'{node}_params')
 
     nodes = [
         Node(package=PACKAGE, executable='sim', name='sim', output='screen',
-             parameters=[params('sim'),
+             parameters=[params('sim'), description,
                          {'robot': ParameterValue(LaunchConfiguration('robot'), value_type=str)}],
              condition=IfCondition(LaunchConfiguration('use_sim'))),
         Node(package=PACKAGE, executable='streamer', name='streamer', output='screen',
-             parameters=[params('streamer'),
+             parameters=[params('streamer'), description,
                          {'rate': ParameterValue(LaunchConfiguration('rate'), value_type=float)}]),
         Node(package=PACKAGE, executable='adapter', name='adapter', output='screen',
-             parameters=[params('adapter')]),
+             parameters=[params('adapter'), description]),
         Node(package=PACKAGE, executable='learner', name='learner', output='screen',
-             parameters=[params('learner')]),
+             parameters=[params('learner'), description]),
     ]
     return LaunchDescription(
         args + [GroupAction([PushRosNamespace(LaunchConfiguration('namespace')), *nodes])])

@@ -398,7 +398,7 @@ def test_launch_file_nodes_arguments_and_parameter_files(file, monkeypatch):
 
 def test_cdmp_launch_default_graph(monkeypatch):
     played = evaluate('cdmp.launch.py', monkeypatch)
-    assert {'robot', 'rate', 'namespace', 'use_sim'} <= set(played.arguments)
+    assert {'robot', 'rate', 'namespace', 'use_sim', 'robot_description'} <= set(played.arguments)
     nodes = by_name(played)
     assert set(nodes) == {'sim', 'streamer', 'adapter', 'learner'}
     for name, n in nodes.items():
@@ -406,20 +406,26 @@ def test_cdmp_launch_default_graph(monkeypatch):
         assert n['params_files'] == [f'{name}.yaml']
         assert n['namespace'] == '/'
         assert n['remappings'] == {}
-    assert nodes['streamer']['parameters'] == {'rate': 500.0}
-    assert nodes['sim']['parameters'] == {'robot': 'panda'}
+    assert nodes['streamer']['parameters'] == {'rate': 500.0, 'robot_description': ''}
+    assert nodes['sim']['parameters'] == {'robot': 'panda', 'robot_description': ''}
+    assert nodes['adapter']['parameters'] == nodes['learner']['parameters'] == {
+        'robot_description': ''}
     # the defaults are those of the parameter files
     assert yaml.safe_load(open(os.path.join(ROOT, 'config', 'streamer.yaml')))[
         '/**']['ros__parameters']['rate'] == 500.0
+    for name in nodes:
+        assert yaml.safe_load(open(os.path.join(ROOT, 'config', f'{name}.yaml')))[
+            '/**']['ros__parameters'].get('robot_description', '') == ''
 
 
 def test_cdmp_launch_arguments(monkeypatch):
     played = evaluate('cdmp.launch.py', monkeypatch, {
         'robot': 'planar4', 'rate': '1000', 'namespace': 'arm', 'use_sim': 'true',
-        'learner_params': SHARE + '/config/adapter.yaml'})
+        'learner_params': SHARE + '/config/adapter.yaml', 'robot_description': '<robot/>'})
     nodes = by_name(played)
-    assert nodes['sim']['parameters'] == {'robot': 'planar4'}
-    assert nodes['streamer']['parameters'] == {'rate': 1000.0}
+    assert nodes['sim']['parameters'] == {'robot': 'planar4', 'robot_description': '<robot/>'}
+    assert nodes['streamer']['parameters'] == {'rate': 1000.0, 'robot_description': '<robot/>'}
+    assert {n['parameters']['robot_description'] for n in nodes.values()} == {'<robot/>'}
     assert isinstance(nodes['streamer']['parameters']['rate'], float)
     assert {n['namespace'] for n in nodes.values()} == {'/arm'}
     assert nodes['learner']['params_files'] == ['adapter.yaml']
