@@ -19,7 +19,7 @@ STARTUP = 30.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core
 TIMEOUT = 30.0   # s; bounds a failing wait only
 DURATION = 4.0   # s of streaming per trajectory (the demonstrations last 2 s)
 RATE = 100.0     # Hz of the published reference
-PATH_TOL = 0.1   # rad; every measured state lies this close to the reference path
+PATH_TOL = 0.03  # rad; every measured state lies this close to the reference path
 GOAL_TOL = 0.01  # rad; settled at the end of the reference
 
 
@@ -39,12 +39,14 @@ def primitives():
 @pytest.fixture(scope='module')
 def graph(tmp_path_factory):
     log = tmp_path_factory.mktemp('sim_dual_arm') / 'sim.log'
-    proc = start_sim(DOMAIN, ['robot:=dual_panda', 'diagnostics_period:=0.2'],
-                     log_path=str(log))
+    proc = start_sim(DOMAIN, ['robot:=dual_panda', 'control:=computed_torque',
+                              'diagnostics_period:=0.2'], log_path=str(log))
     h = SimHarness(DOMAIN)
     try:
         ok = h.wait(lambda: h.n_states() > 10 or proc.poll() is not None, STARTUP)
         assert ok and proc.poll() is None, log.read_text()
+        # the sim's joint_reference subscription is matched before anything is streamed
+        assert h.wait(lambda: h.pub['joint_reference'].get_subscription_count() > 0, TIMEOUT)
         yield h, proc, log
     finally:
         h.close()
