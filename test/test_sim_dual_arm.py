@@ -114,3 +114,21 @@ def test_sampled_check_counts_violations_like_the_constraints():
     assert counts['limit_left_1'] == (1, 1)
     assert counts['limit_right_1'] == (0, 0)
     assert all(counts[c.name] == (0, 0) for c in groups['table'])
+
+
+def test_demonstrations_of_another_robot_are_refused_with_the_names(tmp_path, capsys):
+    from cdmp_ros.core.errors import ValidationError
+    T = np.linspace(0.0, 1.0, 11)
+    names = [f'panda_joint{i}' for i in range(1, 8)]
+    expected = r"demonstrations\[0\]: expected the joints \['left_panda_joint1'.*got \['panda_j"
+    with pytest.raises(ValidationError, match=expected):
+        exp_dual_arm.learn_prior([(T, np.zeros((11, 7)), names)], 5)
+    with pytest.raises(ValidationError, match='expected at least one'):
+        exp_dual_arm.learn_prior([], 5)
+    # the command: exit status 2 and the reason, no traceback
+    from cdmp_ros.core.resources import data_path
+    code = main(['reproduce', 'dual-arm', '--out', str(tmp_path), '--no-progress',
+                 '--bags', data_path('bags', 'panda_reach')])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert 'expected the joints' in err and 'Traceback' not in err, err

@@ -89,7 +89,9 @@ def learn_prior(demos, n_basis: int = 8, prior_sd: float = PRIOR_SD):
     n_basis : int
     prior_sd : float
         Mode of the inverse-Wishart prior of each arm's weights: ``prior_sd**2 * I`` (three
-        demonstrations alone leave the covariance of 56 weights rank-deficient).
+        demonstrations leave the covariance of 7 * n_basis weights rank-deficient; the fit's
+        default mode, each joint's variance over the whole movement, is far wider than the
+        spread of the demonstrations).
 
     Returns
     -------
@@ -97,11 +99,16 @@ def learn_prior(demos, n_basis: int = 8, prior_sd: float = PRIOR_SD):
         14 dimensions (left joints, then right joints), block-diagonal weight covariance.
     """
     from cdmp_ros.core.errors import ValidationError
+    from cdmp_ros.core.kinematics import PANDA_JOINTS
     from cdmp_ros.core.promp.promp import ProMP, RbfBasis
-    names = list(demos[0][2])
-    if len(names) != 14:
-        raise ValidationError(f'demonstrations: expected 14 joints (left_*, right_*), got '
-                              f'{len(names)}: {names}')
+    if not demos:
+        raise ValidationError('demonstrations: expected at least one, got 0')
+    expected = [f'{arm}_{j}' for arm in ARMS for j in PANDA_JOINTS]
+    for i, (_, _, names) in enumerate(demos):
+        if list(names) != expected:
+            raise ValidationError(f'demonstrations[{i}]: expected the joints {expected} (the '
+                                  f'dual_panda sim order), got {list(names)}')
+    names = expected
     basis = RbfBasis.uniform(n_basis)
     n = 7 * n_basis
     arms = [ProMP.fit([(T, Y[:, 7 * a:7 * a + 7]) for T, Y, _ in demos], basis,
