@@ -58,6 +58,7 @@ def test_results_shape(rows):
     assert rows['adapted.converged']['ours'] is True
     assert rows['adapted.kl']['ours'] > 0.0
     assert rows['adapted.solve_s']['ours'] > 0.0
+    assert 0.0 < rows['adapted.mean_abs_cross_correlation']['ours'] < 1.0
 
 
 def test_original_primitives_collide(rows):

@@ -219,6 +219,15 @@ def sampled_check(groups: Dict[str, list], Q: NDArray, X: NDArray, grid: NDArray
     return out
 
 
+def cross_correlation(promp) -> float:
+    """Mean |correlation| between the weights of the left and of the right arm (0 for the
+    factorising original; objective (ii) leaves room for it, paper 003 III-C4)."""
+    C = promp.cov_w
+    sd = np.sqrt(np.diag(C))
+    n = C.shape[0] // 2
+    return float(np.mean(np.abs(C[:n, n:] / np.outer(sd[:n], sd[n:]))))
+
+
 def binomial_upper(k: int, n: int, confidence: float = 0.95) -> float:
     """One-sided Clopper-Pearson upper bound of a probability from k events in n trials."""
     from scipy.stats import beta
@@ -381,7 +390,8 @@ def solve(seed: int = 0, n_basis: int = 8, n_steps: int = 50, n_samples: int = 1
             row('adapted.kl_per_basis', report.kl_per_basis, None, 'nats'),
             row('adapted.solve_s', report.time_s, None, 's'),
             row('adapted.converged', report.converged, None, ''),
-            row('adapted.n_outer', report.n_outer, None, '')]
+            row('adapted.n_outer', report.n_outer, None, ''),
+            row('adapted.mean_abs_cross_correlation', cross_correlation(adapted), None, '')]
     pct = 100.0 / n_samples
     for c, (i, j, _) in zip(groups['pairs'], PAIRS):
         for tag in ('original', 'adapted'):
