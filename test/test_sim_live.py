@@ -99,6 +99,31 @@ def test_dual_panda_and_planar_arm():
         sim.close()
 
 
+def test_dual_panda_reports_contacts_between_the_two_robots():
+    sim = LiveSim(SimConfig(robot='dual_panda'))
+    try:
+        st = sim.monitor()   # home poses: apart, no contact
+        assert st.contacts == 0 and 0.1 < st.min_robot_distance_m < 1.0
+        assert st.as_values()['min_robot_distance_m'] == f'{st.min_robot_distance_m:.5f}'
+        reach = [0.0, 1.0, 0.0, -0.6, 0.0, 1.6, 0.8]   # both arms stretched into the middle
+        sim.set_initial_positions(reach + reach)
+        sim.reset()
+        st = sim.monitor()
+        assert st.contacts > 0 and st.contacts_since_start == st.contacts
+        assert st.min_robot_distance_m < 0.0
+        assert st.min_robot_distance_since_start_m == st.min_robot_distance_m
+        a, b, d = st.contact_pairs[0]
+        assert a.startswith('left/panda_link') and b.startswith('right/panda_link')
+        assert d == st.min_robot_distance_m
+    finally:
+        sim.close()
+    sim = LiveSim(SimConfig(robot='panda'))
+    try:
+        assert sim.monitor().min_robot_distance_m == np.inf   # one robot: no pair
+    finally:
+        sim.close()
+
+
 def test_initial_positions_are_checked():
     with pytest.raises(ValidationError, match='initial_positions: expected 7 values'):
         LiveSim(SimConfig(initial_positions=(0.0, 0.0)))

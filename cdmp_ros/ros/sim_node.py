@@ -35,7 +35,9 @@ Diagnostics: status ``sim: state`` (level WARN while holding a stale reference o
 with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
 ``min_obstacle_distance_since_start_m``, ``contacts``, ``contacts_since_start``,
 ``limit_violations``, ``max_limit_usage_since_start``, ``tracking_error_rad``,
-``tracking_error_max_rad``) plus ``state`` (waiting / tracking / holding), ``robot``,
+``tracking_error_max_rad``, ``min_robot_distance_m``,
+``min_robot_distance_since_start_m``; with ``dual_panda`` the contacts include the two
+robots' links against each other) plus ``state`` (waiting / tracking / holding), ``robot``,
 ``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
 ``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
 ``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``rejected_total`` and
@@ -385,8 +387,9 @@ class SimNode(Node):
             self.clock_pub.publish(self._clock_msg)
         self._n_published += 1
         self.counts['joint_states_published'] = self._n_published
-        if self._n_published % cfg.monitor_decimation == 0 and len(self.obstacles):
-            if self.obstacles.expire(time.monotonic()):
+        if self._n_published % cfg.monitor_decimation == 0 and (len(self.obstacles)
+                                                                or len(sim.robots) > 1):
+            if len(self.obstacles) and self.obstacles.expire(time.monotonic()):
                 self._sync_obstacles()
             else:
                 sim.monitor()

@@ -11,7 +11,8 @@ monitoring.
   in sync with a named set (:meth:`sync_obstacles`);
 - measures, after every physics step, limit violations, the largest limit usage
   ``|q - centre| / half-range`` and the tracking error ``max |q_ref - q|``; and, when
-  :meth:`monitor` is called, the minimum link-obstacle distance and the contacts.
+  :meth:`monitor` is called, the minimum link-obstacle distance and the contacts (in a cell
+  of several robots, ``dual_panda``, also the robots' links against each other).
 
 Every figure of :class:`SimStats` is what the node reports on ``diagnostics`` (same key names).
 
@@ -98,7 +99,8 @@ class SimStats:
     min_obstacle_distance_since_start_m : float
         Smallest value of the above over every :meth:`LiveSim.monitor` call [m].
     contacts : int
-        Link-obstacle pairs in contact now (distance <= contact_threshold).
+        Link-obstacle pairs, and in a cell link-link pairs of two robots, in contact now
+        (distance <= contact_threshold).
     contacts_since_start : int
         Contact onsets since the start: a pair in contact that was not at the previous
         monitor call.
@@ -111,6 +113,11 @@ class SimStats:
         ``max |q_ref - q|`` over joints after the last step [rad or m].
     tracking_error_max_rad : float
         Largest tracking error over every step since the start.
+    min_robot_distance_m : float
+        Cells only: current smallest distance between the links of two robots [m] (inf: one
+        robot, or none within ``distance_range``).
+    min_robot_distance_since_start_m : float
+        Smallest value of the above over every :meth:`LiveSim.monitor` call [m].
     """
 
     min_obstacle_distance_m: float = math.inf
@@ -121,6 +128,8 @@ class SimStats:
     max_limit_usage_since_start: float = 0.0
     tracking_error_rad: float = 0.0
     tracking_error_max_rad: float = 0.0
+    min_robot_distance_m: float = math.inf
+    min_robot_distance_since_start_m: float = math.inf
     contact_pairs: List[Tuple[str, str, float]] = field(default_factory=list)
 
     def as_values(self) -> Dict[str, str]:
@@ -135,6 +144,8 @@ class SimStats:
             'max_limit_usage_since_start': f'{self.max_limit_usage_since_start:.5f}',
             'tracking_error_rad': f'{self.tracking_error_rad:.6f}',
             'tracking_error_max_rad': f'{self.tracking_error_max_rad:.6f}',
+            'min_robot_distance_m': f'{self.min_robot_distance_m:.5f}',
+            'min_robot_distance_since_start_m': f'{self.min_robot_distance_since_start_m:.5f}',
         }
 
 
@@ -365,34 +376,55 @@ class LiveSim:
                 obs.add_box(name, pos, size, orientation=orn, collide=collide, replace=True)
 
     def monitor(self) -> SimStats:
-        """Update the obstacle distance and contact figures from the current state."""
+        """Update the obstacle distance, robot-robot distance and contact figures from the
+        current state."""
         st = self.stats
         cfg = self.config
-        if not len(self.world.obstacles):
-            st.min_obstacle_distance_m = math.inf
-            st.contacts = 0
-            st.contact_pairs = []
-            self._contact_keys = set()
-            return st
         best = math.inf
         keys = set()
         pairs = []
-        for r in self.robots:
-            report = self.world.obstacles.distances(r, cfg.distance_range)
-            for (link, obstacle), p in report.pairs.items():
-                if p.distance < best:
-                    best = p.distance
-                if p.distance <= cfg.contact_threshold:
-                    keys.add((r.name, link, obstacle))
-                    pairs.append((link, obstacle, p.distance))
+        if len(self.world.obstacles):
+            for r in self.robots:
+                report = self.world.obstacles.distances(r, cfg.distance_range)
+                for (link, obstacle), p in report.pairs.items():
+                    if p.distance < best:
+                        best = p.distance
+                    if p.distance <= cfg.contact_threshold:
+                        keys.add((r.name, link, obstacle))
+                        pairs.append((link, obstacle, p.distance))
         st.min_obstacle_distance_m = best
         if best < st.min_obstacle_distance_since_start_m:
             st.min_obstacle_distance_since_start_m = best
+        if len(self.robots) > 1:
+            closest = math.inf
+            for a, b, link_a, link_b, d in self._robot_distances():
+                closest = min(closest, d)
+                if d <= cfg.contact_threshold:
+                    keys.add((a, link_a, f'{b}/{link_b}'))
+                    pairs.append((f'{a}/{link_a}', f'{b}/{link_b}', d))
+            st.min_robot_distance_m = closest
+            if closest < st.min_robot_distance_since_start_m:
+                st.min_robot_distance_since_start_m = closest
         st.contacts = len(keys)
         st.contacts_since_start += len(keys - self._contact_keys)
         st.contact_pairs = sorted(pairs, key=lambda c: c[2])
         self._contact_keys = keys
         return st
+
+    def _robot_distances(self):
+        """(robot a, robot b, link of a, link of b, distance) for the closest link pairs of
+        every two robots of the cell (within ``distance_range``)."""
+        cid = self.world.client_id
+        out = {}
+        for i, a in enumerate(self.robots):
+            for b in self.robots[i + 1:]:
+                for pt in pybullet.getClosestPoints(a.body_id, b.body_id,
+                                                    self.config.distance_range,
+                                                    physicsClientId=cid):
+                    key = (a.name, b.name, a.link_names[pt[3] + 1], b.link_names[pt[4] + 1])
+                    if pt[8] < out.get(key, math.inf):
+                        out[key] = pt[8]
+        return [(ra, rb, la, lb, d) for (ra, rb, la, lb), d in out.items()]
 
     # -- output ----------------------------------------------------------------------------
     def snapshot(self, path: str = '') -> str:

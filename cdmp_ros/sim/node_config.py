@@ -53,7 +53,8 @@ class SimConfig:
         'physics_rate / publish_rate must be an integer.', 1.0, 1000.0, read_only=True)
     monitor_rate: float = _param(
         100.0, 'Rate of the obstacle distance and contact queries in simulated time [Hz] '
-        '(rounded to whole publish periods; only while there are obstacles).', 1.0, 1000.0)
+        '(rounded to whole publish periods; only while there are obstacles or, dual_panda, two '
+        'robots).', 1.0, 1000.0)
     real_time: bool = _param(
         True, 'true: simulated time follows the wall clock (steady clock, with catch-up); '
         'false: step as fast as the CPU allows (in slices that keep callbacks responsive).')
@@ -93,7 +94,8 @@ class SimConfig:
         True, 'Obstacles are physical bodies the robot bumps into (false: ghosts seen only by '
         'the distance and contact queries).')
     contact_threshold: float = _param(
-        0.0, 'A link-obstacle pair at a distance <= this [m] is a contact.', 0.0, 0.1)
+        0.0, 'A link-obstacle pair (dual_panda: also a link pair of the two robots) at a '
+        'distance <= this [m] is a contact.', 0.0, 0.1)
     distance_range: float = _param(
         5.0, 'Link-obstacle distances beyond this [m] are not computed (reported as inf).',
         0.01, 100.0)
