@@ -59,6 +59,13 @@ def go_home(h):
     assert h.wait(lambda: np.abs(h.q() - PANDA_HOME).max() < 0.01, TIMEOUT), h.q()
 
 
+def at_rest(h, speed=1e-3, n=25):
+    """The last ``n`` joint_states all report every joint slower than ``speed`` rad/s."""
+    with h.lock:
+        last = h.states[-n:]
+    return len(last) == n and all(np.abs(s[4]).max() < speed for s in last)
+
+
 def kv_float(kv, key):
     return float(kv[key])
 
@@ -276,6 +283,8 @@ def test_bad_references_are_rejected(graph, case):
     h, proc, _ = graph
     text, category = REFERENCE_CASES[case]
     before = int(h.last_state()[1].get(f'rejected_{category}', 0))
+    # the arm may still settle from the previous test: compare against a resting arm
+    assert h.wait(lambda: at_rest(h), TIMEOUT), h.q()
     q_before = h.q()
     t0 = time.monotonic()
     h.publish('joint_reference', _bad_reference(h, case))
