@@ -50,8 +50,8 @@ from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
-from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, StreamerConfig,
-                                              StreamFlags, StreamState)
+from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
+                                              StreamState)
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
@@ -86,10 +86,10 @@ class StreamerNode(Node):
         # the limits and kinematics of the robot: robot_description, else urdf_path
         self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
         self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
-        self.coupling_source = CouplingSource(self._make_coupling(self.params.configs))
+        self.coupling = self._make_coupling(self.params.configs)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
-            coupling=self.coupling_source if cfg.coupling_enabled else None)
+            coupling=self.coupling if cfg.coupling_enabled else None)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
@@ -217,8 +217,8 @@ class StreamerNode(Node):
 
     def _apply_params(self, cfg: StreamerConfig, coupling: ObstacleCoupling) -> None:
         self.streamer.set_config(cfg)
-        self.coupling_source.coupling = coupling
-        self.streamer.coupling = self.coupling_source if cfg.coupling_enabled else None
+        self.coupling = coupling
+        self.streamer.coupling = coupling if cfg.coupling_enabled else None
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
@@ -267,7 +267,7 @@ class StreamerNode(Node):
         good, newest = self.gate.markers('obstacles', msg)
         with self._lock:
             errors = self.obstacles.apply(good, now)
-            self.coupling_source.obstacles = self.obstacles.snapshot.items
+            self.streamer.obstacles = self.obstacles.snapshot.items
             # the latency is counted from the publisher's stamp (same host clock), or from the
             # arrival when the markers are unstamped
             self._latency_pending_ns = newest or self.get_clock().now().nanoseconds
@@ -401,7 +401,7 @@ class StreamerNode(Node):
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())
-            self.coupling_source.obstacles = self.obstacles.snapshot.items
+            self.streamer.obstacles = self.obstacles.snapshot.items
             n_lat = self._latency_n
             lat = self._latency_ms[:min(n_lat, LATENCY_SAMPLES)].copy()
             counts = dict(self.counts)
@@ -426,7 +426,7 @@ class StreamerNode(Node):
                 level, f'{state.value}: {reason}', state=state.value,
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
-                min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
+                min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
                 rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
                 **extra_limits,
                 **counts, **self.gate.values())

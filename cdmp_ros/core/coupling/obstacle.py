@@ -6,7 +6,7 @@ tick on plain floats::
 
     coupling = ObstacleCoupling(chain, links=['panda_link3', 'panda_link5'])
     dq_dd = coupling.joint_acceleration(q, qd, [Sphere((0.4, 0.1, 0.5), 0.05)])
-    stepper.input.coupling[:] = coupling.to_internal(dq_dd, out.xi, tau, transform)
+    stepper.set_joint_coupling(dq_dd)          # the exogenous map, capped near saturation
 
 End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
 Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
@@ -25,8 +25,9 @@ With three task rows and velocity-independent fields the whole evaluation runs i
 generated function (:mod:`cdmp_ros.core.coupling.kernel`; no Jacobian at all when no field is
 active); otherwise :meth:`ObstacleCoupling.joint_acceleration_generic` (kernel of both segment
 ends, ``J_o = (1 - t) J_a + t J_b``, exact because point Jacobians of one rigid link are affine
-in the point). :meth:`ObstacleCoupling.to_internal` maps the result to the stepper's exogenous
-coupling term, capped near saturation.
+in the point). It implements :class:`cdmp_ros.core.coupling.contract.Coupling`; the stepper
+(:meth:`cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling`) maps the result into its
+exogenous coupling term, capped near saturation.
 """
 import math
 from dataclasses import dataclass, field
@@ -45,10 +46,6 @@ from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_bo
 from cdmp_ros.core.validation import check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
-
-#: Default floor of ``1 - tanh(xi)^2`` in :meth:`ObstacleCoupling.to_internal` (the cap of the
-#: coupling term near saturation).
-SATURATION_FLOOR = 1e-2
 
 
 @dataclass(frozen=True)
@@ -300,40 +297,6 @@ class ObstacleCoupling:
         links = [([list(J_o[a]) + [0.0] * (n - len(J_o[a])) for a in ax], [dx[a] for a in ax])
                  for J_o, dx in links]
         return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping, scale)
-
-    @staticmethod
-    def to_internal(dq_dd: Sequence[float], xi: Optional[Sequence[float]], tau: float,
-                    y_delta: Optional[Sequence[float]] = None,
-                    floor: float = SATURATION_FLOOR) -> List[float]:
-        """The coupling term ``P`` of the stepper (``stepper.input.coupling``).
-
-        CDMP (``y_delta`` given): Eq. (29) at fixed ``(xi, xid)`` gives
-        ``dxi_dd = dq_dd / (y_delta (1 - tanh(xi)^2))`` and Eq. (21) takes
-        ``P = tau^2 dxi_dd``; DMP (``y_delta`` None): ``P = tau^2 dq_dd``. Where
-        ``1 - tanh(xi)^2 >= floor`` this is ``TanhTransform.joint_accel_to_exogenous`` on plain
-        floats.
-
-        Cap near saturation: ``1 - tanh(xi)^2`` is floored at ``floor``, so
-        ``|P| <= tau^2 |dq_dd| / (y_delta floor)``. Without it the divisor falls to ~2e-9 at the
-        saturation bound ``XI_SAT``: a coupling that turns away from a limit the state was
-        pushed into asks for an exogenous acceleration so large that ``xi`` crosses the whole
-        range in one tick (a jump from one joint limit to the other; test_core_coupling.py).
-        With the floor the coupling only acts attenuated, by ``(1 - tanh(xi)^2) / floor``,
-        within ``1 - sqrt(1 - floor)`` (0.5 % for the default) of the half-range from a limit.
-        ``floor = 0`` gives the uncapped map (divisor floored at 1e-300).
-        """
-        tau2 = tau * tau
-        if y_delta is None:
-            return [tau2 * a for a in dq_dd]
-        tanh = math.tanh
-        out = []
-        for a, x, yd in zip(dq_dd, xi, y_delta):
-            t = tanh(x)
-            s = 1.0 - t * t
-            if s < floor:
-                s = floor
-            out.append(tau2 * a / max(yd * s, 1e-300))
-        return out
 
 
 def joint_coupling(chain: Chain, q: ArrayLike, qd: Optional[ArrayLike],
