@@ -405,6 +405,39 @@ def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda,
                                    rtol=0, atol=1e-9)
 
 
+def test_generic_path_gives_damped_fields_the_point_velocities(panda, rng):
+    """Velocity-dependent fields run the generic path: the one closest-point routine
+    (ClosestPointGate) gets the end-effector velocity J qd and the link point's J_o qd."""
+    field = RepellerField(gain=0.02, influence_distance=0.4, min_distance=0.01, damping=2.0)
+    coupling = ObstacleCoupling(panda, ['panda_link3'], field,
+                                config=CouplingConfig(damping=DAMP, limit_aware=False))
+    assert coupling._coupled is None
+    q = np.array([0.1, -0.4, 0.2, -2.0, 0.1, 1.7, 0.6])
+    qd = rng.normal(size=7)
+    ee = PointOfInterest('ee')
+    X = panda.forward(q, [ee, PointOfInterest('panda_link3')])
+    obstacles = [Sphere(tuple(X[0] + [0.1, 0.05, 0.0]), 0.05),
+                 Sphere(tuple(X[1] + [0.08, 0.0, 0.05]), 0.05)]
+    got = np.array(coupling.joint_acceleration(q, qd, obstacles))
+    x, J = panda.forward_and_jacobian(q[None], [ee])
+    x, J_e = x[0, 0], J[0, 0]
+    dx_e = np.zeros(3)
+    for obs in obstacles:
+        v = x - np.array(obs.center)
+        d = np.linalg.norm(v)
+        dx_e += field.acceleration(x, J_e @ qd, obs, d - obs.radius, v / d)
+    ref = end_effector_term(J_e, dx_e, DAMP)
+    cps = [link_closest_point(panda, q, coupling.segments[0], obs) for obs in obstacles]
+    i = int(np.argmin([cp.distance for cp in cps]))
+    _, J_o = panda.forward_and_jacobian(q[None], [cps[i].poi])
+    dx = field.acceleration(cps[i].point, J_o[0, 0] @ qd, obstacles[i], cps[i].distance,
+                            cps[i].normal)
+    ref += link_term(J_e, J_o[0, 0], np.array(dx), DAMP)
+    np.testing.assert_allclose(got, ref, rtol=1e-7, atol=1e-9)
+    at_rest = np.array(coupling.joint_acceleration(q, None, obstacles))
+    assert np.abs(got - at_rest).max() > 0.1                 # the damping acted
+
+
 def test_obstacle_coupling_planar_chain(rng):
     chain = planar_chain([1.0, 1.0, 1.0, 1.0])
     field = RepellerField(gain=0.5, influence_distance=1.0, min_distance=0.01)
