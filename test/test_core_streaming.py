@@ -503,3 +503,77 @@ def test_prepare_streams_a_promp_through_its_mean():
     mean = promp.mean(tr.T / 2.0)
     assert np.abs(tr.Y - mean).max() < 0.02
     assert primitive_to_dict(prep.prim)['kind'] == 'cdmp'
+
+
+# -- the streamer's coupling from its parameters (tcp_offset, box_field_kind) -----------------
+def _pybullet_link_positions(q, links):
+    """World positions of ``links`` of pybullet's Panda at the arm configuration ``q``."""
+    import pybullet as p
+    import pybullet_data
+    cid = p.connect(p.DIRECT)
+    try:
+        body = p.loadURDF(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'),
+                          useFixedBase=True, physicsClientId=cid)
+        index = {}
+        for j in range(p.getNumJoints(body, physicsClientId=cid)):
+            info = p.getJointInfo(body, j, physicsClientId=cid)
+            index[info[12].decode()] = j
+            name = info[1].decode()
+            if name in PANDA_JOINTS:
+                p.resetJointState(body, j, q[PANDA_JOINTS.index(name)], physicsClientId=cid)
+        return [np.array(p.getLinkState(body, index[link], computeForwardKinematics=True,
+                                        physicsClientId=cid)[4]) for link in links]
+    finally:
+        p.disconnect(cid)
+
+
+def test_streamer_coupling_acts_on_the_fingertips_by_default():
+    """The end-effector term (Eq. 7) of the streamer's coupling acts on the tool centre point
+    tcp_offset, by default the Panda's fingertips (pybullet's panda_grasptarget), not on the
+    flange (panda_hand): a sphere centred on the point has distance -radius from it."""
+    import pybullet_data
+    from cdmp_ros.core.kinematics import panda_chain
+    from cdmp_ros.core.kinematics.closest import Sphere
+    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    q = np.array([0.3, -0.5, 0.2, -2.1, 0.1, 1.8, 0.6])
+    tips, flange = _pybullet_link_positions(q, ['panda_grasptarget', 'panda_hand'])
+    assert np.linalg.norm(tips - flange) == pytest.approx(0.105, abs=1e-6)  # pybullet: float32
+    for cfg, point in ((StreamerConfig(), tips), (StreamerConfig(tcp_offset=(0, 0, 0)), flange)):
+        coupling = streamer_coupling(chain, cfg)
+        coupling.joint_acceleration(q, None, [Sphere(tuple(point), 0.01)])
+        assert coupling.last_distances[0] == pytest.approx(-0.01, abs=1e-6)
+    with pytest.raises(ValidationError, match='tcp_offset'):
+        StreamerConfig(tcp_offset=(0.0, 0.1))
+
+
+def test_streamer_coupling_uses_the_board_field_when_selected():
+    """box_field_kind 'board': boxes get the board field of Eq. 30-31 (numpy oracle: the field
+    at the fingertips mapped by Eq. 7); 'constant' (default): the constant field of IV-B."""
+    import pybullet_data
+    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField
+    from cdmp_ros.core.coupling.terms import end_effector_term
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    from cdmp_ros.core.kinematics.closest import Box, box_signed_distance
+    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    q = np.array([0.3, -0.5, 0.2, -2.1, 0.1, 1.8, 0.6])
+    X, J = chain.forward_and_jacobian(q[None], [PointOfInterest('ee')])
+    x, J_e = X[0, 0], J[0, 0]
+    board = Box(tuple(x + [-0.2, -0.3, 0.05]), tuple(x + [0.2, 0.05, 0.07]))  # just above
+    field = BoardField(beta_y=0.02, beta_z=0.01, alpha=0.5, goal_height=float(x[2]) - 0.2)
+    with pytest.raises(ValidationError, match='box_field_kind'):
+        StreamerConfig(box_field_kind='wall')
+    cfg = StreamerConfig(box_field_kind='board', coupling_links=())
+    coupling = streamer_coupling(chain, cfg, board_field=field)
+    assert coupling.box_field is field
+    got = coupling.joint_acceleration(q, None, [board])
+    d, _, n = box_signed_distance(x, board.lower, board.upper)
+    dx = field.acceleration(x, (0.0, 0.0, 0.0), board, float(d), n)
+    assert dx[1] > 0.0 and dx[2] < 0.0                    # Eq. 30: towards the edge, down
+    expected = end_effector_term(J_e, np.array(dx), coupling.config.damping)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+    constant = streamer_coupling(chain, StreamerConfig(coupling_links=()),
+                                 box_field=ConstantField(magnitude=2.0, influence_distance=0.1))
+    assert isinstance(constant.box_field, ConstantField)
+    assert np.abs(np.subtract(constant.joint_acceleration(q, None, [board]), got)).max() > 1e-3

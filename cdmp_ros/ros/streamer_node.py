@@ -28,7 +28,6 @@ with its own scheduled stamp (at most one period early); the schedule and the st
 of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
 steady-clock executor timer.
 """
-import dataclasses
 import gc
 import sys
 import threading
@@ -45,13 +44,13 @@ from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
-                                              StreamState)
+                                              StreamState, streamer_coupling)
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
@@ -74,14 +73,16 @@ SWITCH_INTERVAL_PERIODS = 0.1
 
 class StreamerNode(Node):
     """See the module docstring; parameters mirror :class:`StreamerConfig` and the coupling
-    configs (``coupling.*``, ``damping.*``, ``repeller.*``, ``box_field.*``)."""
+    configs (``coupling.*``, ``damping.*``, ``repeller.*``, ``box_field.*``,
+    ``board_field.*``)."""
 
     def __init__(self, **kwargs):
         super().__init__('streamer', **kwargs)
         self.params = ConfigParameters(
             self, [('', StreamerConfig), ('coupling', CouplingConfig),
                    ('damping', DampingConfig), ('repeller', RepellerField),
-                   ('box_field', ConstantField)], on_change=self._on_params)
+                   ('box_field', ConstantField), ('board_field', BoardField)],
+            on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
         # the limits and kinematics of the robot: robot_description, else urdf_path
         self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
@@ -171,11 +172,9 @@ class StreamerNode(Node):
 
     # -- setup -------------------------------------------------------------------------------
     def _make_coupling(self, configs) -> ObstacleCoupling:
-        cc = configs['coupling']
-        cc = dataclasses.replace(cc, damping=configs['damping'])
-        return ObstacleCoupling(self.chain, configs[''].coupling_links,
-                                sphere_field=configs['repeller'],
-                                box_field=configs['box_field'], config=cc)
+        return streamer_coupling(self.chain, configs[''], configs['coupling'],
+                                 configs['damping'], configs['repeller'], configs['box_field'],
+                                 configs['board_field'])
 
     def _controller_output(self, cfg: StreamerConfig):
         """The publisher and writer of ``controller_output`` (None, None for 'none'); the

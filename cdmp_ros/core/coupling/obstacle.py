@@ -8,7 +8,9 @@ tick on plain floats::
     dq_dd = coupling.joint_acceleration(q, qd, [Sphere((0.4, 0.1, 0.5), 0.05)])
     stepper.set_joint_coupling(dq_dd)          # the exogenous map, capped near saturation
 
-End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
+End effector (paper 000, Eq. 7): the field of every obstacle at the tool centre point (the
+chain's end-effector point, or ``tcp_offset`` from the tip link: the Panda's fingertips by
+default, so the hand itself avoids obstacles), summed.
 Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
 over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
 the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``. Near a
@@ -44,7 +46,7 @@ from cdmp_ros.core.coupling.potential_fields import (ZERO, BoardField, ConstantF
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
                                               segment_box_scalar)
-from cdmp_ros.core.validation import check_positive
+from cdmp_ros.core.validation import as_array, check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
 
@@ -106,11 +108,18 @@ class ObstacleCoupling:
     sphere_field, box_field : field
         Potential fields of spheres and of boxes.
     config : CouplingConfig
+    tcp_offset : sequence of 3 float, optional
+        The tool centre point, on which the end-effector term (Eq. 7) acts: this offset [m]
+        in the frame of the chain's tip link (``chain.ee_link``, the Panda's hand flange).
+        None: the chain's own end-effector point (``PointOfInterest('ee')``; for
+        :func:`~cdmp_ros.core.kinematics.builders.panda_chain` the fingertips,
+        ``PANDA_EE_OFFSET``).
     """
 
     def __init__(self, chain: Chain, links: Sequence = (),
                  sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
-                 config: CouplingConfig = CouplingConfig()):
+                 config: CouplingConfig = CouplingConfig(),
+                 tcp_offset: Optional[Sequence[float]] = None):
         self.chain = chain
         self.config = config
         self.sphere_field = sphere_field
@@ -126,7 +135,12 @@ class ObstacleCoupling:
             else:
                 name, start, end = link
                 self.segments.append((name, tuple(map(float, start)), tuple(map(float, end))))
-        points = [PointOfInterest('ee')]
+        if tcp_offset is None:
+            tcp = PointOfInterest('ee')
+        else:
+            tcp = PointOfInterest(chain.ee_link,
+                                  tuple(as_array('tcp_offset', tcp_offset, (3,)).tolist()))
+        points = [tcp]
         for name, start, end in self.segments:
             points += [PointOfInterest(name, start), PointOfInterest(name, end)]
         self.points = tuple(points)
@@ -396,8 +410,9 @@ class ClosestPointGate:
 def joint_coupling(chain: Chain, q: ArrayLike, qd: Optional[ArrayLike],
                    obstacles: Sequence[Union[Sphere, Box]], links: Sequence = (),
                    sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
-                   config: CouplingConfig = CouplingConfig()) -> NDArray[np.float64]:
+                   config: CouplingConfig = CouplingConfig(),
+                   tcp_offset: Optional[Sequence[float]] = None) -> NDArray[np.float64]:
     """One-shot :meth:`ObstacleCoupling.joint_acceleration` (builds the coupling each call;
     keep an :class:`ObstacleCoupling` for repeated use)."""
-    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config)
+    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config, tcp_offset)
     return np.array(coupling.joint_acceleration(q, qd, obstacles))

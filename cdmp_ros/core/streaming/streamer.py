@@ -19,6 +19,7 @@ exogenous space, Eq. 21), and guarantees what the node promises:
 Times (``now``) are seconds of a steady clock supplied by the caller, so the class is
 deterministic and testable without ROS.
 """
+import dataclasses
 import enum
 import math
 from typing import Callable, List, Optional, Sequence, Tuple
@@ -28,11 +29,38 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.contract import Coupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.coupling.terms import DampingConfig
+from cdmp_ros.core.kinematics import Chain
 from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
 from cdmp_ros.core.streaming.config import StreamerConfig
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
+
+
+def streamer_coupling(chain: Chain, config: StreamerConfig,
+                      coupling: CouplingConfig = CouplingConfig(),
+                      damping: DampingConfig = DampingConfig(),
+                      repeller: RepellerField = RepellerField(),
+                      box_field: ConstantField = ConstantField(),
+                      board_field: BoardField = BoardField()) -> ObstacleCoupling:
+    """The streamer's obstacle coupling from its parameters (the ``coupling.*``,
+    ``damping.*``, ``repeller.*``, ``box_field.*`` and ``board_field.*`` sections):
+    Eq. (7) on the tool centre point ``config.tcp_offset``, Eq. (12) on
+    ``config.coupling_links``; spheres get ``repeller``, boxes ``box_field`` (IV-B) or, with
+    ``config.box_field_kind == 'board'``, ``board_field`` (Eq. 30-31).
+
+    Raises
+    ------
+    ValidationError
+        Unknown link names.
+    """
+    boxes = board_field if config.box_field_kind == 'board' else box_field
+    return ObstacleCoupling(chain, config.coupling_links, sphere_field=repeller, box_field=boxes,
+                            config=dataclasses.replace(coupling, damping=damping),
+                            tcp_offset=config.tcp_offset)
 
 
 class StreamState(enum.Enum):
