@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
 """Write the checked-in generated kernels of the Panda (cdmp_ros/core/generated/).
 
-The streamer's default obstacle coupling on the Panda of pybullet_data
-(:func:`cdmp_ros.core.streaming.streamer.streamer_coupling` with the default parameters) runs
-two generated kernels: the whole coupling (:func:`cdmp_ros.core.coupling.kernel.
-compile_coupling`, the tick's path) and the forward kinematics and Jacobians of its points
-(:func:`cdmp_ros.core.kinematics.codegen.compile_kernel`, the path of velocity-dependent
-fields). This script builds that coupling, takes the generated sources and writes them as
-modules, plus the index by which the generators find them (:mod:`cdmp_ros.core.generated`).
+The streamer's tick on the Panda of pybullet_data with the default parameters
+(:func:`cdmp_ros.core.streaming.streamer.streamer_coupling`) runs one generated kernel: the
+whole coupling (:func:`cdmp_ros.core.coupling.kernel.compile_coupling`: the forward kinematics
+and Jacobians of :mod:`cdmp_ros.core.kinematics.codegen`, then Eq. 7 and 12). This script
+builds that coupling, takes the generated source and writes it as a module, plus the index by
+which the generators find it (:mod:`cdmp_ros.core.generated`). Kernels of other chains or
+points (velocity-dependent fields, the experiments) are compiled at run time.
 
 Usage::
 
@@ -39,14 +39,6 @@ and ``h`` the Gram matrix ``J J^T`` and its damped inverse, ``c`` Eq. (7), ``k``
 ``g``, ``u`` the link blocks, ``acc`` the ``J_o^T u`` sums, ``b`` and ``sw`` the weighted
 (limit-aware) branch; ``v<n>`` are intermediate values.'''
 
-KINEMATICS_DOC = '''\
-Forward kinematics and Jacobians of the points of the streamer's default coupling on the Panda
-of pybullet_data (franka_panda/panda.urdf, base at the origin), as
-:func:`cdmp_ros.core.kinematics.codegen.compile_kernel` generates them: the tool centre point
-(panda_hand + (0, 0, 0.105)), then the start and end of the segments of panda_link3 and
-panda_link5. ``kernel(q) -> (x, jac)``: ``x`` 3 floats per point, ``jac`` 3 x 7 per point
-(row-major); ``v<n>`` are intermediate values.'''
-
 
 def kernels():
     """(module, function, source, title, description, imports) of every checked-in kernel."""
@@ -61,9 +53,6 @@ def kernels():
          "Panda: the streamer's default obstacle coupling, one configuration on plain floats.",
          COUPLING_DOC,
          [trig, '', 'from cdmp_ros.core.coupling.terms import _inverse_h3 as inverse_h3']),
-        ('panda_kinematics', 'kernel', coupling._kernel.source,
-         "Panda: kinematics of the streamer's default coupling points, one configuration.",
-         KINEMATICS_DOC, [trig]),
     ]
 
 

@@ -163,6 +163,15 @@ def _emit_links(em: _Emitter, Rs, ps, prismatic, segments, SJ, J, sn: Optional[L
     return n_acc
 
 
+def _joint_terms(prefix: str, J, c: int, n_acc: int) -> list:
+    """Terms of joint c of ``J^T {prefix}`` (+ ``acc{c}``, the ``J_o^T u`` sums, for
+    ``c < n_acc``)."""
+    terms = [(1.0, f'{prefix}{r}', J[r][c]) for r in range(3)]
+    if c < n_acc:
+        terms.append((1.0, f'acc{c}', 1.0))
+    return terms
+
+
 def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
                      segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]],
                      limit_bounds: Optional[Sequence[Tuple[float, float]]] = None
@@ -247,26 +256,15 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
     em.lines += _indented(_EE_TEMPLATE.split('\nc0 = ')[0], '        ')
     em.lines.append('        b0 = b1 = b2 = 0.0')
     n_acc_w = _emit_links(em, Rs, ps, prismatic, segments, SJ, J, sn, 'b', '        ')
-    out = []
-    for c in range(n):
-        link = [(1.0, 'b0', J[0][c]), (1.0, 'b1', J[1][c]), (1.0, 'b2', J[2][c])]
-        if c < n_acc_w:
-            link.append((1.0, f'acc{c}', 1.0))
-        lw = em.sum(link)
-        terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c]),
-                 (1.0, sn[c], lw)]
-        out.append(literal(em.sum(terms)))
+    out = [literal(em.sum(_joint_terms('c', J, c, 0)
+                          + [(1.0, sn[c], em.sum(_joint_terms('b', J, c, n_acc_w)))]))
+           for c in range(n)]
     em.lines.append(f'        return [{", ".join(out)}]')
     em.indent = '    '
     em.cache = top
     # Eq. (12), paper 000, per active link
     n_acc = _emit_links(em, Rs, ps, prismatic, segments, J, J, None, 'c', '    ')
-    out = []
-    for c in range(n):
-        terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c])]
-        if c < n_acc:
-            terms.append((1.0, f'acc{c}', 1.0))
-        out.append(literal(em.sum(terms)))
+    out = [literal(em.sum(_joint_terms('c', J, c, n_acc))) for c in range(n)]
     body = '\n'.join(prune(em.lines + [f'    return [{", ".join(out)}]']))
     source = f'def coupled(q, gate, obstacles, eps2, lam2, limit=None):\n{body}\n'
     return build(source, 'coupled', {'cos': math.cos, 'sin': math.sin,

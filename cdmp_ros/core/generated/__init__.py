@@ -30,13 +30,17 @@ def source_hash(source: str) -> str:
 
 
 def lookup(source: str, name: str) -> Optional[Callable]:
-    """The checked-in function ``name`` generated from exactly ``source``, or None."""
+    """The checked-in function ``name`` generated from exactly ``source``, or None (also for
+    an index entry whose module is gone: the caller then compiles ``source`` itself)."""
     from cdmp_ros.core.generated.index import INDEX
     entry = INDEX.get(source_hash(source))
     if entry is None or entry[1] != name:
         return None
-    module = importlib.import_module(f'{__name__}.{entry[0]}')
-    return getattr(module, name)
+    try:
+        module = importlib.import_module(f'{__name__}.{entry[0]}')
+    except ImportError:
+        return None
+    return getattr(module, name, None)
 
 
 _SPLIT = re.compile(r' (?=[-+] )| (?=or )|(?<=,) ')

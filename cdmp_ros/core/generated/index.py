@@ -3,8 +3,6 @@ checked-in kernel's generated source -> (module, function); see the package
 docstring."""
 
 INDEX = {
-    '12dd8b37d7316ba0651031c2283f0b1118b46eb2a5d71c434622c13de0cb7a33':
-        ('panda_kinematics', 'kernel'),
     'fff3967de0e11e02354186dbcb029e802471e807b334de3aea484357ddc6f15e':
         ('panda_coupling', 'coupled'),
 }
