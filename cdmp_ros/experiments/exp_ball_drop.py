@@ -143,7 +143,8 @@ def pi2_config(n_rollouts, **overrides):
 
 def learning_run(setup, scene, coupling, seed, n_updates, n_rollouts, kind='cdmp',
                  progress=None, config=None):
-    """One PI2 learning run; returns per-trial records and the final policy's evaluation."""
+    """One PI2 learning run; returns per-trial records and the final policy's evaluation.
+    ``coupling``: the rollout keyword arguments of :func:`ee_board_coupling`."""
     from cdmp_ros.core.dmp.dmp import limit_usage
     from cdmp_ros.core.dmp.pi2 import Pi2
     prim = initial_policy(setup, kind)
