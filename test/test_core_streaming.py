@@ -365,7 +365,7 @@ def _free_ee_path(chain, text, n=1000):
     return path
 
 
-def test_coupling_source_with_a_sphere_keeps_the_hand_away():
+def test_streamed_coupling_with_a_sphere_keeps_the_hand_away():
     import pybullet_data
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
     from cdmp_ros.core.kinematics.closest import Sphere
@@ -389,7 +389,7 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     assert math.isfinite(rs.min_distance)
 
 
-def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
+def test_limit_aware_streamed_coupling_keeps_joint_4_off_its_limit():
     """Issue 10.4 through the streamer: the reach and sphere of test_core_coupling.LIMIT_CASES
     where link avoidance (Eq. 12) drives panda_joint4 onto its limit (usage > 0.999); with the
     limit-aware Eq. 12 (the default) every joint stays below 0.98 and the links keep clear of
@@ -426,7 +426,7 @@ def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
     assert d_new > d_free + 0.01
 
 
-def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
+def test_streamed_coupling_with_a_rotated_box_keeps_the_hand_out():
     """A box rotated 30 deg about z (an oriented CUBE marker) across the free path: the
     streamed end effector stays outside it (signed distance from OrientedBox)."""
     import pybullet_data
