@@ -68,15 +68,12 @@ def bench_coupled_step(chain, coupling, obstacles, reps):
     prim = CDMP(chain.lower, chain.upper).fit(T, start + np.outer(s, goal - start))
     stepper = prim.stepper(0.001)
     inp, update, out = stepper.input, stepper.update, stepper.output
-    y_delta = prim.transform.y_delta.tolist()
-    tau = stepper.tau
-    to_internal = coupling.to_internal
+    set_joint_coupling = stepper.set_joint_coupling
     joint_acceleration = coupling.joint_acceleration
     update(inp)
 
     def step():
-        dq = joint_acceleration(out.y, out.yd, obstacles)
-        inp.coupling[:] = to_internal(dq, out.xi, tau, y_delta)
+        set_joint_coupling(joint_acceleration(out.y, out.yd, obstacles))
         update(inp)
 
     stepper.reset()
@@ -93,14 +90,14 @@ def bench_coupled_step(chain, coupling, obstacles, reps):
 
 
 def bench_streamer_tick(chain, reps):
-    """In-process streamer tick (``ReferenceStreamer.advance(1)``: coupling through
-    ``CouplingSource``, the streamer's own exogenous map, stepper, guard) on a 2 s Panda CDMP
+    """In-process streamer tick (``ReferenceStreamer.advance(1)``: coupling, the stepper's
+    exogenous map, stepper, guard) on a 2 s Panda CDMP
     at 1 kHz with 3 spheres placed so that the end effector and both links are within reach;
     restarted every 1,000 ticks. No ROS: the node adds publishing and the executor."""
     from cdmp_ros.core.dmp.dmp import CDMP
     from cdmp_ros.core.primitive_io import dumps_primitive
     from cdmp_ros.core.streaming.primitives import prepare_primitive
-    from cdmp_ros.core.streaming.streamer import CouplingSource, ReferenceStreamer, StreamerConfig
+    from cdmp_ros.core.streaming.streamer import ReferenceStreamer, StreamerConfig
     names = tuple(f'panda_joint{i}' for i in range(1, 8))
     y0 = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
     y1 = np.array([0.8, 0.2, 0.3, -1.2, 0.2, 2.0, 0.3])
@@ -114,13 +111,13 @@ def bench_streamer_tick(chain, reps):
                                               min_distance=0.01))
     ends = [PointOfInterest(seg[0], seg[2]) for seg in coupling.segments]
     X = chain.forward(0.5 * (y0 + y1), [PointOfInterest('ee')] + ends)
-    source = CouplingSource(coupling)
-    source.obstacles = [Sphere(tuple(x + [0.08, 0.05, 0.0]), 0.05) for x in X]
+    obstacles = [Sphere(tuple(x + [0.08, 0.05, 0.0]), 0.05) for x in X]
     cfg = StreamerConfig(joint_states_timeout=0.0)
     samples = []
     cpu = []
     for _ in range(max(1, reps // 1000)):
-        rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling=source)
+        rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling=coupling)
+        rs.obstacles = obstacles
         rs.activate(prepare_primitive(text, names, cfg.dt, chain.lower, chain.upper), 0.0)
         clock = [0.0]
 
@@ -129,7 +126,7 @@ def bench_streamer_tick(chain, reps):
             rs.advance(1, clock[0])
         samples.append(timed(tick, 1000))
         cpu.append(CPU[id(samples[-1])])
-        assert source.min_distance < 0.3
+        assert rs.min_distance < 0.3
     out = np.concatenate(samples)
     CPU[id(out)] = float(np.mean(cpu))
     return out

@@ -1,8 +1,8 @@
 """The central promise: CDMP positions stay strictly inside the limits, whatever the input.
 
-For any finite weights, any goal (also beyond the limits), any coupling term up to 1e9 and any
-exploration noise, every produced position lies strictly inside (y_min, y_max) and nothing is
-NaN or inf. Plain DMPs given the same inputs leave the limits.
+For any finite weights, any goal (also beyond the limits), any joint-space coupling term up to
+1e9 and any exploration noise, every produced position lies strictly inside (y_min, y_max) and
+nothing is NaN or inf. Plain DMPs given the same inputs leave the limits.
 """
 import numpy as np
 from hypothesis import given, HealthCheck, settings, strategies as st
@@ -32,6 +32,19 @@ def cases(draw):
     return lo, lo + width, weights, goal, start, coupling, freq, noise_std, goal_noise, seed
 
 
+class Oscillating:
+    """A Coupling: ``amplitude cos(freq t)`` [rad/s^2] at its k-th call, ``t = k DT``."""
+
+    def __init__(self, amplitude, freq):
+        self.amplitude, self.freq, self.k = amplitude, freq, 0
+        self.last_distances = []
+
+    def joint_acceleration(self, q, qd, obstacles):
+        t = self.k * DT
+        self.k += 1
+        return (self.amplitude * np.cos(self.freq * t)).tolist()
+
+
 def run(prim_cls, case):
     lo, hi, weights, goal, start, coupling, freq, noise_std, goal_noise, seed = case
     cfg = DmpConfig(n_weights_per_dim=N_W)
@@ -41,11 +54,8 @@ def run(prim_cls, case):
     rng = np.random.default_rng(seed)
     eps = rng.normal(0.0, noise_std, (N_STEPS, n, N_W)) if noise_std else None
 
-    def coupling_fn(t, x, xd):
-        return coupling * np.cos(freq * t)
-
     return prim.rollout(dt=DT, duration=DT * (N_STEPS - 1), start_y=start, goal_y=goal,
-                        coupling=coupling_fn if np.any(coupling) else None,
+                        coupling=Oscillating(coupling, freq) if np.any(coupling) else None,
                         weight_noise=eps, goal_noise=goal_noise)
 
 

@@ -405,6 +405,39 @@ def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda,
                                    rtol=0, atol=1e-9)
 
 
+def test_generic_path_gives_damped_fields_the_point_velocities(panda, rng):
+    """Velocity-dependent fields run the generic path: the one closest-point routine
+    (ClosestPointGate) gets the end-effector velocity J qd and the link point's J_o qd."""
+    field = RepellerField(gain=0.02, influence_distance=0.4, min_distance=0.01, damping=2.0)
+    coupling = ObstacleCoupling(panda, ['panda_link3'], field,
+                                config=CouplingConfig(damping=DAMP, limit_aware=False))
+    assert coupling._coupled is None
+    q = np.array([0.1, -0.4, 0.2, -2.0, 0.1, 1.7, 0.6])
+    qd = rng.normal(size=7)
+    ee = PointOfInterest('ee')
+    X = panda.forward(q, [ee, PointOfInterest('panda_link3')])
+    obstacles = [Sphere(tuple(X[0] + [0.1, 0.05, 0.0]), 0.05),
+                 Sphere(tuple(X[1] + [0.08, 0.0, 0.05]), 0.05)]
+    got = np.array(coupling.joint_acceleration(q, qd, obstacles))
+    x, J = panda.forward_and_jacobian(q[None], [ee])
+    x, J_e = x[0, 0], J[0, 0]
+    dx_e = np.zeros(3)
+    for obs in obstacles:
+        v = x - np.array(obs.center)
+        d = np.linalg.norm(v)
+        dx_e += field.acceleration(x, J_e @ qd, obs, d - obs.radius, v / d)
+    ref = end_effector_term(J_e, dx_e, DAMP)
+    cps = [link_closest_point(panda, q, coupling.segments[0], obs) for obs in obstacles]
+    i = int(np.argmin([cp.distance for cp in cps]))
+    _, J_o = panda.forward_and_jacobian(q[None], [cps[i].poi])
+    dx = field.acceleration(cps[i].point, J_o[0, 0] @ qd, obstacles[i], cps[i].distance,
+                            cps[i].normal)
+    ref += link_term(J_e, J_o[0, 0], np.array(dx), DAMP)
+    np.testing.assert_allclose(got, ref, rtol=1e-7, atol=1e-9)
+    at_rest = np.array(coupling.joint_acceleration(q, None, obstacles))
+    assert np.abs(got - at_rest).max() > 0.1                 # the damping acted
+
+
 def test_obstacle_coupling_planar_chain(rng):
     chain = planar_chain([1.0, 1.0, 1.0, 1.0])
     field = RepellerField(gain=0.5, influence_distance=1.0, min_distance=0.01)
@@ -419,45 +452,50 @@ def test_obstacle_coupling_planar_chain(rng):
     np.testing.assert_allclose(got, ref, atol=1e-9)
 
 
-def test_to_internal_matches_tanh_transform(panda, rng):
+def _map(dq, xi, tau, y_delta, floor=None):
+    from cdmp_ros.core.dmp.stepper import joint_coupling_to_exogenous
+    out = [0.0] * len(dq)
+    kw = {} if floor is None else {'floor': floor}
+    joint_coupling_to_exogenous(list(dq), list(xi), tau, y_delta, out, **kw)
+    return out
+
+
+def test_joint_coupling_map_inverts_eq29(panda, rng):
+    """The stepper's map is the change of xi_dd that reproduces dq through Eq. (29)."""
     transform = TanhTransform(panda.lower, panda.upper)
     xi = rng.normal(size=7)
     dq = rng.normal(size=7)
     tau = 1.7
-    P = ObstacleCoupling.to_internal(dq.tolist(), xi.tolist(), tau, transform.y_delta.tolist())
-    np.testing.assert_allclose(P, tau ** 2 * transform.joint_accel_to_exogenous(xi, 0 * xi, dq),
-                               rtol=1e-12)
-    # and it is the change of xi_dd that reproduces dq through Eq. (29)
+    P = _map(dq, xi, tau, transform.y_delta.tolist())
     xid, xidd = rng.normal(size=7), rng.normal(size=7)
     np.testing.assert_allclose(
         transform.acceleration(xi, xid, xidd + np.array(P) / tau ** 2)
         - transform.acceleration(xi, xid, xidd), dq, atol=1e-9)
-    assert ObstacleCoupling.to_internal([1.0, 2.0], None, 2.0) == [4.0, 8.0]
+    assert _map([1.0, 2.0], [0.0, 0.0], 2.0, None) == [4.0, 8.0]
 
 
-def test_to_internal_caps_the_coupling_near_saturation(panda):
+def test_joint_coupling_map_caps_the_coupling_near_saturation(panda):
     """Near the saturation bound the map divides by 1 - tanh(xi)^2 ~ 2e-9. A joint pushed
     into its upper limit (xi saturated) whose coupling then turns away from the limit: the
     uncapped map (floor 0) makes it jump to the other limit in one tick; with the default
     floor the term is bounded by tau^2 |dq| / (y_delta floor) and the joint leaves the limit
     continuously. Inside 1 - tanh^2 >= floor the map is unchanged."""
     from cdmp_ros.core.dmp.dmp import CDMP
-    from cdmp_ros.core.coupling.obstacle import SATURATION_FLOOR
+    from cdmp_ros.core.dmp.stepper import SATURATION_FLOOR
     from cdmp_ros.core.dmp.transform import XI_SAT
     transform = TanhTransform(panda.lower, panda.upper)
     y_delta = transform.y_delta.tolist()
     tau = 1.3
     xi = [XI_SAT, 0.0, 1.0, -2.0, 2.5, -XI_SAT, 0.3]
     dq = [-10.0, 1.0, 1.0, 1.0, 1.0, 10.0, 1.0]
-    P = ObstacleCoupling.to_internal(dq, xi, tau, y_delta)
+    P = _map(dq, xi, tau, y_delta)
     bound = [tau ** 2 * abs(a) / (yd * SATURATION_FLOOR) for a, yd in zip(dq, y_delta)]
     assert all(abs(p) <= b * (1 + 1e-12) for p, b in zip(P, bound))
     assert P[0] == pytest.approx(-bound[0], rel=1e-12) and P[5] == pytest.approx(bound[5])
-    exact = tau ** 2 * transform.joint_accel_to_exogenous(np.array(xi), np.zeros(7), dq)
+    exact = tau ** 2 * np.array(dq) / transform.jacobian(np.array(xi))
     np.testing.assert_allclose(P[1:5] + P[6:], np.r_[exact[1:5], exact[6:]], rtol=1e-12)
     assert abs(exact[0]) > 1e6 * abs(P[0])                   # what the cap removes
-    np.testing.assert_allclose(ObstacleCoupling.to_internal(dq, xi, tau, y_delta, floor=0.0),
-                               exact, rtol=1e-12)
+    np.testing.assert_allclose(_map(dq, xi, tau, y_delta, floor=0.0), exact, rtol=1e-12)
 
     T = np.linspace(0.0, 1.0, 201)
     prim = CDMP(panda.lower, panda.upper).fit(T, np.tile((panda.lower + panda.upper) / 2,
@@ -469,8 +507,7 @@ def test_to_internal_caps_the_coupling_near_saturation(panda):
         y0, xi0 = [], []
         for k in range(1000):
             push = 1e5 if k < 500 else -10.0           # into the upper limit, then away
-            inp.coupling[:] = ObstacleCoupling.to_internal([push] + [0.0] * 6, out.xi,
-                                                           stepper.tau, y_delta, floor)
+            inp.coupling[:] = _map([push] + [0.0] * 6, out.xi, stepper.tau, y_delta, floor)
             stepper.update(inp)
             y0.append(out.y[0])
             xi0.append(out.xi[0])
@@ -482,14 +519,88 @@ def test_to_internal_caps_the_coupling_near_saturation(panda):
     assert run(SATURATION_FLOOR) < 0.01 * half_range
 
 
-def _run_coupled(prim, coupling, obstacles, y_delta, steps=600, dt=0.002):
+class _Push:
+    """A Coupling that pushes joint 0 with ``push(k)`` [rad/s^2] at its k-th call."""
+
+    def __init__(self, push):
+        self.push = push
+        self.k = 0
+        self.last_distances = []
+
+    def joint_acceleration(self, q, qd, obstacles):
+        a = self.push(self.k)
+        self.k += 1
+        return [a]
+
+
+def test_ball_drop_bound_no_jump_when_the_coupling_turns_away_from_saturation():
+    """Issue 11: a one-joint CDMP on the ball-drop bounds [-0.27, 0.32], pushed into
+    saturation at the upper bound, then given -1 rad/s^2. The uncapped copy of the map that the
+    ball-drop experiment used asked for P = -6.8e9 and the reference jumped 0.320 -> -0.270 in
+    one tick; through the stepper's one map (with the floor) the reference leaves the bound by
+    at most 0.01 rad per tick, in the rollout and when the stepper is driven directly."""
+    from cdmp_ros.core.dmp.dmp import CDMP
+    from cdmp_ros.core.dmp.stepper import CouplingResult
+    from cdmp_ros.core.dmp.transform import XI_SAT
+    lo, hi = -0.27, 0.32
+    T = np.linspace(0.0, 1.0, 201)
+    prim = CDMP([lo], [hi]).fit(T, np.full((201, 1), 0.3))
+    dt, n_push = 0.004, 200
+    push = _Push(lambda k: 1e3 if k < n_push else -1.0)    # into the upper bound, then away
+    tr = prim.rollout(dt=dt, duration=1.6, coupling=push, obstacles=())
+    assert push.k == len(tr.Y) - 1
+    assert tr.X[n_push, 0] == pytest.approx(XI_SAT)          # saturated at the upper bound
+    assert tr.Y[n_push, 0] == pytest.approx(hi, abs=1e-6)
+    steps = np.abs(np.diff(tr.Y[n_push:, 0]))
+    assert steps.max() <= 0.01, steps.max()
+    assert np.all(tr.Y > lo) and np.all(tr.Y < hi)
+    # the uncapped map (floor 0) at that state: the jump the issue describes
+    stepper = prim.stepper(dt)
+    for _ in range(n_push):
+        assert stepper.set_joint_coupling([1e3]) is CouplingResult.APPLIED
+        out, _ = stepper.update(stepper.input)
+    assert out.y[0] == pytest.approx(hi, abs=1e-6)
+    P = _map([-1.0], out.xi, stepper.tau, prim.transform.y_delta.tolist(), floor=0.0)
+    assert P[0] < -1e9                                       # -6.8e9 in the issue
+    stepper.input.coupling[:] = P
+    stepper.update(stepper.input)
+    assert out.y[0] < lo + 0.01                              # bound to bound in one tick
+    # the stepper's own map at the same state moves it by at most 0.01 rad
+    stepper = prim.stepper(dt)
+    for _ in range(n_push):
+        stepper.set_joint_coupling([1e3])
+        out, _ = stepper.update(stepper.input)
+    y_before = out.y[0]
+    stepper.set_joint_coupling([-1.0])
+    assert abs(stepper.input.coupling[0]) < 1e-3 * abs(P[0])
+    stepper.update(stepper.input)
+    assert abs(out.y[0] - y_before) <= 0.01
+
+
+def test_set_joint_coupling_rejects_bad_values(panda):
+    from cdmp_ros.core.dmp.dmp import CDMP
+    from cdmp_ros.core.dmp.stepper import CouplingResult
+    T = np.linspace(0.0, 1.0, 101)
+    prim = CDMP(panda.lower, panda.upper).fit(T, np.tile((panda.lower + panda.upper) / 2,
+                                                         (101, 1)))
+    stepper = prim.stepper(0.002)
+    assert stepper.set_joint_coupling([1.0] * 7) is CouplingResult.APPLIED
+    assert any(stepper.input.coupling)
+    for bad in ([1.0] * 6, [float('nan')] + [0.0] * 6, [1e13] + [0.0] * 6, ['a'] * 7, 3.0):
+        assert stepper.set_joint_coupling(bad) is CouplingResult.REJECTED, bad
+        assert stepper.input.coupling == [0.0] * 7
+    stepper.set_joint_coupling([1.0] * 7)
+    assert stepper.set_joint_coupling(None) is CouplingResult.ZERO
+    assert stepper.input.coupling == [0.0] * 7
+
+
+def _run_coupled(prim, coupling, obstacles, steps=600, dt=0.002):
     stepper = prim.stepper(dt)
     inp, out = stepper.input, stepper.output
     Y, dists = [], []
     for _ in range(steps):
         if coupling is not None:
-            dq = coupling.joint_acceleration(out.y, out.yd, obstacles)
-            inp.coupling[:] = coupling.to_internal(dq, out.xi, stepper.tau, y_delta)
+            stepper.set_joint_coupling(coupling.joint_acceleration(out.y, out.yd, obstacles))
             dists.append(coupling.last_distances[0])
         stepper.update(inp)
         Y.append(list(out.y))
@@ -510,16 +621,15 @@ def test_coupled_cdmp_avoids_obstacle_and_holds_limits_under_any_field(panda):
     dmp = DMP(7).fit(T, Y)
     mid = panda.forward(Y[100], [PointOfInterest('ee')])[0]
     sphere = Sphere(tuple(mid + [0.0, 0.0, -0.12]), 0.05)      # just below the path
-    y_delta = cdmp.transform.y_delta.tolist()
     free = ObstacleCoupling(panda, (), RepellerField(gain=0.0))
-    _, d_free = _run_coupled(cdmp, free, [sphere], y_delta)
+    _, d_free = _run_coupled(cdmp, free, [sphere])
     field = RepellerField(gain=0.01, influence_distance=0.25, min_distance=0.01)
-    _, d_coupled = _run_coupled(cdmp, ObstacleCoupling(panda, (), field), [sphere], y_delta)
+    _, d_coupled = _run_coupled(cdmp, ObstacleCoupling(panda, (), field), [sphere])
     assert min(d_coupled) > min(d_free) + 0.01
     # "very high strength": a constant 2000 m/s^2 push wherever the sphere is within 2 m
     strong = ObstacleCoupling(panda, (), ConstantField(magnitude=2000.0, influence_distance=2.0))
-    Y_cdmp, _ = _run_coupled(cdmp, strong, [sphere], y_delta)
-    Y_dmp, _ = _run_coupled(dmp, strong, [sphere], None)
+    Y_cdmp, _ = _run_coupled(cdmp, strong, [sphere])
+    Y_dmp, _ = _run_coupled(dmp, strong, [sphere])
     assert np.all(np.isfinite(Y_cdmp))
     assert limit_usage(Y_cdmp, panda.lower, panda.upper) < 1.0
     assert limit_usage(Y_dmp, panda.lower, panda.upper) > 1.0
@@ -706,14 +816,12 @@ def _limit_rollout(panda, case, config, field, steps=1500, dt=0.002):
     s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
     prim = CDMP(panda.lower, panda.upper).fit(T, np.outer(1 - s, start) + np.outer(s, goal))
     coupling = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], field, config=config)
-    y_delta = prim.transform.y_delta.tolist()
     obstacles = [Sphere(center, 0.03)]
     Y, dists = [], []
     stepper = prim.stepper(dt)
     inp, out = stepper.input, stepper.output
     for _ in range(steps):
-        dq = coupling.joint_acceleration(out.y, out.yd, obstacles)
-        inp.coupling[:] = coupling.to_internal(dq, out.xi, stepper.tau, y_delta)
+        stepper.set_joint_coupling(coupling.joint_acceleration(out.y, out.yd, obstacles))
         dists.append(min(coupling.last_distances[1:]))
         stepper.update(inp)
         Y.append(list(out.y))

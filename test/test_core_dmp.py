@@ -165,11 +165,15 @@ def test_transform_round_trip_and_clipping():
     assert np.tanh(XI_SAT) < 1.0
 
 
-def test_joint_accel_to_exogenous_inverts_eq29():
+def test_joint_coupling_to_exogenous_inverts_eq29():
+    from cdmp_ros.core.dmp.stepper import joint_coupling_to_exogenous
     tr = TanhTransform([-1.0, -2.0], [1.0, 2.0])
     xi, xid, xidd = np.array([0.4, -1.2]), np.array([0.3, 0.7]), np.array([1.0, -2.0])
     dydd = np.array([0.5, -0.25])
-    dxidd = tr.joint_accel_to_exogenous(xi, xid, dydd)
+    tau = 1.5
+    P = [0.0, 0.0]
+    joint_coupling_to_exogenous(dydd.tolist(), xi.tolist(), tau, tr.y_delta.tolist(), P)
+    dxidd = np.array(P) / tau ** 2          # xi is far from saturation: the floor is inactive
     np.testing.assert_allclose(tr.acceleration(xi, xid, xidd + dxidd)
                                - tr.acceleration(xi, xid, xidd), dydd, rtol=1e-12)
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings, strategies as st
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.primitive_io import dumps_primitive, primitive_to_dict
 from cdmp_ros.core.streaming.primitives import prepare_primitive
-from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, SmoothStop,
+from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, SmoothStop,
                                               StreamerConfig, StreamFlags, StreamState, _H, _h)
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, TanhTransform
 from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, VMAX, reach_cdmp,
@@ -24,9 +24,28 @@ def cdmp_text():
     return dumps_primitive(reach_cdmp())
 
 
-def make_streamer(text, timeout=0.5, coupling=None, **kw):
+class FnCoupling:
+    """A Coupling from a function ``fn(q, qd)`` (the obstacle set is not looked at)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.last_distances = [1.0]
+
+    def joint_acceleration(self, q, qd, obstacles):
+        return self.fn(q, qd)
+
+
+#: A stand-in obstacle set for couplings that ignore it (the streamer calls none without one).
+SOME_OBSTACLE = (object(),)
+
+
+def make_streamer(text, timeout=0.5, coupling=None, obstacles=SOME_OBSTACLE, **kw):
+    """``coupling``: a Coupling (evaluated for ``obstacles``) or a function ``(q, qd)``."""
     cfg = StreamerConfig(joint_states_timeout=timeout, **kw)
+    if coupling is not None and not hasattr(coupling, 'joint_acceleration'):
+        coupling = FnCoupling(coupling)
     rs = ReferenceStreamer(LOWER, UPPER, cfg, coupling=coupling)
+    rs.obstacles = obstacles
     prep = prepare_primitive(text, PANDA_JOINTS, cfg.dt, LOWER, UPPER, VMAX)
     return rs, prep
 
@@ -228,7 +247,7 @@ def test_catch_up_equals_single_steps(cdmp_text):
 
 
 def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):
-    from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
+    from cdmp_ros.core.dmp.stepper import joint_coupling_to_exogenous
     acc = [0.0, 3.0, 0.0, -2.0, 0.0, 0.0, 1.0]
     rs, prep = make_streamer(cdmp_text, timeout=0.0, coupling=lambda y, yd: acc)
     rs.activate(prep, 0.0)
@@ -236,8 +255,10 @@ def test_coupling_is_mapped_into_the_exogenous_space(cdmp_text):
     st_ = prep.stepper
     xi_before = list(st_.output.xi)
     assert rs.advance(1, 0.0) & StreamFlags.COUPLED
-    expected = ObstacleCoupling.to_internal(acc, xi_before, st_.tau,
-                                            prep.prim.transform.y_delta.tolist())
+    expected = [0.0] * 7
+    joint_coupling_to_exogenous(acc, xi_before, st_.tau, prep.prim.transform.y_delta.tolist(),
+                                expected)
+    assert np.abs(expected).max() > 0.0
     np.testing.assert_allclose(st_.input.coupling, expected, rtol=1e-12)
 
 
@@ -297,14 +318,13 @@ def test_any_strong_coupling_keeps_a_cdmp_inside_the_limits(acc):
 TEXT_CACHE = {'cdmp': dumps_primitive(reach_cdmp())}
 
 
-def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text, monkeypatch):
+def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text):
     """A joint pushed into its upper limit (exogenous state saturated), then a coupling away
-    from it: with the cap near saturation (as ObstacleCoupling.to_internal) the reference
-    leaves the limit continuously; uncapped it jumps to the other limit in one tick."""
-    import cdmp_ros.core.streaming.streamer as streaming
+    from it: with the stepper's cap near saturation the reference leaves the limit
+    continuously (uncapped it would jump to the other limit in one tick:
+    test_core_coupling.py)."""
 
-    def largest_step(floor):
-        monkeypatch.setattr(streaming, 'SATURATION_FLOOR', floor)
+    def largest_step():
         push = {'a': 1e5}
         rs, prep = make_streamer(cdmp_text, timeout=0.0,
                                  coupling=lambda y, yd: [0.0, 0.0, 0.0, push['a'], 0.0, 0.0,
@@ -318,8 +338,7 @@ def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text, m
         run(rs, 400, 1.0, measure=False, record=rec2)
         assert all(LOWER[3] < r[0][3] < UPPER[3] for r in rec2)
         return max_step_changes(rec2)[0].max()
-    assert largest_step(streaming.SATURATION_FLOOR) < 0.01  # rad per 2 ms tick
-    assert largest_step(0.0) > 1.0  # what the cap prevents
+    assert largest_step() < 0.01  # rad per 2 ms tick
 
 
 def test_plain_dmp_is_clamped_to_the_limits():
@@ -346,7 +365,7 @@ def _free_ee_path(chain, text, n=1000):
     return path
 
 
-def test_coupling_source_with_a_sphere_keeps_the_hand_away():
+def test_streamed_coupling_with_a_sphere_keeps_the_hand_away():
     import pybullet_data
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
     from cdmp_ros.core.kinematics.closest import Sphere
@@ -357,9 +376,8 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
     path = _free_ee_path(chain, text)
     mid = path[450]
     sphere = Sphere(tuple(mid), 0.04)
-    source = CouplingSource(ObstacleCoupling(chain, sphere_field=RepellerField(gain=0.05)))
-    source.obstacles = (sphere,)
-    rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+    coupling = ObstacleCoupling(chain, sphere_field=RepellerField(gain=0.05))
+    rs, prep = make_streamer(text, timeout=0.0, coupling=coupling, obstacles=(sphere,))
     rs.activate(prep, 0.0)
     d_free = min(np.linalg.norm(p - mid) for p in path) - 0.04
     d_coupled = math.inf
@@ -368,10 +386,10 @@ def test_coupling_source_with_a_sphere_keeps_the_hand_away():
         x = chain.forward(np.array(rs.y), [PointOfInterest('ee')])[0]
         d_coupled = min(d_coupled, np.linalg.norm(x - mid) - 0.04)
     assert d_free < 0.0 < d_coupled
-    assert math.isfinite(source.min_distance)
+    assert math.isfinite(rs.min_distance)
 
 
-def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
+def test_limit_aware_streamed_coupling_keeps_joint_4_off_its_limit():
     """Issue 10.4 through the streamer: the reach and sphere of test_core_coupling.LIMIT_CASES
     where link avoidance (Eq. 12) drives panda_joint4 onto its limit (usage > 0.999); with the
     limit-aware Eq. 12 (the default) every joint stays below 0.98 and the links keep clear of
@@ -389,16 +407,15 @@ def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
 
     def stream(config, gain):
         field = RepellerField(gain=gain, influence_distance=0.2, min_distance=0.005)
-        source = CouplingSource(ObstacleCoupling(chain, ['panda_link3', 'panda_link5'], field,
-                                                 config=config))
-        source.obstacles = (Sphere(center, 0.03),)
-        rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+        coupling = ObstacleCoupling(chain, ['panda_link3', 'panda_link5'], field, config=config)
+        rs, prep = make_streamer(text, timeout=0.0, coupling=coupling,
+                                 obstacles=(Sphere(center, 0.03),))
         rs.activate(prep, 0.0)
         usage, dist = np.zeros(7), math.inf
         for _ in range(1500):
             rs.advance(1, 0.0)
             usage = np.maximum(usage, np.abs(np.array(rs.y) - centre) / delta)
-            dist = min(dist, min(source.coupling.last_distances[1:]))
+            dist = min(dist, min(coupling.last_distances[1:]))
         return usage, dist
 
     u_old, _ = stream(CouplingConfig(limit_aware=False), 0.01)
@@ -409,7 +426,7 @@ def test_limit_aware_coupling_source_keeps_joint_4_off_its_limit():
     assert d_new > d_free + 0.01
 
 
-def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
+def test_streamed_coupling_with_a_rotated_box_keeps_the_hand_out():
     """A box rotated 30 deg about z (an oriented CUBE marker) across the free path: the
     streamed end effector stays outside it (signed distance from OrientedBox)."""
     import pybullet_data
@@ -421,11 +438,9 @@ def test_coupling_source_with_a_rotated_box_keeps_the_hand_out():
     path = _free_ee_path(chain, text)
     q = (0.0, 0.0, math.sin(math.pi / 12), math.cos(math.pi / 12))
     box = OrientedBox.from_quaternion(tuple(path[450]), (0.06, 0.06, 0.06), q)
-    source = CouplingSource(ObstacleCoupling(chain, links=(),
-                                             box_field=ConstantField(magnitude=20.0,
-                                                                     influence_distance=0.1)))
-    source.obstacles = (box,)
-    rs, prep = make_streamer(text, timeout=0.0, coupling=source)
+    coupling = ObstacleCoupling(chain, links=(),
+                                box_field=ConstantField(magnitude=20.0, influence_distance=0.1))
+    rs, prep = make_streamer(text, timeout=0.0, coupling=coupling, obstacles=(box,))
     rs.activate(prep, 0.0)
     d_free = min(box.signed_distance(np.array(path))[0])
     X = []
@@ -488,3 +503,77 @@ def test_prepare_streams_a_promp_through_its_mean():
     mean = promp.mean(tr.T / 2.0)
     assert np.abs(tr.Y - mean).max() < 0.02
     assert primitive_to_dict(prep.prim)['kind'] == 'cdmp'
+
+
+# -- the streamer's coupling from its parameters (tcp_offset, box_field_kind) -----------------
+def _pybullet_link_positions(q, links):
+    """World positions of ``links`` of pybullet's Panda at the arm configuration ``q``."""
+    import pybullet as p
+    import pybullet_data
+    cid = p.connect(p.DIRECT)
+    try:
+        body = p.loadURDF(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'),
+                          useFixedBase=True, physicsClientId=cid)
+        index = {}
+        for j in range(p.getNumJoints(body, physicsClientId=cid)):
+            info = p.getJointInfo(body, j, physicsClientId=cid)
+            index[info[12].decode()] = j
+            name = info[1].decode()
+            if name in PANDA_JOINTS:
+                p.resetJointState(body, j, q[PANDA_JOINTS.index(name)], physicsClientId=cid)
+        return [np.array(p.getLinkState(body, index[link], computeForwardKinematics=True,
+                                        physicsClientId=cid)[4]) for link in links]
+    finally:
+        p.disconnect(cid)
+
+
+def test_streamer_coupling_acts_on_the_fingertips_by_default():
+    """The end-effector term (Eq. 7) of the streamer's coupling acts on the tool centre point
+    tcp_offset, by default the Panda's fingertips (pybullet's panda_grasptarget), not on the
+    flange (panda_hand): a sphere centred on the point has distance -radius from it."""
+    import pybullet_data
+    from cdmp_ros.core.kinematics import panda_chain
+    from cdmp_ros.core.kinematics.closest import Sphere
+    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    q = np.array([0.3, -0.5, 0.2, -2.1, 0.1, 1.8, 0.6])
+    tips, flange = _pybullet_link_positions(q, ['panda_grasptarget', 'panda_hand'])
+    assert np.linalg.norm(tips - flange) == pytest.approx(0.105, abs=1e-6)  # pybullet: float32
+    for cfg, point in ((StreamerConfig(), tips), (StreamerConfig(tcp_offset=(0, 0, 0)), flange)):
+        coupling = streamer_coupling(chain, cfg)
+        coupling.joint_acceleration(q, None, [Sphere(tuple(point), 0.01)])
+        assert coupling.last_distances[0] == pytest.approx(-0.01, abs=1e-6)
+    with pytest.raises(ValidationError, match='tcp_offset'):
+        StreamerConfig(tcp_offset=(0.0, 0.1))
+
+
+def test_streamer_coupling_uses_the_board_field_when_selected():
+    """box_field_kind 'board': boxes get the board field of Eq. 30-31 (numpy oracle: the field
+    at the fingertips mapped by Eq. 7); 'constant' (default): the constant field of IV-B."""
+    import pybullet_data
+    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField
+    from cdmp_ros.core.coupling.terms import end_effector_term
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    from cdmp_ros.core.kinematics.closest import Box, box_signed_distance
+    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    q = np.array([0.3, -0.5, 0.2, -2.1, 0.1, 1.8, 0.6])
+    X, J = chain.forward_and_jacobian(q[None], [PointOfInterest('ee')])
+    x, J_e = X[0, 0], J[0, 0]
+    board = Box(tuple(x + [-0.2, -0.3, 0.05]), tuple(x + [0.2, 0.05, 0.07]))  # just above
+    field = BoardField(beta_y=0.02, beta_z=0.01, alpha=0.5, goal_height=float(x[2]) - 0.2)
+    with pytest.raises(ValidationError, match='box_field_kind'):
+        StreamerConfig(box_field_kind='wall')
+    cfg = StreamerConfig(box_field_kind='board', coupling_links=())
+    coupling = streamer_coupling(chain, cfg, board_field=field)
+    assert coupling.box_field is field
+    got = coupling.joint_acceleration(q, None, [board])
+    d, _, n = box_signed_distance(x, board.lower, board.upper)
+    dx = field.acceleration(x, (0.0, 0.0, 0.0), board, float(d), n)
+    assert dx[1] > 0.0 and dx[2] < 0.0                    # Eq. 30: towards the edge, down
+    expected = end_effector_term(J_e, np.array(dx), coupling.config.damping)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+    constant = streamer_coupling(chain, StreamerConfig(coupling_links=()),
+                                 box_field=ConstantField(magnitude=2.0, influence_distance=0.1))
+    assert isinstance(constant.box_field, ConstantField)
+    assert np.abs(np.subtract(constant.joint_acceleration(q, None, [board]), got)).max() > 1e-3

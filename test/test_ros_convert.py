@@ -220,6 +220,14 @@ def test_parameters_mirror_the_config_with_descriptors(node):
     assert 'gain' in d.description and 'm^3/s^2' in d.description  # from the docstring
     assert node.describe_parameter('joint_names').type == \
         ParameterType.PARAMETER_STRING_ARRAY
+    d = node.describe_parameter('tcp_offset')
+    assert d.type == ParameterType.PARAMETER_DOUBLE_ARRAY and 'fingertips' in d.description
+    r = node.set_parameters([Parameter('tcp_offset', value=[0.0, 0.0, 0.2])])[0]
+    assert r.successful and p[''].tcp_offset == (0.0, 0.0, 0.2)
+    r = node.set_parameters([Parameter('tcp_offset', value=[0.0, 0.1])])[0]
+    assert not r.successful and 'tcp_offset' in r.reason
+    r = node.set_parameters([Parameter('box_field_kind', value='wall')])[0]
+    assert not r.successful and 'box_field_kind' in r.reason
     r = node.set_parameters([Parameter('stop_time', value=-1.0)])[0]
     assert not r.successful and 'stop_time' in r.reason
     r = node.set_parameters([Parameter('repeller.gain', value=-1.0)])[0]
@@ -269,7 +277,7 @@ def test_config_file_mirrors_every_parameter_with_its_default():
     import os
     import yaml
     from cdmp_ros.core.coupling.terms import DampingConfig
-    from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
+    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
     from cdmp_ros.core.coupling.obstacle import CouplingConfig
     from cdmp_ros.core.streaming.streamer import StreamerConfig
     from cdmp_ros.ros.params import parameter_fields
@@ -277,7 +285,8 @@ def test_config_file_mirrors_every_parameter_with_its_default():
     with open(os.path.join(REPO_ROOT, 'config', 'streamer.yaml')) as f:
         params = yaml.safe_load(f)['/**']['ros__parameters']
     sections = [('', StreamerConfig), ('coupling', CouplingConfig), ('damping', DampingConfig),
-                ('repeller', RepellerField), ('box_field', ConstantField)]
+                ('repeller', RepellerField), ('box_field', ConstantField),
+                ('board_field', BoardField)]
     expected = {}
     for prefix, cls in sections:
         for f, kind, default in parameter_fields(cls):

@@ -43,6 +43,7 @@ first_success_trial counts exploratory trials.
 Beyond the paper: the same exploration on a plain DMP (joint-space noise, shape 30, goal 0.08
 rad), kinematics only, counting rollouts that leave the limits (its cost is that indicator).
 """
+import math
 import os
 from dataclasses import dataclass
 
@@ -142,7 +143,8 @@ def pi2_config(n_rollouts, **overrides):
 
 def learning_run(setup, scene, coupling, seed, n_updates, n_rollouts, kind='cdmp',
                  progress=None, config=None):
-    """One PI2 learning run; returns per-trial records and the final policy's evaluation."""
+    """One PI2 learning run; returns per-trial records and the final policy's evaluation.
+    ``coupling``: the rollout keyword arguments of :func:`ee_board_coupling`."""
     from cdmp_ros.core.dmp.dmp import limit_usage
     from cdmp_ros.core.dmp.pi2 import Pi2
     prim = initial_policy(setup, kind)
@@ -150,7 +152,7 @@ def learning_run(setup, scene, coupling, seed, n_updates, n_rollouts, kind='cdmp
     norm = prim.config.alpha_y * prim.config.beta_y
     pi2 = Pi2(prim, config if config is not None else pi2_config(n_rollouts),
               rng=np.random.default_rng(seed), dt=dt, duration=HORIZON,
-              rollout_kwargs={'coupling': coupling(prim)})
+              rollout_kwargs=coupling)
     trials = []
     for _ in range(n_updates):
         batch = pi2.ask()
@@ -169,67 +171,49 @@ def learning_run(setup, scene, coupling, seed, n_updates, n_rollouts, kind='cdmp
             if progress is not None:
                 progress.update(1)
         pi2.tell(costs)
-    final = prim.rollout(dt=dt, duration=HORIZON, coupling=coupling(prim))
+    final = prim.rollout(dt=dt, duration=HORIZON, **coupling)
     res = scene.execute(final.Y, final.Yd, final.Ydd)
     return trials, {'success': res.success, 'Y': final.Y, 'result': res, 'prim': prim}
 
 
-def ee_board_coupling(setup, board, gain=6e-3, influence_distance=0.1, max_speed=2.0,
-                      lift=True):
-    """Factory: prim -> coupling(t, xi, xid) for end-effector board avoidance.
+class LiftedField:
+    """A :class:`~cdmp_ros.core.coupling.potential_fields.RepellerField` on a box whose
+    repulsion points half upwards (the normal plus the vertical, normalised) wherever the point
+    is not above the box, in the spirit of the horizontal-plus-vertical escape field of Eq. 30:
+    a hand driven against the board's face climbs over it instead of being held beside it.
+    ``lift=False``: the plain repeller."""
 
-    A repeller field on the board's signed distance gives a Cartesian acceleration, Eq. 7 maps
-    it to the joints, and for a CDMP it is expressed in the exogenous space (Eq. 29 solved for
-    xidd) and scaled by tau^2 into the coupling term of Eq. 21. With ``lift`` the repulsion
-    points half upwards (the normal plus the vertical, normalised) wherever the hand is not
-    above the board, in the spirit of the horizontal-plus-vertical escape field of Eq. 30: a
-    hand driven against the board's face climbs over it instead of being held beside it.
+    def __init__(self, field, lift: bool = True):
+        self.field = field
+        self.lift = lift
 
-    The field is zero beyond ``influence_distance``: at a distance d the kinematics are not
-    evaluated again before the hand could have covered ``d - influence_distance`` at
-    ``max_speed`` [m/s] (the coupling is zero meanwhile; a call with an earlier ``t`` starts a
-    new rollout).
+    def acceleration(self, x, xd, obstacle, distance, normal):
+        lo, hi = obstacle.lower, obstacle.upper
+        if self.lift and (x[0] < lo[0] or x[1] < lo[1] or x[0] > hi[0] or x[1] > hi[1]):
+            n0, n1, n2 = normal[0], normal[1], normal[2] + 1.0   # beside: up and away (Eq. 30)
+            r = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            normal = (n0 / r, n1 / r, n2 / r)
+        return self.field.acceleration(x, xd, obstacle, distance, normal)
+
+
+def ee_board_coupling(setup, board, gain=6e-3, influence_distance=0.1, lift=True):
+    """End-effector board avoidance: ``{'coupling': ObstacleCoupling, 'obstacles': (Box,)}``,
+    the keyword arguments of ``prim.rollout`` (and of PI2's ``rollout_kwargs``).
+
+    A repeller field on the board's signed distance at the tool centre point (``setup.ee``)
+    gives a Cartesian acceleration, Eq. 7 maps it to the joints (no link term), and the
+    stepper maps that into the exogenous space of the CDMP (Eq. 21/29, capped near
+    saturation). With ``lift`` the repulsion is the one of :class:`LiftedField`.
     """
-    from cdmp_ros.core.coupling.terms import end_effector_term
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
     from cdmp_ros.core.coupling.potential_fields import RepellerField
-    from cdmp_ros.core.kinematics.closest import box_signed_distance
-    field = RepellerField(gain=gain, influence_distance=influence_distance)
-    lo = np.asarray(board.center) - board.half_extents
-    hi = np.asarray(board.center) + board.half_extents
-
-    def factory(prim):
-        tr = getattr(prim, 'transform', None)
-        tau2 = prim.tau_ ** 2
-        zero = np.zeros(prim.n_dims)
-        state = {'t': -np.inf, 'next': -np.inf}
-
-        def coupling(t, xi, xid):
-            if t < state['t']:
-                state['next'] = -np.inf
-            state['t'] = t
-            if t < state['next']:
-                return zero
-            if tr is not None:
-                q, qd = tr.to_joint(xi), tr.velocity(xi, xid)
-            else:
-                q, qd = xi, xid
-            X, J = setup.chain.forward_and_jacobian(q, [setup.ee])
-            d, _, n = box_signed_distance(X[0], lo, hi)
-            if d >= influence_distance:
-                state['next'] = t + (float(d) - influence_distance) / max_speed
-                return zero
-            beside = np.any(X[0][:2] < lo[:2]) or np.any(X[0][:2] > hi[:2])
-            if lift and beside:  # beside the board: push up and away (cf. Eq. 30)
-                n = n + np.array([0.0, 0.0, 1.0])
-                n = n / np.linalg.norm(n)
-            acc = np.asarray(field.acceleration(X[0].tolist(), (J[0] @ qd).tolist(), None,
-                                                float(d), n.tolist()))
-            dqdd = end_effector_term(J[0], acc)  # Eq. (7), paper 000
-            if tr is not None:
-                return tau2 * tr.joint_accel_to_exogenous(xi, xid, dqdd)
-            return tau2 * dqdd
-        return coupling
-    return factory
+    from cdmp_ros.core.kinematics.closest import Box
+    field = LiftedField(RepellerField(gain=gain, influence_distance=influence_distance), lift)
+    # the chain's end-effector point is setup.ee, the Panda's tool centre point
+    coupling = ObstacleCoupling(setup.chain, links=(), box_field=field,
+                                config=CouplingConfig())
+    return {'coupling': coupling,
+            'obstacles': (Box.from_center(board.center, 2.0 * np.asarray(board.half_extents)),)}
 
 
 def run(args):
@@ -246,8 +230,7 @@ def run(args):
     curves, firsts, finals, all_trials = [], [], [], []
     with BallDropScene(board=board, time_step=TIME_STEP) as scene, \
             tqdm(total=n_trials, desc='ball-drop trials', unit='trial') as bar:
-        init = initial_policy(setup).rollout(dt=scene.time_step, duration=HORIZON,
-                                             coupling=coupling(initial_policy(setup)))
+        init = initial_policy(setup).rollout(dt=scene.time_step, duration=HORIZON, **coupling)
         scene.execute(init.Y, init.Yd, init.Ydd)
         scene.snapshot(os.path.join(args.out, 'before.png'))
         for run_i in range(args.runs):

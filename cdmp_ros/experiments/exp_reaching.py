@@ -61,12 +61,12 @@ def add_arguments(parser):
 
 
 class Setup:
-    """Scene, chain in the board frame, primitives and the unmodified end-effector path."""
+    """Scene, board obstacle, chain, primitives and the unmodified end-effector path."""
 
     def __init__(self, world, args):
         from cdmp_ros.core.dmp.dmp import CDMP, DMP
         from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
-        from cdmp_ros.experiments.reaching_coupling import world_to_frame
+        from cdmp_ros.experiments.reaching_coupling import board_obstacle
         from cdmp_ros.sim.control import ComputedTorqueController
         from cdmp_ros.sim.scenes import build_reaching_scene, nominal_path
         self.args = args
@@ -75,10 +75,8 @@ class Setup:
         self.scene = build_reaching_scene(world)
         self.robot = self.scene.robot
         self.robot.set_controller(ComputedTorqueController())
-        board = self.scene.board
-        self.chain = panda_chain(self.robot.spec.urdf_path,
-                                 base_transform=world_to_frame(board.position,
-                                                               board.orientation))
+        self.board = board_obstacle(self.scene.board)
+        self.chain = panda_chain(self.robot.spec.urdf_path)
         T = np.linspace(0.0, args.duration, 201)
         Y = nominal_path(self.scene.q_start, self.scene.q_goal, len(T))
         self.cdmp = CDMP(self.robot.lower, self.robot.upper).fit(T, Y)
@@ -90,14 +88,12 @@ class Setup:
         self.ee_ref_velocity = np.einsum('kij,kj->ki', J[:, 0], ref.Yd)
 
     def coupling(self, factor=1.0, hold=True):
-        from cdmp_ros.core.coupling.potential_fields import ConstantField
-        from cdmp_ros.experiments.reaching_coupling import BoardLinkCoupling, HoldGains
+        from cdmp_ros.experiments.reaching_coupling import (HoldGains, ReachingCoupling,
+                                                            board_field)
         kp = self.args.hold_kp if hold else 0.0
-        field = ConstantField(factor * self.args.field, self.args.influence,
-                              direction=(0.0, 0.0, -1.0))   # board frame: away from the board
-        return BoardLinkCoupling(self.chain, self.scene.board.size, field,
-                                 hold=HoldGains(kp, 2.0 * np.sqrt(kp)), ee_ref=self.ee_ref,
-                                 ee_ref_velocity=self.ee_ref_velocity)
+        field = board_field(self.board, factor * self.args.field, self.args.influence)
+        return ReachingCoupling(self.chain, field, hold=HoldGains(kp, 2.0 * np.sqrt(kp)),
+                                ee_ref=self.ee_ref, ee_ref_velocity=self.ee_ref_velocity)
 
     def run(self, prim, coupling=None, physics=True):
         """Stream ``prim`` tick by tick (coupling from its own state, Eq. 21/13); with
@@ -108,7 +104,7 @@ class Setup:
         """
         stepper = prim.stepper(self.dt, start_y=self.scene.q_start)
         inp, out = stepper.input, stepper.output
-        y_delta = prim.transform.y_delta.tolist() if prim.kind == 'cdmp' else None
+        obstacles = (self.board,)
         n = self.n_steps
         Y = np.empty((n + 1, 7))
         Y[0] = out.y
@@ -121,8 +117,8 @@ class Setup:
             Q[0] = robot.q
         for k in range(n):
             if coupling is not None:
-                dq_dd = coupling.joint_acceleration(k, out.y, out.yd)
-                inp.coupling[:] = coupling.exogenous(dq_dd, out.xi, stepper.tau, y_delta)
+                coupling.tick = k
+                stepper.set_joint_coupling(coupling.joint_acceleration(out.y, out.yd, obstacles))
             stepper.update(inp)
             Y[k + 1] = out.y
             if physics:

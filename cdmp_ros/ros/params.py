@@ -9,8 +9,8 @@ a bad startup value raises :class:`~cdmp_ros.core.errors.ValidationError` (the n
 non-zero with the reason), a bad value set at run time is refused with the reason
 (:class:`ConfigParameters`, through ``add_on_set_parameters_callback``).
 
-Supported field types: bool, int, float, str and tuples of str; fields of other types (or
-whose default is None) are not exposed as parameters.
+Supported field types: bool, int, float, str, tuples of str and (non-empty) tuples of floats;
+fields of other types (or whose default is None) are not exposed as parameters.
 """
 import dataclasses
 import math
@@ -47,8 +47,17 @@ def _attribute_docs(cls) -> Dict[str, str]:
     return out
 
 
+class FloatTuple(tuple):
+    """The kind of a tuple-of-floats field (a DOUBLE_ARRAY parameter)."""
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _kind(f: dataclasses.Field):
-    """The Python type of a field from its default (bool/int/float/str/tuple of str)."""
+    """The Python type of a field from its default (bool/int/float/str/tuple of str, or
+    :class:`FloatTuple` for a non-empty tuple of floats)."""
     if f.default is not dataclasses.MISSING:
         default = f.default
     elif f.default_factory is not dataclasses.MISSING:
@@ -62,6 +71,8 @@ def _kind(f: dataclasses.Field):
             return t, default
     if isinstance(default, (tuple, list)) and all(isinstance(v, str) for v in default):
         return tuple, tuple(default)
+    if isinstance(default, (tuple, list)) and default and all(map(_is_number, default)):
+        return FloatTuple, tuple(float(v) for v in default)
     return None, None
 
 
@@ -86,6 +97,8 @@ def descriptor_for(cls, f: dataclasses.Field, kind: type, name: str) -> Paramete
                                read_only=bool(meta.get('read_only', False)))
     if kind is tuple:
         desc.type = ParameterType.PARAMETER_STRING_ARRAY
+    elif kind is FloatTuple:
+        desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     elif kind is float:
         # ints are accepted for floats ('rate:=1000'); the dataclass checks the value
         desc.dynamic_typing = True
@@ -116,6 +129,10 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
         if isinstance(value, (list, tuple)):
             return tuple(value)
         raise ValidationError(f'{name}: expected a list of strings, got {value!r}')
+    if kind is FloatTuple:
+        if isinstance(value, (list, tuple)) and all(map(_is_number, value)):
+            return tuple(float(v) for v in value)
+        raise ValidationError(f'{name}: expected a list of numbers, got {value!r}')
     return value
 
 
@@ -143,7 +160,7 @@ def declare_config(node, cls: Type, prefix: str = '', overrides: Optional[Dict] 
         name = f'{prefix}.{f.name}' if prefix else f.name
         default = overrides.get(f.name, default)
         desc = descriptor_for(cls, f, kind, name)
-        value = list(default) if kind is tuple else default
+        value = list(default) if kind in (tuple, FloatTuple) else default
         if kind is tuple and not value:  # [] would be declared as a byte array: type only
             value = Parameter.Type.STRING_ARRAY
         try:

@@ -28,7 +28,6 @@ with its own scheduled stamp (at most one period early); the schedule and the st
 of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
 steady-clock executor timer.
 """
-import dataclasses
 import gc
 import sys
 import threading
@@ -45,13 +44,13 @@ from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
-from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, StreamerConfig,
-                                              StreamFlags, StreamState)
+from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
+                                              StreamState, streamer_coupling)
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
@@ -74,22 +73,24 @@ SWITCH_INTERVAL_PERIODS = 0.1
 
 class StreamerNode(Node):
     """See the module docstring; parameters mirror :class:`StreamerConfig` and the coupling
-    configs (``coupling.*``, ``damping.*``, ``repeller.*``, ``box_field.*``)."""
+    configs (``coupling.*``, ``damping.*``, ``repeller.*``, ``box_field.*``,
+    ``board_field.*``)."""
 
     def __init__(self, **kwargs):
         super().__init__('streamer', **kwargs)
         self.params = ConfigParameters(
             self, [('', StreamerConfig), ('coupling', CouplingConfig),
                    ('damping', DampingConfig), ('repeller', RepellerField),
-                   ('box_field', ConstantField)], on_change=self._on_params)
+                   ('box_field', ConstantField), ('board_field', BoardField)],
+            on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
         # the limits and kinematics of the robot: robot_description, else urdf_path
         self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
         self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
-        self.coupling_source = CouplingSource(self._make_coupling(self.params.configs))
+        self.coupling = self._make_coupling(self.params.configs)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
-            coupling=self.coupling_source if cfg.coupling_enabled else None)
+            coupling=self.coupling if cfg.coupling_enabled else None)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
@@ -171,11 +172,9 @@ class StreamerNode(Node):
 
     # -- setup -------------------------------------------------------------------------------
     def _make_coupling(self, configs) -> ObstacleCoupling:
-        cc = configs['coupling']
-        cc = dataclasses.replace(cc, damping=configs['damping'])
-        return ObstacleCoupling(self.chain, configs[''].coupling_links,
-                                sphere_field=configs['repeller'],
-                                box_field=configs['box_field'], config=cc)
+        return streamer_coupling(self.chain, configs[''], configs['coupling'],
+                                 configs['damping'], configs['repeller'], configs['box_field'],
+                                 configs['board_field'])
 
     def _controller_output(self, cfg: StreamerConfig):
         """The publisher and writer of ``controller_output`` (None, None for 'none'); the
@@ -217,8 +216,8 @@ class StreamerNode(Node):
 
     def _apply_params(self, cfg: StreamerConfig, coupling: ObstacleCoupling) -> None:
         self.streamer.set_config(cfg)
-        self.coupling_source.coupling = coupling
-        self.streamer.coupling = self.coupling_source if cfg.coupling_enabled else None
+        self.coupling = coupling
+        self.streamer.coupling = coupling if cfg.coupling_enabled else None
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
@@ -267,7 +266,7 @@ class StreamerNode(Node):
         good, newest = self.gate.markers('obstacles', msg)
         with self._lock:
             errors = self.obstacles.apply(good, now)
-            self.coupling_source.obstacles = self.obstacles.snapshot.items
+            self.streamer.obstacles = self.obstacles.snapshot.items
             # the latency is counted from the publisher's stamp (same host clock), or from the
             # arrival when the markers are unstamped
             self._latency_pending_ns = newest or self.get_clock().now().nanoseconds
@@ -401,7 +400,7 @@ class StreamerNode(Node):
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())
-            self.coupling_source.obstacles = self.obstacles.snapshot.items
+            self.streamer.obstacles = self.obstacles.snapshot.items
             n_lat = self._latency_n
             lat = self._latency_ms[:min(n_lat, LATENCY_SAMPLES)].copy()
             counts = dict(self.counts)
@@ -426,7 +425,7 @@ class StreamerNode(Node):
                 level, f'{state.value}: {reason}', state=state.value,
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
-                min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
+                min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
                 rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
                 **extra_limits,
                 **counts, **self.gate.values())

@@ -6,8 +6,9 @@ ObstacleCoupling` for one configuration on plain floats:
 
 1. forward kinematics of the end effector and of the segment end points (the frame recursion of
    :mod:`cdmp_ros.core.kinematics.codegen`, constants folded);
-2. a call ``gate(x, obstacles)`` (closest points and potential fields, written in Python by the
-   caller) that returns None when no field is active (then no Jacobian is computed at all) or
+2. a call ``gate(x, obstacles)`` (closest points and potential fields:
+   :class:`~cdmp_ros.core.coupling.obstacle.ClosestPointGate`, the one closest-point routine of
+   the coupling) that returns None when no field is active (then no Jacobian is computed at all) or
    the end-effector acceleration and, per link, the closest point ``p`` (world) and its
    acceleration;
 3. the end-effector Jacobian and, per active link, the Jacobian ``J_o`` of the point ``p``
@@ -31,10 +32,6 @@ import math
 from typing import Callable, List, Optional, Sequence, Tuple
 
 from cdmp_ros.core.coupling.terms import _inverse_h3
-from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.potential_fields import ZERO, RepellerField
-from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
-                                              segment_box_scalar)
 from cdmp_ros.core.kinematics.codegen import (_Emitter, build, emit_frames, emit_jacobian,
                                               emit_point, literal, prune)
 
@@ -166,6 +163,15 @@ def _emit_links(em: _Emitter, Rs, ps, prismatic, segments, SJ, J, sn: Optional[L
     return n_acc
 
 
+def _joint_terms(prefix: str, J, c: int, n_acc: int) -> list:
+    """Terms of joint c of ``J^T {prefix}`` (+ ``acc{c}``, the ``J_o^T u`` sums, for
+    ``c < n_acc``)."""
+    terms = [(1.0, f'{prefix}{r}', J[r][c]) for r in range(3)]
+    if c < n_acc:
+        terms.append((1.0, f'acc{c}', 1.0))
+    return terms
+
+
 def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
                      segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]],
                      limit_bounds: Optional[Sequence[Tuple[float, float]]] = None
@@ -250,174 +256,16 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
     em.lines += _indented(_EE_TEMPLATE.split('\nc0 = ')[0], '        ')
     em.lines.append('        b0 = b1 = b2 = 0.0')
     n_acc_w = _emit_links(em, Rs, ps, prismatic, segments, SJ, J, sn, 'b', '        ')
-    out = []
-    for c in range(n):
-        link = [(1.0, 'b0', J[0][c]), (1.0, 'b1', J[1][c]), (1.0, 'b2', J[2][c])]
-        if c < n_acc_w:
-            link.append((1.0, f'acc{c}', 1.0))
-        lw = em.sum(link)
-        terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c]),
-                 (1.0, sn[c], lw)]
-        out.append(literal(em.sum(terms)))
+    out = [literal(em.sum(_joint_terms('c', J, c, 0)
+                          + [(1.0, sn[c], em.sum(_joint_terms('b', J, c, n_acc_w)))]))
+           for c in range(n)]
     em.lines.append(f'        return [{", ".join(out)}]')
     em.indent = '    '
     em.cache = top
     # Eq. (12), paper 000, per active link
     n_acc = _emit_links(em, Rs, ps, prismatic, segments, J, J, None, 'c', '    ')
-    out = []
-    for c in range(n):
-        terms = [(1.0, 'c0', J[0][c]), (1.0, 'c1', J[1][c]), (1.0, 'c2', J[2][c])]
-        if c < n_acc:
-            terms.append((1.0, f'acc{c}', 1.0))
-        out.append(literal(em.sum(terms)))
+    out = [literal(em.sum(_joint_terms('c', J, c, n_acc))) for c in range(n)]
     body = '\n'.join(prune(em.lines + [f'    return [{", ".join(out)}]']))
     source = f'def coupled(q, gate, obstacles, eps2, lam2, limit=None):\n{body}\n'
     return build(source, 'coupled', {'cos': math.cos, 'sin': math.sin,
                                      'inverse_h3': _inverse_h3})
-
-
-class ClosestPointGate:
-    """The ``gate`` of :func:`compile_coupling` for :class:`~cdmp_ros.core.coupling.obstacle.
-    ObstacleCoupling`: closest points (spheres inline, boxes by
-    :func:`~cdmp_ros.core.kinematics.closest.segment_box_scalar`) and potential fields.
-
-    Returns None when no field is active, else ``[e0, e1, e2] + [active, p (3), dx (3)] *
-    n_links``; ``distances`` then holds the signed distance of the end effector and of every
-    link to its nearest obstacle. A :class:`~cdmp_ros.core.coupling.potential_fields.RepellerField`
-    without
-    damping on spheres is inlined (the arithmetic of its ``acceleration``); other fields are
-    called (velocity-dependent fields are not supported: they need ``J qd`` before the gate).
-    """
-
-    def __init__(self, n_links: int, sphere_field, box_field, config):
-        self.n_links = n_links
-        self.sphere_field = sphere_field
-        self.box_field = box_field
-        self.link_radius = config.link_radius
-        self.end_effector = config.end_effector
-        self.distances: List[float] = []
-        self.repeller = None
-        if type(sphere_field) is RepellerField and not sphere_field.damping:
-            self.repeller = (sphere_field.gain, sphere_field.influence_distance,
-                             sphere_field.min_distance, 1.0 / sphere_field.influence_distance)
-
-    def __call__(self, x: List[float], obstacles) -> Optional[list]:
-        """``x``: end effector, then start and end of every segment (world)."""
-        radius = self.link_radius
-        sphere_field, box_field = self.sphere_field, self.box_field
-        rep = self.repeller
-        if rep is not None:
-            gain, d0, d_floor, inv_d0 = rep
-        use_ee = self.end_effector
-        e0, e1, e2 = ee = x[0], x[1], x[2]
-        ax = ay = az = 0.0
-        dmin = math.inf
-        sqrt = math.sqrt
-        for obs in obstacles:
-            if type(obs) is Sphere:
-                c0, c1, c2 = obs.center
-                v0, v1, v2 = e0 - c0, e1 - c1, e2 - c2
-                r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if r > 1e-12:
-                    d = r - obs.radius
-                    n0, n1, n2 = v0 / r, v1 / r, v2 / r
-                else:
-                    d, n0, n1, n2 = -obs.radius, 0.0, 0.0, 1.0
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                if rep is not None:                 # RepellerField.acceleration, inlined
-                    if d < d0:
-                        dd = d if d > d_floor else d_floor
-                        g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                        ax += g * n0
-                        ay += g * n1
-                        az += g * n2
-                    continue
-                a = sphere_field.acceleration(ee, ZERO, obs, d, (n0, n1, n2))
-            elif type(obs) is Box:
-                d, _, normal = point_box(ee, obs.lower, obs.upper)
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                a = box_field.acceleration(ee, ZERO, obs, d, normal)
-            elif type(obs) is OrientedBox:
-                d, normal = obs.point(ee)
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                a = box_field.acceleration(ee, ZERO, obs, d, normal)
-            else:
-                raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
-                                      f'{type(obs).__name__}')
-            ax += a[0]
-            ay += a[1]
-            az += a[2]
-        dists = [dmin]
-        out = [ax, ay, az]
-        active = ax != 0.0 or ay != 0.0 or az != 0.0
-        for i in range(self.n_links):
-            j = 3 + 6 * i
-            a0, a1, a2, b0, b1, b2 = x[j:j + 6]
-            u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
-            uu = u0 * u0 + u1 * u1 + u2 * u2
-            best_d = math.inf
-            best = None
-            for obs in obstacles:
-                if type(obs) is Sphere:
-                    c0, c1, c2 = obs.center
-                    if uu > 0.0:
-                        t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu
-                        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-                    else:
-                        t = 0.0
-                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
-                    r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                    d = r - obs.radius - radius
-                    if d < best_d:
-                        best_d, best, bt, bv, br = d, obs, t, (v0, v1, v2), r
-                elif type(obs) is Box:
-                    lo, hi = obs.lower, obs.upper
-                    t = segment_box_scalar((a0, a1, a2), (b0, b1, b2), lo, hi)
-                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
-                    d -= radius
-                    if d < best_d:
-                        best_d, best, bt, bv, br = d, obs, t, normal, None
-                else:                                           # OrientedBox
-                    t = obs.segment((a0, a1, a2), (b0, b1, b2))
-                    d, normal = obs.point((a0 + t * u0, a1 + t * u1, a2 + t * u2))
-                    d -= radius
-                    if d < best_d:
-                        best_d, best, bt, bv, br = d, obs, t, normal, None
-            dists.append(best_d)
-            if best is not None:
-                t = bt
-                p0, p1, p2 = a0 + t * u0, a1 + t * u1, a2 + t * u2
-                if br is None:                                  # box: bv is the normal
-                    a = box_field.acceleration((p0, p1, p2), ZERO, best, best_d, bv)
-                else:
-                    r = br
-                    if r > 1e-12:
-                        n0, n1, n2 = bv[0] / r, bv[1] / r, bv[2] / r
-                    else:
-                        n0, n1, n2 = 0.0, 0.0, 1.0
-                    if rep is not None:                 # RepellerField.acceleration, inlined
-                        if best_d < d0:
-                            dd = best_d if best_d > d_floor else d_floor
-                            g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                            a = (g * n0, g * n1, g * n2)
-                        else:
-                            a = ZERO
-                    else:
-                        a = sphere_field.acceleration((p0, p1, p2), ZERO, best, best_d,
-                                                      (n0, n1, n2))
-                if a[0] or a[1] or a[2]:
-                    out += (True, p0, p1, p2, a[0], a[1], a[2])
-                    active = True
-                    continue
-            out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        self.distances = dists
-        return out if active else None

@@ -6,9 +6,11 @@ tick on plain floats::
 
     coupling = ObstacleCoupling(chain, links=['panda_link3', 'panda_link5'])
     dq_dd = coupling.joint_acceleration(q, qd, [Sphere((0.4, 0.1, 0.5), 0.05)])
-    stepper.input.coupling[:] = coupling.to_internal(dq_dd, out.xi, tau, transform)
+    stepper.set_joint_coupling(dq_dd)          # the exogenous map, capped near saturation
 
-End effector (paper 000, Eq. 7): the field of every obstacle at the end-effector point, summed.
+End effector (paper 000, Eq. 7): the field of every obstacle at the tool centre point (the
+chain's end-effector point, or ``tcp_offset`` from the tip link: the Panda's fingertips by
+default, so the hand itself avoids obstacles), summed.
 Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
 over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
 the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``. Near a
@@ -25,8 +27,9 @@ With three task rows and velocity-independent fields the whole evaluation runs i
 generated function (:mod:`cdmp_ros.core.coupling.kernel`; no Jacobian at all when no field is
 active); otherwise :meth:`ObstacleCoupling.joint_acceleration_generic` (kernel of both segment
 ends, ``J_o = (1 - t) J_a + t J_b``, exact because point Jacobians of one rigid link are affine
-in the point). :meth:`ObstacleCoupling.to_internal` maps the result to the stepper's exogenous
-coupling term, capped near saturation.
+in the point). It implements :class:`cdmp_ros.core.coupling.contract.Coupling`; the stepper
+(:meth:`cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling`) maps the result into its
+exogenous coupling term, capped near saturation.
 """
 import math
 from dataclasses import dataclass, field
@@ -36,19 +39,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d, scalar_coupling
-from cdmp_ros.core.coupling.kernel import ClosestPointGate, compile_coupling
+from cdmp_ros.core.coupling.kernel import compile_coupling
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.coupling.potential_fields import (ZERO, BoardField, ConstantField,
+                                                     RepellerField)
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
 from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
                                               segment_box_scalar)
-from cdmp_ros.core.validation import check_positive
+from cdmp_ros.core.validation import as_array, check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
-
-#: Default floor of ``1 - tanh(xi)^2`` in :meth:`ObstacleCoupling.to_internal` (the cap of the
-#: coupling term near saturation).
-SATURATION_FLOOR = 1e-2
 
 
 @dataclass(frozen=True)
@@ -108,11 +108,18 @@ class ObstacleCoupling:
     sphere_field, box_field : field
         Potential fields of spheres and of boxes.
     config : CouplingConfig
+    tcp_offset : sequence of 3 float, optional
+        The tool centre point, on which the end-effector term (Eq. 7) acts: this offset [m]
+        in the frame of the chain's tip link (``chain.ee_link``, the Panda's hand flange).
+        None: the chain's own end-effector point (``PointOfInterest('ee')``; for
+        :func:`~cdmp_ros.core.kinematics.builders.panda_chain` the fingertips,
+        ``PANDA_EE_OFFSET``).
     """
 
     def __init__(self, chain: Chain, links: Sequence = (),
                  sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
-                 config: CouplingConfig = CouplingConfig()):
+                 config: CouplingConfig = CouplingConfig(),
+                 tcp_offset: Optional[Sequence[float]] = None):
         self.chain = chain
         self.config = config
         self.sphere_field = sphere_field
@@ -128,7 +135,12 @@ class ObstacleCoupling:
             else:
                 name, start, end = link
                 self.segments.append((name, tuple(map(float, start)), tuple(map(float, end))))
-        points = [PointOfInterest('ee')]
+        if tcp_offset is None:
+            tcp = PointOfInterest('ee')
+        else:
+            tcp = PointOfInterest(chain.ee_link,
+                                  tuple(as_array('tcp_offset', tcp_offset, (3,)).tolist()))
+        points = [tcp]
         for name, start, end in self.segments:
             points += [PointOfInterest(name, start), PointOfInterest(name, end)]
         self.points = tuple(points)
@@ -148,23 +160,15 @@ class ObstacleCoupling:
         self._limit = (LimitScale(chain.lower, chain.upper, config.limit_onset,
                                   config.limit_lock)
                        if self.segments and config.limit_aware else None)
-        self._coupled = self._gate = None
+        self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
+        self._coupled = None
         if self._axes == (0, 1, 2) and not self._needs_velocity:
-            self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
             self._coupled = compile_coupling(
                 chain.B, chain.base_transform, chain.prismatic,
                 (int(frames[0]), coords[0]),
                 [(int(frames[1 + 2 * i]), coords[1 + 2 * i], coords[2 + 2 * i])
                  for i in range(len(self.segments))],
                 self._limit.bounds if self._limit is not None else None)
-
-    def _field(self, obstacle) -> Field:
-        if isinstance(obstacle, Sphere):
-            return self.sphere_field
-        if isinstance(obstacle, (Box, OrientedBox)):
-            return self.box_field
-        raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
-                              f'{type(obstacle).__name__}')
 
     @staticmethod
     def _velocity(rows, qd):
@@ -203,95 +207,41 @@ class ObstacleCoupling:
     def joint_acceleration_generic(self, q: Sequence[float], qd: Optional[Sequence[float]],
                                    obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
         """:meth:`joint_acceleration` without the generated kernel (any task axes, fields
-        that depend on the velocity): kernel of both segment ends, ``J_o`` interpolated, and
+        that depend on the velocity): kernel of both segment ends, the same closest points and
+        fields (:class:`ClosestPointGate`), ``J_o`` interpolated, and
         :func:`~cdmp_ros.core.coupling.terms.coupling_3d` / ``scalar_coupling``."""
         n = self.chain.n_dofs
         ql = q.tolist() if isinstance(q, np.ndarray) else list(q)
         qdl = (qd.tolist() if isinstance(qd, np.ndarray) else list(qd)) if qd is not None \
             else None
         x, jac = self._kernel(ql)
-        radius = self.config.link_radius
         rows_e = [jac[0:n], jac[n:2 * n], jac[2 * n:3 * n]]
-        ee = x[0:3]
-        dx_e = [0.0, 0.0, 0.0]
-        xd_e = self._velocity(rows_e, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
-        dists = [math.inf]
-        sphere_field, box_field = self.sphere_field, self.box_field
-        use_ee = self.config.end_effector
-        e0, e1, e2 = ee
-        for obs in obstacles:
-            if type(obs) is Sphere:
-                c = obs.center
-                v0, v1, v2 = e0 - c[0], e1 - c[1], e2 - c[2]
-                r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if r > 1e-12:
-                    d, normal = r - obs.radius, (v0 / r, v1 / r, v2 / r)
-                else:
-                    d, normal = -obs.radius, (0.0, 0.0, 1.0)
-                f = sphere_field
-            elif type(obs) is Box:
-                d, _, normal = point_box(ee, obs.lower, obs.upper)
-                f = box_field
-            elif type(obs) is OrientedBox:
-                d, normal = obs.point(ee)
-                f = box_field
-            else:
-                self._field(obs)                                # raises ValidationError
-            if d < dists[0]:
-                dists[0] = d
-            if use_ee:
-                a = f.acceleration(ee, xd_e, obs, d, normal)
-                dx_e[0] += a[0]
-                dx_e[1] += a[1]
-                dx_e[2] += a[2]
-        links = []
         stride = 3 * n
-        for i, k in enumerate(self._n_moving):
-            a0, a1, a2 = x[3 + 6 * i:6 + 6 * i]
-            u0, u1, u2 = x[6 + 6 * i] - a0, x[7 + 6 * i] - a1, x[8 + 6 * i] - a2
-            uu = u0 * u0 + u1 * u1 + u2 * u2
-            best_d, best = math.inf, None
-            for obs in obstacles:
-                if type(obs) is Sphere:
-                    c0, c1, c2 = obs.center
-                    t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu \
-                        if uu > 0.0 else 0.0
-                    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
-                    r = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                    d = r - obs.radius - radius
-                    if d < best_d:
-                        normal = (v0 / r, v1 / r, v2 / r) if r > 1e-12 else (0.0, 0.0, 1.0)
-                        best_d, best = d, (obs, t, normal, sphere_field)
-                else:
-                    b = (a0 + u0, a1 + u1, a2 + u2)
-                    if type(obs) is Box:
-                        lo, hi = obs.lower, obs.upper
-                        t = segment_box_scalar((a0, a1, a2), b, lo, hi)
-                        d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
-                    else:                                       # OrientedBox
-                        t = obs.segment((a0, a1, a2), b)
-                        d, normal = obs.point((a0 + t * u0, a1 + t * u1, a2 + t * u2))
-                    d -= radius
-                    if d < best_d:
-                        best_d, best = d, (obs, t, normal, box_field)
-            dists.append(best_d)
-            if best is None:
-                continue
-            obs, t, normal, f = best
-            p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
+
+        def link_jacobian(i, t):
+            """``J_o`` of the point at ``t`` on segment i (the columns that move it)."""
+            k = self._n_moving[i]
             base_a = (1 + 2 * i) * stride
             s = 1.0 - t
             lerp = [s * u + t * v for u, v in zip(jac[base_a:base_a + stride],
                                                   jac[base_a + stride:base_a + 2 * stride])]
-            J_o = [lerp[0:k], lerp[n:n + k], lerp[2 * n:2 * n + k]]
-            xd = self._velocity(J_o, qdl) if self._needs_velocity else (0.0, 0.0, 0.0)
-            a = f.acceleration(p, xd, obs, best_d, normal)
-            if a[0] or a[1] or a[2]:
-                links.append((J_o, a))
-        self.last_distances = dists
-        if not links and not any(dx_e):
+            return [lerp[0:k], lerp[n:n + k], lerp[2 * n:2 * n + k]]
+
+        def velocity(i, t):
+            """Velocity of the end effector (i = -1) or of the point at t on segment i."""
+            return self._velocity(rows_e if i < 0 else link_jacobian(i, t), qdl)
+
+        gate = self._gate
+        r = gate(x, obstacles, velocity if self._needs_velocity and qdl is not None else None)
+        self.last_distances = gate.distances
+        if r is None:
             return [0.0] * n
+        dx_e = list(r[0:3])
+        links = []
+        for i in range(len(self.segments)):
+            j = 3 + 7 * i
+            if r[j]:
+                links.append((link_jacobian(i, gate.link_t[i]), r[j + 4:j + 7]))
         scale = self._limit(ql) if self._limit is not None and links else None
         if self._axes == (0, 1, 2):
             return coupling_3d(rows_e, dx_e, links, self.config.damping, scale)
@@ -301,46 +251,168 @@ class ObstacleCoupling:
                  for J_o, dx in links]
         return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping, scale)
 
-    @staticmethod
-    def to_internal(dq_dd: Sequence[float], xi: Optional[Sequence[float]], tau: float,
-                    y_delta: Optional[Sequence[float]] = None,
-                    floor: float = SATURATION_FLOOR) -> List[float]:
-        """The coupling term ``P`` of the stepper (``stepper.input.coupling``).
 
-        CDMP (``y_delta`` given): Eq. (29) at fixed ``(xi, xid)`` gives
-        ``dxi_dd = dq_dd / (y_delta (1 - tanh(xi)^2))`` and Eq. (21) takes
-        ``P = tau^2 dxi_dd``; DMP (``y_delta`` None): ``P = tau^2 dq_dd``. Where
-        ``1 - tanh(xi)^2 >= floor`` this is ``TanhTransform.joint_accel_to_exogenous`` on plain
-        floats.
+class ClosestPointGate:
+    """The closest points and potential fields of :class:`ObstacleCoupling` (the ``gate`` of
+    :func:`~cdmp_ros.core.coupling.kernel.compile_coupling`, and the geometry of
+    :meth:`ObstacleCoupling.joint_acceleration_generic`): the one closest-point routine of the
+    coupling. Spheres inline, boxes by :func:`~cdmp_ros.core.kinematics.boxes.point_box` /
+    :func:`~cdmp_ros.core.kinematics.boxes.segment_box_scalar`, oriented boxes by
+    :meth:`~cdmp_ros.core.kinematics.closest.OrientedBox.point` / ``segment``.
 
-        Cap near saturation: ``1 - tanh(xi)^2`` is floored at ``floor``, so
-        ``|P| <= tau^2 |dq_dd| / (y_delta floor)``. Without it the divisor falls to ~2e-9 at the
-        saturation bound ``XI_SAT``: a coupling that turns away from a limit the state was
-        pushed into asks for an exogenous acceleration so large that ``xi`` crosses the whole
-        range in one tick (a jump from one joint limit to the other; test_core_coupling.py).
-        With the floor the coupling only acts attenuated, by ``(1 - tanh(xi)^2) / floor``,
-        within ``1 - sqrt(1 - floor)`` (0.5 % for the default) of the half-range from a limit.
-        ``floor = 0`` gives the uncapped map (divisor floored at 1e-300).
-        """
-        tau2 = tau * tau
-        if y_delta is None:
-            return [tau2 * a for a in dq_dd]
-        tanh = math.tanh
-        out = []
-        for a, x, yd in zip(dq_dd, xi, y_delta):
-            t = tanh(x)
-            s = 1.0 - t * t
-            if s < floor:
-                s = floor
-            out.append(tau2 * a / max(yd * s, 1e-300))
-        return out
+    ``gate(x, obstacles, velocity=None)`` returns None when no field is active, else
+    ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``; ``distances`` then holds the signed
+    distance of the end effector and of every link to its nearest obstacle, ``link_t`` the
+    segment parameter of every link's closest point. ``velocity(i, t)``, if given, returns the
+    velocity of the end effector (``i = -1``) or of the point at ``t`` on segment ``i`` for
+    velocity-dependent fields (zero otherwise). A
+    :class:`~cdmp_ros.core.coupling.potential_fields.RepellerField` without damping on spheres
+    is inlined (the arithmetic of its ``acceleration``); other fields are called.
+    """
+
+    def __init__(self, n_links: int, sphere_field, box_field, config):
+        self.n_links = n_links
+        self.sphere_field = sphere_field
+        self.box_field = box_field
+        self.link_radius = config.link_radius
+        self.end_effector = config.end_effector
+        self.distances: List[float] = []
+        self.link_t: List[float] = [0.0] * n_links
+        self.repeller = None
+        if type(sphere_field) is RepellerField and not sphere_field.damping:
+            self.repeller = (sphere_field.gain, sphere_field.influence_distance,
+                             sphere_field.min_distance, 1.0 / sphere_field.influence_distance)
+
+    def __call__(self, x: List[float], obstacles, velocity=None) -> Optional[list]:
+        """``x``: end effector, then start and end of every segment (world)."""
+        radius = self.link_radius
+        sphere_field, box_field = self.sphere_field, self.box_field
+        rep = self.repeller
+        if rep is not None:
+            gain, d0, d_floor, inv_d0 = rep
+        use_ee = self.end_effector
+        e0, e1, e2 = ee = x[0], x[1], x[2]
+        xd_e = ZERO if velocity is None or not use_ee else velocity(-1, 0.0)
+        ax = ay = az = 0.0
+        dmin = math.inf
+        sqrt = math.sqrt
+        for obs in obstacles:
+            if type(obs) is Sphere:
+                c0, c1, c2 = obs.center
+                v0, v1, v2 = e0 - c0, e1 - c1, e2 - c2
+                r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                if r > 1e-12:
+                    d = r - obs.radius
+                    n0, n1, n2 = v0 / r, v1 / r, v2 / r
+                else:
+                    d, n0, n1, n2 = -obs.radius, 0.0, 0.0, 1.0
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                if rep is not None:                 # RepellerField.acceleration, inlined
+                    if d < d0:
+                        dd = d if d > d_floor else d_floor
+                        g = gain * (1.0 / dd - inv_d0) / (dd * dd)
+                        ax += g * n0
+                        ay += g * n1
+                        az += g * n2
+                    continue
+                a = sphere_field.acceleration(ee, xd_e, obs, d, (n0, n1, n2))
+            elif type(obs) is Box:
+                d, _, normal = point_box(ee, obs.lower, obs.upper)
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                a = box_field.acceleration(ee, xd_e, obs, d, normal)
+            elif type(obs) is OrientedBox:
+                d, normal = obs.point(ee)
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                a = box_field.acceleration(ee, xd_e, obs, d, normal)
+            else:
+                raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
+                                      f'{type(obs).__name__}')
+            ax += a[0]
+            ay += a[1]
+            az += a[2]
+        dists = [dmin]
+        out = [ax, ay, az]
+        active = ax != 0.0 or ay != 0.0 or az != 0.0
+        for i in range(self.n_links):
+            j = 3 + 6 * i
+            a0, a1, a2, b0, b1, b2 = x[j:j + 6]
+            u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
+            uu = u0 * u0 + u1 * u1 + u2 * u2
+            best_d = math.inf
+            best = None
+            for obs in obstacles:
+                if type(obs) is Sphere:
+                    c0, c1, c2 = obs.center
+                    if uu > 0.0:
+                        t = ((c0 - a0) * u0 + (c1 - a1) * u1 + (c2 - a2) * u2) / uu
+                        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+                    else:
+                        t = 0.0
+                    v0, v1, v2 = a0 + t * u0 - c0, a1 + t * u1 - c1, a2 + t * u2 - c2
+                    r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                    d = r - obs.radius - radius
+                    if d < best_d:
+                        best_d, best, bt, bv, br = d, obs, t, (v0, v1, v2), r
+                elif type(obs) is Box:
+                    lo, hi = obs.lower, obs.upper
+                    t = segment_box_scalar((a0, a1, a2), (b0, b1, b2), lo, hi)
+                    d, _, normal = point_box((a0 + t * u0, a1 + t * u1, a2 + t * u2), lo, hi)
+                    d -= radius
+                    if d < best_d:
+                        best_d, best, bt, bv, br = d, obs, t, normal, None
+                else:                                           # OrientedBox
+                    t = obs.segment((a0, a1, a2), (b0, b1, b2))
+                    d, normal = obs.point((a0 + t * u0, a1 + t * u1, a2 + t * u2))
+                    d -= radius
+                    if d < best_d:
+                        best_d, best, bt, bv, br = d, obs, t, normal, None
+            dists.append(best_d)
+            if best is not None:
+                t = self.link_t[i] = bt
+                p0, p1, p2 = a0 + t * u0, a1 + t * u1, a2 + t * u2
+                xd = ZERO if velocity is None else velocity(i, t)
+                if br is None:                                  # box: bv is the normal
+                    a = box_field.acceleration((p0, p1, p2), xd, best, best_d, bv)
+                else:
+                    r = br
+                    if r > 1e-12:
+                        n0, n1, n2 = bv[0] / r, bv[1] / r, bv[2] / r
+                    else:
+                        n0, n1, n2 = 0.0, 0.0, 1.0
+                    if rep is not None:                 # RepellerField.acceleration, inlined
+                        if best_d < d0:
+                            dd = best_d if best_d > d_floor else d_floor
+                            g = gain * (1.0 / dd - inv_d0) / (dd * dd)
+                            a = (g * n0, g * n1, g * n2)
+                        else:
+                            a = ZERO
+                    else:
+                        a = sphere_field.acceleration((p0, p1, p2), xd, best, best_d,
+                                                      (n0, n1, n2))
+                if a[0] or a[1] or a[2]:
+                    out += (True, p0, p1, p2, a[0], a[1], a[2])
+                    active = True
+                    continue
+            out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self.distances = dists
+        return out if active else None
 
 
 def joint_coupling(chain: Chain, q: ArrayLike, qd: Optional[ArrayLike],
                    obstacles: Sequence[Union[Sphere, Box]], links: Sequence = (),
                    sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
-                   config: CouplingConfig = CouplingConfig()) -> NDArray[np.float64]:
+                   config: CouplingConfig = CouplingConfig(),
+                   tcp_offset: Optional[Sequence[float]] = None) -> NDArray[np.float64]:
     """One-shot :meth:`ObstacleCoupling.joint_acceleration` (builds the coupling each call;
     keep an :class:`ObstacleCoupling` for repeated use)."""
-    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config)
+    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config, tcp_offset)
     return np.array(coupling.joint_acceleration(q, qd, obstacles))

@@ -132,6 +132,25 @@ class BoardField:
         a_v = alpha * sqrt(|dz_g|) * sign(dz_g),   dz_g = goal_height - x_v
 
     (attraction towards the height of the final goal), other components zero.
+
+    Attributes
+    ----------
+    beta_y : float
+        Gain [m/s^2] of the horizontal escape towards the edge (Eq. 30).
+    beta_z : float
+        Gain [m^2/s^2] of the vertical push away from the surface (Eq. 30).
+    alpha : float
+        Gain [m^0.5/s^2] of the attraction towards ``goal_height`` (Eq. 31).
+    goal_height : float
+        Height [m] (on the vertical axis) of the final goal (Eq. 31).
+    horizontal_axis, vertical_axis : int
+        World axes (0, 1, 2) of the escape direction and of the vertical.
+    edge_side : int
+        +1: escape past the board's upper face on the horizontal axis; -1: its lower face.
+    vertical_side : int
+        -1: the point is under the board; +1: over it.
+    min_distance : float
+        Floor [m] of the vertical distance in Eq. (30).
     """
 
     beta_y: float = 0.01

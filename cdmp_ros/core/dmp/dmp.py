@@ -16,7 +16,7 @@ state-dependent coupling is given, through the equivalent second-order linear re
 streaming). They agree to rounding (tested).
 """
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -24,6 +24,7 @@ from scipy.signal import lfilter
 
 from cdmp_ros.core.dmp.basis import PhaseBasis
 from cdmp_ros.core.config_fields import check_fields, param
+from cdmp_ros.core.coupling.contract import Coupling
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.dmp.transform import TanhTransform, XI_SAT
 from cdmp_ros.core.validation import as_array, check_positive
@@ -34,8 +35,6 @@ ACC_CLAMP = 1e15
 VEL_CLAMP = 1e12
 #: Largest number of samples of one rollout (duration / dt + 1).
 MAX_ROLLOUT_STEPS = 10_000_000
-
-CouplingFn = Callable[[float, NDArray[np.float64], NDArray[np.float64]], ArrayLike]
 
 
 @dataclass(frozen=True)
@@ -230,7 +229,7 @@ class DMP:
     def rollout(self, dt: float = 0.001, tau: Optional[float] = None,
                 start_y: Optional[ArrayLike] = None, goal_y: Optional[ArrayLike] = None,
                 duration: Optional[float] = None, start_yd: Optional[ArrayLike] = None,
-                coupling: Optional[CouplingFn] = None,
+                coupling: Optional[Coupling] = None, obstacles: Sequence = (),
                 weight_noise: Optional[ArrayLike] = None,
                 goal_noise: Optional[ArrayLike] = None,
                 velocity_limits: Optional[ArrayLike] = None) -> Trajectory:
@@ -249,9 +248,14 @@ class DMP:
             Integrated time span; default ``tau``.
         start_yd : array-like, shape (n_dims,), optional
             Initial joint velocity (default zero).
-        coupling : callable, optional
-            ``coupling(t, x, xd) -> P`` (n_dims,), the coupling term added to Eq. 13/21 in the
-            internal space, evaluated every step (forces the step-by-step integrator).
+        coupling : Coupling, optional
+            Evaluated every step at the joint state, ``coupling.joint_acceleration(y, yd,
+            obstacles)`` (:class:`cdmp_ros.core.coupling.contract.Coupling`); the stepper maps
+            it into the coupling term of Eq. 13/21
+            (:meth:`cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling`). Forces the
+            step-by-step integrator.
+        obstacles : sequence
+            The obstacle set passed to ``coupling``.
         weight_noise : array-like, shape (n_steps, n_dims, n_weights_per_dim), optional
             Exploration noise on the shape parameters per time step (Eq. 32).
         goal_noise : array-like, shape (n_dims,), optional
@@ -292,7 +296,7 @@ class DMP:
             if traj is not None:
                 return traj
         return self._rollout_stepwise(dt, tau, n_steps, start_y, start_yd, goal_y, eps,
-                                      g_noise, coupling, velocity_limits)
+                                      g_noise, coupling, obstacles, velocity_limits)
 
     def initial_state(self, start_y, start_yd, goal_y, goal_noise=None):
         """Internal start ``x0``, scaled velocity factor input, goal state and goal target."""
@@ -343,7 +347,7 @@ class DMP:
         return Trajectory(k * dt, Y, Yd, Ydd, X, Xd, self.basis.phase(u))
 
     def _rollout_stepwise(self, dt, tau, n_steps, start_y, start_yd, goal_y, eps, g_noise,
-                          coupling, velocity_limits):
+                          coupling, obstacles, velocity_limits):
         from cdmp_ros.core.dmp.stepper import DmpStepper
         noise_phi = None
         if eps is not None:
@@ -362,9 +366,7 @@ class DMP:
         inp = st.input
         for k in range(1, n_steps):
             if coupling is not None:
-                P = np.asarray(coupling((k - 1) * dt, np.asarray(o.xi), np.asarray(o.xid)),
-                               dtype=np.float64)
-                inp.coupling[:] = P.tolist()
+                st.set_joint_coupling(coupling.joint_acceleration(o.y, o.yd, obstacles))
             o, _ = st.update(inp)
             Y[k], Yd[k], Ydd[k], X[k], Xd[k], phase[k] = o.y, o.yd, o.ydd, o.xi, o.xid, o.phase
         return Trajectory(np.arange(n_steps) * dt, Y, Yd, Ydd, X, Xd, phase)

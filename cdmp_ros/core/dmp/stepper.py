@@ -20,7 +20,7 @@ limits.
 """
 import enum
 import math
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -33,6 +33,11 @@ from cdmp_ros.core.validation import as_array, check_positive
 VMAX_BACKOFF = 1.0 - 1e-12
 #: Largest forcing profile precomputed by a stepper (2 tau / dt rows of n_dims floats).
 MAX_TABLE_ROWS = 2_000_000
+#: Floor of ``1 - tanh(xi)^2`` in :func:`joint_coupling_to_exogenous` (the cap of the coupling
+#: term near saturation).
+SATURATION_FLOOR = 1e-2
+#: Largest joint-space coupling entry accepted by :meth:`DmpStepper.set_joint_coupling`.
+MAX_JOINT_COUPLING = 1e12
 
 
 class StepStatus(enum.IntFlag):
@@ -46,6 +51,59 @@ class StepStatus(enum.IntFlag):
 
 
 _STATUS = [StepStatus(i) for i in range(32)]
+
+
+class CouplingResult(enum.IntEnum):
+    """What :meth:`DmpStepper.set_joint_coupling` did."""
+
+    ZERO = 0       #: no coupling (None or all zeros): ``P = 0``
+    APPLIED = 1    #: a non-zero coupling term was set
+    REJECTED = 2   #: wrong length, not numbers, non-finite or huge: dropped, ``P = 0``
+
+
+def joint_coupling_to_exogenous(dq_dd: Sequence[float], xi: Sequence[float], tau: float,
+                                y_delta: Optional[Sequence[float]], out: List[float],
+                                floor: float = SATURATION_FLOOR) -> None:
+    """The coupling term ``P`` of the stepper from a joint acceleration change, into ``out``.
+
+    CDMP (``y_delta`` given): Eq. (29), paper 000, at fixed ``(xi, xid)`` gives
+    ``dxi_dd = dq_dd / (y_delta (1 - tanh(xi)^2))`` and Eq. (21) takes ``P = tau^2 dxi_dd``;
+    DMP (``y_delta`` None): ``P = tau^2 dq_dd`` (Eq. 13).
+
+    Cap near saturation: ``1 - tanh(xi)^2`` is floored at ``floor``, so
+    ``|P| <= tau^2 |dq_dd| / (y_delta floor)``. Without it the divisor falls to ~2e-9 at the
+    saturation bound ``XI_SAT``: a coupling that turns away from a limit the state was pushed
+    into asks for an exogenous acceleration so large that ``xi`` crosses the whole range in one
+    tick (a jump from one joint limit to the other; test_core_coupling.py). With the floor the
+    coupling only acts attenuated, by ``(1 - tanh(xi)^2) / floor``, within
+    ``1 - sqrt(1 - floor)`` (0.5 % for the default) of the half-range from a limit.
+    ``floor = 0`` gives the uncapped map (divisor floored at 1e-300).
+
+    Parameters
+    ----------
+    dq_dd : sequence of float (n_dims)
+        Joint acceleration change [rad/s^2 or m/s^2].
+    xi : sequence of float (n_dims)
+        Current internal state (the exogenous state of a CDMP).
+    tau : float
+        Temporal scaling of the primitive.
+    y_delta : sequence of float (n_dims), optional
+        Half ranges of the CDMP's limits; None for a plain DMP.
+    out : list of float (n_dims)
+        Receives ``P``.
+    """
+    tau2 = tau * tau
+    if y_delta is None:
+        for d, a in enumerate(dq_dd):
+            out[d] = tau2 * a
+        return
+    tanh = math.tanh
+    for d, a in enumerate(dq_dd):
+        t = tanh(xi[d])
+        s = 1.0 - t * t
+        if s < floor:
+            s = floor
+        out[d] = tau2 * a / max(y_delta[d] * s, 1e-300)  # Eq. (21)/(29), paper 000
 
 
 class StepInput:
@@ -207,6 +265,32 @@ class DmpStepper:
     @property
     def goal_internal(self) -> List[float]:
         return list(self._g0)
+
+    def set_joint_coupling(self, dq_dd: Optional[Sequence[float]]) -> CouplingResult:
+        """Set the coupling term of the next ticks (``input.coupling``) from a joint-space
+        acceleration change (a :class:`~cdmp_ros.core.coupling.contract.Coupling` result) at
+        the current state, by :func:`joint_coupling_to_exogenous` (capped near saturation).
+
+        Never raises: None gives ``P = 0`` (``ZERO``); a value of the wrong length, not
+        numbers, non-finite or beyond :data:`MAX_JOINT_COUPLING` is dropped (``P = 0``,
+        ``REJECTED``).
+        """
+        P = self.input.coupling
+        n = self.n_dims
+        if dq_dd is None:
+            P[:] = self._zeros
+            return CouplingResult.ZERO
+        try:
+            vals = [float(v) for v in dq_dd]
+        except (TypeError, ValueError):
+            vals = []
+        if len(vals) != n or not all(-MAX_JOINT_COUPLING < v < MAX_JOINT_COUPLING
+                                     for v in vals):
+            P[:] = self._zeros
+            return CouplingResult.REJECTED
+        joint_coupling_to_exogenous(vals, self._x, self.tau, self._yd_ if self._cdmp else None,
+                                    P)
+        return CouplingResult.APPLIED if any(vals) else CouplingResult.ZERO
 
     # -- the tick -----------------------------------------------------------------------------
     def _row(self, u: float, k: int):

@@ -92,15 +92,3 @@ class TanhTransform:
         s = 1.0 - t * t
         return self.y_delta * s * (np.asarray(XIdd, dtype=np.float64)
                                    - 2.0 * t * XId * XId)  # Eq. (29), paper 000
-
-    def joint_accel_to_exogenous(self, XI: ArrayLike, XId: ArrayLike,
-                                 Ydd_delta: ArrayLike) -> NDArray[np.float64]:
-        """Express a joint-space acceleration change (a coupling term) in xi space.
-
-        From Eq. (29), a change ``dydd`` of the joint acceleration at fixed ``(xi, xid)`` is
-        produced by ``dxidd = dydd / J(xi)``. ``J`` is floored at ``1e-300`` so the result stays
-        finite at saturation; the exogenous integrator saturates ``xi`` anyway.
-        """
-        del XId  # the map is linear in xidd; Jdot xid does not depend on the change
-        J = np.maximum(self.jacobian(XI), 1e-300)
-        return np.asarray(Ydd_delta, dtype=np.float64) / J

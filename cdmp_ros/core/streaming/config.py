@@ -1,5 +1,6 @@
 """The streamer's parameters (:class:`StreamerConfig`), mirrored 1:1 by the ROS parameters of
 the streamer node; ranges and descriptions live in the field metadata."""
+import math
 from dataclasses import dataclass
 from typing import Tuple
 
@@ -9,12 +10,14 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, c
                                          param as _param, robot_description_param, stamp_age_param,
                                          stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
+from cdmp_ros.core.kinematics.builders import PANDA_EE_OFFSET, PANDA_JOINTS
 
-__all__ = ['StreamerConfig', 'CONTROLLER_OUTPUTS', 'DEFAULT_CONTROLLER_TOPICS']
+__all__ = ['StreamerConfig', 'CONTROLLER_OUTPUTS', 'DEFAULT_CONTROLLER_TOPICS', 'BOX_FIELDS']
 
 #: Values of ``controller_output``.
 CONTROLLER_OUTPUTS = ('none', 'forward_command', 'joint_trajectory')
+#: Values of ``box_field_kind``: the potential field of box obstacles.
+BOX_FIELDS = ('constant', 'board')
 #: The command topic of each ros2_control controller under its usual name.
 DEFAULT_CONTROLLER_TOPICS = {'forward_command': 'forward_position_controller/commands',
                              'joint_trajectory': 'joint_trajectory_controller/joint_trajectory'}
@@ -110,6 +113,16 @@ class StreamerConfig:
     coupling_links: Tuple[str, ...] = _param(
         ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
+    tcp_offset: Tuple[float, ...] = _param(
+        PANDA_EE_OFFSET, 'Tool centre point on which the end-effector term (Eq. 7) acts: 3 '
+        "coordinates [m] in the frame of the chain's tip link (the Panda's hand flange, "
+        'panda_hand); default the fingertips (panda_grasptarget), so the hand itself avoids '
+        'obstacles.')
+    box_field_kind: str = _param(
+        'constant', "Potential field of box obstacles: 'constant' (paper 000, IV-B: the "
+        "box_field.* parameters) or 'board' (Eq. 30-31, for escaping around a board's edge: "
+        'the board_field.* parameters; axis-aligned boxes only, an oriented box makes the '
+        'coupling rejected).', choices=BOX_FIELDS)
 
     def __post_init__(self):
         check_fields(self)
@@ -117,6 +130,14 @@ class StreamerConfig:
             raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
                                   f'{self.realtime_threads!r}')
         check_names('joint_names', self.joint_names)
+        try:
+            tcp = tuple(float(v) for v in self.tcp_offset)
+        except (TypeError, ValueError):
+            tcp = ()
+        if len(tcp) != 3 or not all(math.isfinite(v) and abs(v) <= 10.0 for v in tcp):
+            raise ValidationError(f'tcp_offset: expected 3 finite coordinates [m] within 10 m '
+                                  f'of the flange, got {self.tcp_offset!r}')
+        object.__setattr__(self, 'tcp_offset', tcp)
         check_names('controller_joints', self.controller_joints, allow_empty=True)
         if self.controller_joints and sorted(self.controller_joints) != sorted(
                 self.joint_names):

@@ -19,6 +19,7 @@ exogenous space, Eq. 21), and guarantees what the node promises:
 Times (``now``) are seconds of a steady clock supplied by the caller, so the class is
 deterministic and testable without ROS.
 """
+import dataclasses
 import enum
 import math
 from typing import Callable, List, Optional, Sequence, Tuple
@@ -27,39 +28,39 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.obstacle import SATURATION_FLOOR
+from cdmp_ros.core.coupling.contract import Coupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
+from cdmp_ros.core.coupling.terms import DampingConfig
+from cdmp_ros.core.kinematics import Chain
+from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
 from cdmp_ros.core.streaming.config import StreamerConfig
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
 
-#: ``coupling(y, yd) -> joint accelerations (n_dims,)`` or None (no obstacle): the coupling
-#: term of the current obstacles at the reference state, in joint space [rad/s^2].
-JointCoupling = Callable[[List[float], List[float]], Optional[Sequence[float]]]
 
+def streamer_coupling(chain: Chain, config: StreamerConfig,
+                      coupling: CouplingConfig = CouplingConfig(),
+                      damping: DampingConfig = DampingConfig(),
+                      repeller: RepellerField = RepellerField(),
+                      box_field: ConstantField = ConstantField(),
+                      board_field: BoardField = BoardField()) -> ObstacleCoupling:
+    """The streamer's obstacle coupling from its parameters (the ``coupling.*``,
+    ``damping.*``, ``repeller.*``, ``box_field.*`` and ``board_field.*`` sections):
+    Eq. (7) on the tool centre point ``config.tcp_offset``, Eq. (12) on
+    ``config.coupling_links``; spheres get ``repeller``, boxes ``box_field`` (IV-B) or, with
+    ``config.box_field_kind == 'board'``, ``board_field`` (Eq. 30-31).
 
-class CouplingSource:
-    """A :data:`JointCoupling` for the current obstacles: ``ObstacleCoupling`` (paper 000,
-    Eq. 7/12) evaluated at the reference; None (no call) while there is no obstacle.
-
-    Parameters
-    ----------
-    coupling : ObstacleCoupling
+    Raises
+    ------
+    ValidationError
+        Unknown link names.
     """
-
-    def __init__(self, coupling):
-        self.coupling = coupling
-        self.obstacles: Sequence = ()
-        self.min_distance = math.inf
-
-    def __call__(self, y: List[float], yd: List[float]) -> Optional[List[float]]:
-        obstacles = self.obstacles
-        if not obstacles:
-            self.min_distance = math.inf
-            return None
-        a = self.coupling.joint_acceleration(y, yd, obstacles)
-        self.min_distance = min(self.coupling.last_distances)
-        return a
+    boxes = board_field if config.box_field_kind == 'board' else box_field
+    return ObstacleCoupling(chain, config.coupling_links, sphere_field=repeller, box_field=boxes,
+                            config=dataclasses.replace(coupling, damping=damping),
+                            tcp_offset=config.tcp_offset)
 
 
 class StreamState(enum.Enum):
@@ -137,12 +138,21 @@ class ReferenceStreamer:
     lower, upper : array-like, shape (n_dims,)
         Robot position limits, in the order of ``config.joint_names``.
     config : StreamerConfig
-    coupling : JointCoupling, optional
-        Obstacle coupling at the reference state (joint accelerations), called every step.
+    coupling : Coupling, optional
+        Obstacle coupling (:class:`~cdmp_ros.core.coupling.contract.Coupling`), evaluated at
+        the reference state for ``self.obstacles`` (not called while there is none).
+
+    Attributes
+    ----------
+    obstacles : sequence
+        The current obstacle set (replaced as a whole by the caller).
+    min_distance : float
+        Smallest of the coupling's ``last_distances`` at its last evaluation (inf without
+        obstacles).
     """
 
     def __init__(self, lower: ArrayLike, upper: ArrayLike, config: StreamerConfig,
-                 coupling: Optional[JointCoupling] = None):
+                 coupling: Optional[Coupling] = None):
         self.config = config
         self.joint_names = list(config.joint_names)
         n = self.n_dims = len(self.joint_names)
@@ -152,6 +162,8 @@ class ReferenceStreamer:
         self.transform = TanhTransform(lo, hi, margin=SAT_MARGIN)
         self._goal_transform = TanhTransform(lo, hi, margin=config.limit_margin)
         self.coupling = coupling
+        self.obstacles: Sequence = ()
+        self.min_distance = math.inf
         self.y = [0.0] * n
         self.yd = [0.0] * n
         self.ydd = [0.0] * n
@@ -165,7 +177,6 @@ class ReferenceStreamer:
         self._stop: Optional[SmoothStop] = None
         self._calls = 0
         self._coupling_flags = 0
-        self._jac_scale: Optional[List[float]] = None
 
     # -- configuration ------------------------------------------------------------------------
     def set_config(self, config: StreamerConfig) -> None:
@@ -298,7 +309,6 @@ class ReferenceStreamer:
         y = np.asarray(self.y)
         prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
         self._calls = self.config.coupling_decimation  # evaluate at the first step
-        self._jac_scale = (prim.transform.y_delta.tolist() if prim.kind == 'cdmp' else None)
         self.state = StreamState.RUNNING
         self.reason = f'streaming the {prep.kind} from {prep.source}'
         return float(np.max(np.abs(np.asarray(prep.stepper.output.y) - y)))
@@ -324,46 +334,23 @@ class ReferenceStreamer:
         return (4 if status & 4 else 0) | (8 if status & 16 else 0)
 
     def _coupling_into(self, stepper) -> int:
-        """Joint-space coupling accelerations -> the stepper's internal units (tau^2 xidd).
-
-        The same map as ``ObstacleCoupling.to_internal`` (Eq. 21/29), written in place, with
-        the same cap near saturation: ``1 - tanh(xi)^2`` floored at :data:`SATURATION_FLOOR`,
-        so a coupling that turns away from a limit the state was pushed into cannot ask for
-        an exogenous acceleration that crosses the whole range in one tick.
-        """
-        P = stepper.input.coupling
-        try:
-            a = self.coupling(self.y, self.yd)
-        except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
-            a = False
-        n = self.n_dims
-        if a is None:
-            for d in range(n):
-                P[d] = 0.0
+        """The coupling at the reference for the current obstacles, handed to the stepper
+        (which maps it into its exogenous space, capped near saturation); never raises."""
+        obstacles = self.obstacles
+        if not obstacles:
+            self.min_distance = math.inf
+            stepper.set_joint_coupling(None)
             return 0
+        coupling = self.coupling
         try:
-            vals = [float(v) for v in a] if a is not False else []
-        except (TypeError, ValueError):
-            vals = []
-        if len(vals) != n or not all(-1e12 < v < 1e12 for v in vals):
-            for d in range(n):
-                P[d] = 0.0
+            a = coupling.joint_acceleration(self.y, self.yd, obstacles)
+            self.min_distance = min(coupling.last_distances, default=math.inf)
+        except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
+            a = ()
+        result = stepper.set_joint_coupling(a)
+        if result is CouplingResult.REJECTED:
             return int(StreamFlags.COUPLING_REJECTED)
-        tau2 = stepper.tau * stepper.tau
-        scale = self._jac_scale
-        xi = stepper.output.xi
-        any_nonzero = False
-        floor = SATURATION_FLOOR
-        for d in range(n):
-            v = vals[d]
-            if v != 0.0:
-                any_nonzero = True
-            if scale is not None:  # xidd = ydd / J(xi), J = y_delta (1 - tanh^2), Eq. (28)
-                t = math.tanh(xi[d])
-                s = 1.0 - t * t
-                v = v / max(scale[d] * (s if s > floor else floor), 1e-300)
-            P[d] = tau2 * v
-        return int(StreamFlags.COUPLED) if any_nonzero else 0
+        return int(StreamFlags.COUPLED) if result is CouplingResult.APPLIED else 0
 
     def _guard(self) -> int:
         flags = 0
