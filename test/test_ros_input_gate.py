@@ -357,10 +357,11 @@ def test_a_primitive_replaced_before_it_was_parsed_is_reported():
     """The streamer's latest-wins worker returns the topic of a waiting message that a newer
     one replaced, so the node counts it (reason 'superseded') instead of losing it silently."""
     from cdmp_ros.ros.input_gate import reason_category
-    from cdmp_ros.ros.streamer_worker import PrimitiveWorker
-    worker = PrimitiveWorker(lambda topic, text: text)   # not started: nothing is taken
-    assert worker.submit('primitive', 'a') is None
-    assert worker.submit('adapted_primitive', 'b') == 'primitive'
-    assert worker.submit('primitive', 'c') == 'adapted_primitive'
+    from cdmp_ros.ros.latest_worker import LatestWorker
+    worker = LatestWorker(lambda req: req, lambda req, exc: None, name='test')  # not started
+    assert worker.submit(('primitive', 'a')) is None
+    assert worker.submit(('adapted_primitive', 'b')) == ('primitive', 'a')
+    assert worker.submit(('primitive', 'c')) == ('adapted_primitive', 'b')
+    assert worker.counts['superseded'] == 2
     assert reason_category('primitive: superseded by a newer adapted_primitive before it was '
                            'parsed') == 'superseded'

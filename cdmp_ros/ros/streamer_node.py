@@ -44,7 +44,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig
-from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
@@ -58,12 +58,12 @@ from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointS
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
+from cdmp_ros.ros.latest_worker import LatestWorker
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
                                           report_scheduling)
-from cdmp_ros.ros.streamer_worker import PrimitiveWorker
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
@@ -122,7 +122,8 @@ class StreamerNode(Node):
         self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos.COMMAND,
                             size=marker_count(lambda: cfg_now().max_obstacles))
 
-        self.worker = PrimitiveWorker(self._prepare)
+        # primitive messages are parsed and prepared off the executor and tick threads
+        self.worker = LatestWorker(self._prepare, _prepare_failed, name='primitive-worker')
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
                        'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
@@ -276,16 +277,19 @@ class StreamerNode(Node):
         self.gate.reject_all('obstacles', errors)
 
     def _on_primitive(self, topic: str, msg: String) -> None:
-        replaced = self.worker.submit(topic, msg.data)
+        replaced = self.worker.submit((topic, msg.data))
         if replaced is not None:  # dropped unparsed: counted, so that nothing goes unreported
-            self.gate.reject(replaced, f'{replaced}: superseded by a newer {topic} before it '
-                             'was parsed', 'superseded')
+            old = replaced[0]
+            self.gate.reject(old, f'{old}: superseded by a newer {topic} before it was parsed',
+                             'superseded')
 
-    def _prepare(self, topic: str, text: str):
-        """Worker thread: parse and prepare (no ROS calls, no shared state)."""
+    def _prepare(self, request):
+        """Worker thread: parse and prepare ``(topic, text)`` (no ROS calls, no shared
+        state); returns ``(topic, prepared, None)``."""
+        topic, text = request
         chain = self.chain
-        return prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
-                                 chain.upper, chain.velocity_limits, source=topic)
+        return topic, prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
+                                        chain.upper, chain.velocity_limits, source=topic), None
 
     # -- the tick ----------------------------------------------------------------------------
     def _tick_loop(self) -> None:
@@ -440,3 +444,11 @@ class StreamerNode(Node):
             self.tick_thread.join(timeout=2.0)
         self.worker.stop()
         self.worker.join(timeout=2.0)
+
+
+def _prepare_failed(request, exc: Exception):
+    """``(topic, None, reason)`` of a primitive message that cannot be prepared."""
+    topic = request[0]
+    if isinstance(exc, CdmpError):
+        return topic, None, str(exc)
+    return topic, None, f'{topic}: cannot be prepared: {exc!r}'
