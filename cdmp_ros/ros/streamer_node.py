@@ -50,20 +50,20 @@ from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
+from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
 from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, StreamerConfig,
                                               StreamFlags, StreamState)
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
-from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.diagnostics import (LATENCY_SAMPLES, OK, WARN, DiagnosticsReporter,
+                                      latency_values)
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
 from cdmp_ros.ros.latest_worker import LatestWorker
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
+from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
-from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
-                                          report_scheduling)
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
@@ -125,9 +125,8 @@ class StreamerNode(Node):
         # primitive messages are parsed and prepared off the executor and tick threads
         self.worker = LatestWorker(self._prepare, _prepare_failed, name='primitive-worker')
         self.worker.start()
-        self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
-                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
-                       'late_ticks': 0}
+        self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
+                       'coupled': 0}
         self.active_text = None
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
@@ -137,13 +136,10 @@ class StreamerNode(Node):
         self._dt = cfg.dt
         self._lock = threading.RLock()  # the tick reports rejections while holding it
         self._tick_errors = 0
-        self._t0 = time.monotonic()
-        # stamps: slot j is stamped stamp0 + j / rate exactly (ROS clock = steady clock +
-        # an offset measured at start and re-measured with every diagnostics message)
-        self._dt_ns = 1e9 / cfg.rate
-        self._stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
+        # deadlines, catch-up and stamps: slot j is stamped stamp0 + j / rate exactly (ROS
+        # clock = steady clock + an offset measured at start and with every diagnostics message)
+        self.schedule = TickSchedule(cfg.rate, time.monotonic(), self._clock_offset_ns())
         self._pub_slot0 = 0
-        self._k = 0
         self.timer = None
         self.tick_thread = None
         self.realtime_status = None
@@ -301,26 +297,21 @@ class StreamerNode(Node):
             self._sleeper.spin = 0.0  # never spin under SCHED_FIFO
         self.realtime_status = st
         self._configured.set()
-        dt, t0, sleeper, lock, stopping = self._dt, self._t0, self._sleeper, self._lock, \
+        sched, sleeper, lock, stopping = self.schedule, self._sleeper, self._lock, \
             self._stopping
         clock = time.monotonic
         timing = self.reporter.timing
         while not stopping.is_set():
-            deadline = t0 + (self._k + 1) * dt
-            woken = sleeper.sleep_until(deadline)
+            woken = sleeper.sleep_until(sched.deadline())
             if stopping.is_set():
                 return
-            if woken and self._k > (clock() - t0) / dt:
+            if woken and sched.is_ahead(clock()):
                 continue  # already one slot ahead: wait for the schedule
             try:
                 with lock:
+                    late = sched.woke(clock(), woken)
                     if not woken:  # deadline -> tick running (sleep, GIL and lock)
-                        late = clock() - deadline
                         timing('tick_wake_late', late)
-                        if late > dt:  # the slot went out after the next slot's deadline
-                            self.counts['late_ticks'] += 1
-                    elif clock() < deadline:  # the next slot goes out now, stamped on the grid
-                        self.counts['early_ticks'] += 1
                     self._tick()
             except Exception as exc:  # noqa: BLE001 -- the stream must go on
                 self._tick_errors += 1
@@ -352,20 +343,11 @@ class StreamerNode(Node):
                 log = (self.get_logger().warning if prepared.limit_mismatches
                        else self.get_logger().info)
                 log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
-        dt = self._dt
-        k = int((now - self._t0) / dt)  # the slot that began most recently
-        steps = k - self._k
-        if steps < 1:
-            steps, k = 1, self._k + 1
-        cap = self.config.max_catch_up
-        if steps > cap:  # too late: skip the oldest slots (they are reported as missed)
-            self.counts['missed_ticks'] += steps - cap
-            steps = cap
-        self._k = k
+        first, steps = self.schedule.advance(now, self.config.max_catch_up)
         st = self.streamer
         if st.state is not StreamState.WAITING:
             # every integrated slot is published with its own stamp (a late tick catches up)
-            self._pub_slot0 = k - steps + 1
+            self._pub_slot0 = first
             flags = st.advance(steps, now, self._publish_step)
         else:
             flags = st.advance(steps, now)
@@ -382,7 +364,7 @@ class StreamerNode(Node):
 
     def _publish_step(self, i: int) -> None:
         st = self.streamer
-        stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
+        stamp = self.schedule.stamp_ns(self._pub_slot0 + i)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
         if self.controller_pub is not None:  # the same reference, the controller's order
             self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
@@ -393,22 +375,21 @@ class StreamerNode(Node):
             self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
             self._latency_n += 1
 
-    def _resync_stamps(self) -> None:
-        """Follow a step of the ROS clock (NTP step, sim time): re-anchor when the stamp
-        grid is more than 1 ms off; otherwise the grid stays exact."""
-        stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
-        if abs(stamp0 - self._stamp0) > 1_000_000:
-            self._stamp0 = stamp0
+    def _clock_offset_ns(self) -> int:
+        """ROS clock - steady clock [ns]."""
+        clock = self.get_clock()
+        return clock_offset_ns(lambda: clock.now().nanoseconds)
 
     def _publish_diagnostics(self) -> None:
-        self._resync_stamps()
+        # follow a step of the ROS clock (NTP step, sim time); otherwise the grid stays exact
+        self.schedule.anchor(self._clock_offset_ns())
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())
             self.coupling_source.obstacles = self.obstacles.snapshot.items
             n_lat = self._latency_n
             lat = self._latency_ms[:min(n_lat, LATENCY_SAMPLES)].copy()
-            counts = dict(self.counts)
+            counts = dict(self.counts, **self.schedule.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
         level = OK if state is StreamState.RUNNING else WARN
