@@ -10,7 +10,7 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSet, check_stamp,
                                   stamp_to_ns)
-from streamer_util import PANDA_JOINTS
+from node_harness import PANDA_JOINTS
 
 Q = np.arange(7) * 0.1 - 0.3
 

@@ -60,7 +60,7 @@ def count(h, name, key):
 
 
 def wait_for(pred, timeout=EVIDENCE):
-    from streamer_util import wait_for as _wait_for
+    from conftest import wait_for as _wait_for
     return _wait_for(pred, timeout)
 
 
@@ -276,8 +276,7 @@ def test_sim_rejects_oversize_input_and_accepts_the_next(tmp_path):
 @pytest.mark.ros
 def test_streamer_rejects_oversize_input_and_accepts_the_next(tmp_path):
     from std_msgs.msg import String
-    from streamer_harness import Harness
-    from streamer_util import start_streamer, stop_process
+    from streamer_harness import Harness, start_streamer, stop_process
     log = tmp_path / 'streamer.log'
     proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
                           log_path=str(log), params_file='config/streamer.yaml')
