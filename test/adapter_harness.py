@@ -56,8 +56,6 @@ def start_adapter(domain_id, params=(), log_path=None, params_file='config/adapt
 
 class Harness(NodeHarness):
     def __init__(self, domain_id: int):
-        from geometry_msgs.msg import PointStamped
-        from sensor_msgs.msg import JointState
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
 
@@ -66,12 +64,8 @@ class Harness(NodeHarness):
         super().__init__('adapter_test', domain_id, spin=False)
         self.adapted = []        # (receive time, dict)
         self.viz = []            # (receive time, MarkerArray)
-        self.publisher(String, 'primitive', qos.LATCHED)
-        self.publisher(JointState, 'goal', qos.COMMAND)
-        self.publisher(PointStamped, 'goal_point', qos.COMMAND)
-        self.publisher(String, 'constraints', qos.COMMAND)
-        self.publisher(JointState, 'joint_states', qos.COMMAND)
-        self.publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        self.input_publishers('primitive', 'goal', 'goal_point', 'constraints', 'joint_states',
+                              'obstacles')
         self.subscribe(String, 'adapted_primitive', self._on_adapted, qos.LATCHED)
         self.subscribe(MarkerArray, 'visualization', self._on_viz, qos.LATCHED)
         self.robot_q = None      # published on joint_states at 20 Hz while not None

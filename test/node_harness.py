@@ -32,6 +32,19 @@ LOWER = np.array([-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671]
 UPPER = np.array([2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223, 2.9671])
 Q_START = np.array([0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.7])
 Q_GOAL = np.array([0.8, 0.2, 0.3, -1.2, 0.2, 2.0, 0.3])
+
+#: The node input topics as the nodes subscribe them: topic -> (message module, message type,
+#: name of the cdmp_ros.ros.qos profile); imported when a publisher is made (no rclpy here).
+INPUT_TOPICS = {
+    'primitive': ('std_msgs.msg', 'String', 'LATCHED'),
+    'adapted_primitive': ('std_msgs.msg', 'String', 'LATCHED'),
+    'goal': ('sensor_msgs.msg', 'JointState', 'COMMAND'),
+    'goal_point': ('geometry_msgs.msg', 'PointStamped', 'COMMAND'),
+    'constraints': ('std_msgs.msg', 'String', 'COMMAND'),
+    'joint_states': ('sensor_msgs.msg', 'JointState', 'COMMAND'),
+    'obstacles': ('visualization_msgs.msg', 'MarkerArray', 'COMMAND'),
+    'joint_reference': ('sensor_msgs.msg', 'JointState', 'REFERENCE'),
+}
 #: Bound of a wait on a condition [s]: it only bounds a failure, a pass never waits it out.
 WAIT_S = 30.0
 
@@ -216,6 +229,16 @@ class NodeHarness:
         pub = self.node.create_publisher(msg_type, topic, qos)
         self.pub[topic] = pub
         return pub
+
+    def input_publishers(self, *topics: str) -> None:
+        """Publishers on the named node input topics, each with the message type and QoS the
+        nodes subscribe it with (:data:`INPUT_TOPICS`)."""
+        import importlib
+        from cdmp_ros.ros import qos
+        for topic in topics:
+            module, msg_type, profile = INPUT_TOPICS[topic]
+            self.publisher(getattr(importlib.import_module(module), msg_type), topic,
+                           getattr(qos, profile))
 
     def publish(self, topic: str, msg) -> None:
         self.pub[topic].publish(msg)

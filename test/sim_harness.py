@@ -22,17 +22,13 @@ class SimHarness(NodeHarness):
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState
         from std_srvs.srv import Trigger
-        from visualization_msgs.msg import MarkerArray
-
-        from cdmp_ros.ros import qos
 
         super().__init__('sim_test', domain_id, spin=False)
         n = self.node
         self.states = []         # (receive time, stamp ns, names, q, qd, effort)
         self.poses = []          # (receive time, stamp ns, frame, position (3,), quat (4,))
         self.clocks = []         # (receive time, clock ns)
-        self.publisher(JointState, 'joint_reference', qos.REFERENCE)
-        self.publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        self.input_publishers('joint_reference', 'obstacles')
         self.subscribe(JointState, 'joint_states', self._on_js)   # reliable, depth 1000
         self.subscribe(PoseStamped, 'ee_pose', self._on_pose)
         if clock:

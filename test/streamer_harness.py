@@ -70,8 +70,6 @@ def start_streamer(domain_id, params=(), log_path=None, params_file=None):
 class Harness(NodeHarness):
     def __init__(self, domain_id: int):
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import String
-        from visualization_msgs.msg import MarkerArray
 
         from cdmp_ros.ros import qos
 
@@ -83,11 +81,8 @@ class Harness(NodeHarness):
         # names of the fake robot's joint_states (any order; names other than the arm's, such
         # as finger joints, are published at FINGER_POSITION)
         self.robot_names = PANDA_JOINTS
-        self.publisher(String, 'primitive', qos.LATCHED)
-        self.publisher(String, 'adapted_primitive', qos.LATCHED)
-        self.publisher(JointState, 'goal', qos.COMMAND)
-        self.publisher(JointState, 'joint_states', qos.COMMAND)
-        self.publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        self.input_publishers('primitive', 'adapted_primitive', 'goal', 'joint_states',
+                              'obstacles')
         self.subscribe(JointState, 'joint_reference', self._on_ref, qos.REFERENCE)
         self.node.create_timer(0.01, self._robot)
         self.start()
