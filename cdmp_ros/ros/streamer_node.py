@@ -25,8 +25,10 @@ Everything allocated at start-up is frozen out of the garbage collector (``gc.fr
 full collection does not stall the tick. With ``obstacle_wakeup`` an obstacle message wakes
 the tick thread: the next slot is integrated with the new obstacle set and published at once
 with its own scheduled stamp (at most one period early); the schedule and the stamps are those
-of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
-steady-clock executor timer.
+of the fixed grid, each slot is published exactly once. The deadlines, the catch-up of a late
+tick (``max_catch_up``), the late/early/missed counts and the stamps are
+:class:`cdmp_ros.core.streaming.schedule.TickSchedule` (ROS-free, unit-tested with a fake
+clock). ``tick_thread: false`` falls back to a steady-clock executor timer.
 """
 import dataclasses
 import gc
