@@ -1,76 +1,93 @@
-"""A test-side ROS node for the streamer tests: a fake robot and a checking listener.
+"""The streamer tests' own part: Panda reach primitives, the streamer process, and a test-side
+node (:class:`Harness`, a :class:`node_harness.NodeHarness`) that is a fake robot and a
+checking listener.
 
-Runs in its own rclpy context on a private domain id, spun by a background thread. It
-publishes ``joint_states`` (echoing the last reference, like a perfect robot) at 100 Hz while
-``robot_on`` is set (joints ``robot_names``, by default the arm's in order), offers publishers
-for every input topic, and checks EVERY received ``joint_reference`` message: 7 names in
-order, finite, inside the limits (violations are collected, never silently dropped).
+The node publishes ``joint_states`` (echoing the last reference, like a perfect robot) at
+100 Hz while ``robot_on`` is set (joints ``robot_names``, by default the arm's in order),
+offers publishers for every input topic, and checks EVERY received ``joint_reference``
+message: 7 names in order, finite, inside the limits (violations are collected, never
+silently dropped).
 """
 import math
-import threading
 import time
 
 import numpy as np
 
-from conftest import wait_for
-from streamer_util import LOWER, PANDA_JOINTS, Q_START, UPPER
+from conftest import wait_for  # noqa: F401 -- re-exported to the streamer tests
+from node_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, NodeHarness,  # noqa: F401
+                          start_node, stop_process)
 
-
+VMAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
 FINGER_POSITION = 0.02  # m, the fake robot's finger joints (when listed in robot_names)
 
 
-class Harness:
+# -- primitives ---------------------------------------------------------------------------------
+def reach_demo(y0=Q_START, y1=Q_GOAL, duration=2.0, n=401):
+    """A minimum-jerk-like joint reach (T, Y)."""
+    T = np.linspace(0.0, duration, n)
+    s = T / duration
+    s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5
+    return T, np.asarray(y0) + s[:, None] * (np.asarray(y1) - np.asarray(y0))
+
+
+def reach_cdmp(y0=Q_START, y1=Q_GOAL, duration=2.0, joint_names=PANDA_JOINTS):
+    from cdmp_ros.core.dmp.dmp import CDMP
+    T, Y = reach_demo(y0, y1, duration)
+    return CDMP(LOWER, UPPER, joint_names=joint_names).fit(T, Y)
+
+
+def reach_dmp(y0=Q_START, y1=Q_GOAL, duration=2.0):
+    from cdmp_ros.core.dmp.dmp import DMP
+    T, Y = reach_demo(y0, y1, duration)
+    return DMP(7, joint_names=PANDA_JOINTS).fit(T, Y)
+
+
+#: Limits of :func:`wide_narrow_cdmp`: wider than the robot's on panda_joint1, narrower on
+#: panda_joint2; and the tighter of these and the robot's.
+WIDE_NARROW_LOWER = np.where(np.arange(7) == 0, -3.5, np.where(np.arange(7) == 1, -0.8, LOWER))
+WIDE_NARROW_UPPER = np.where(np.arange(7) == 0, 3.5, np.where(np.arange(7) == 1, 0.4, UPPER))
+TIGHT_LOWER = np.maximum(LOWER, WIDE_NARROW_LOWER)
+TIGHT_UPPER = np.minimum(UPPER, WIDE_NARROW_UPPER)
+
+
+def wide_narrow_cdmp():
+    """A reach CDMP with the limits WIDE_NARROW_* whose goal on panda_joint1 (3.2) is beyond
+    the robot's upper limit (2.9671)."""
+    from cdmp_ros.core.dmp.dmp import CDMP
+    goal = Q_GOAL.copy()
+    goal[0] = 3.2
+    T, Y = reach_demo(Q_START, goal, 2.0)
+    return CDMP(WIDE_NARROW_LOWER, WIDE_NARROW_UPPER, joint_names=PANDA_JOINTS).fit(T, Y)
+
+
+# -- the streamer process -----------------------------------------------------------------------
+def start_streamer(domain_id, params=(), log_path=None, params_file=None):
+    """Start ``python -m cdmp_ros.nodes.streamer`` with ``-p`` parameters (name:=value)."""
+    return start_node('streamer', params, domain_id, params_file, log_path=log_path)
+
+
+# -- the test-side node -------------------------------------------------------------------------
+class Harness(NodeHarness):
     def __init__(self, domain_id: int):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import String
-        from visualization_msgs.msg import MarkerArray
 
         from cdmp_ros.ros import qos
 
-        self.rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node('streamer_test', context=self.context)
-        n = self.node
-        self.lock = threading.Lock()
+        super().__init__('streamer_test', domain_id, spin=False)
         self.refs = []           # (receive time, stamp ns, positions, velocities)
         self.violations = []
-        self.diag_messages = []  # (time, status name, message, {key: value})
         self.robot_on = True
         self.robot_q = Q_START.copy()
         # names of the fake robot's joint_states (any order; names other than the arm's, such
         # as finger joints, are published at FINGER_POSITION)
         self.robot_names = PANDA_JOINTS
-        self.pub = {
-            'primitive': n.create_publisher(String, 'primitive', qos.LATCHED),
-            'adapted_primitive': n.create_publisher(String, 'adapted_primitive',
-                                                    qos.LATCHED),
-            'goal': n.create_publisher(JointState, 'goal', qos.COMMAND),
-            'joint_states': n.create_publisher(JointState, 'joint_states', qos.COMMAND),
-            'obstacles': n.create_publisher(MarkerArray, 'obstacles', qos.COMMAND),
-        }
-        n.create_subscription(JointState, 'joint_reference', self._on_ref, qos.REFERENCE)
-        n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
-        n.create_timer(0.01, self._robot)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(n)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
+        self.input_publishers('primitive', 'adapted_primitive', 'goal', 'joint_states',
+                              'obstacles')
+        self.subscribe(JointState, 'joint_reference', self._on_ref, qos.REFERENCE)
+        self.node.create_timer(0.01, self._robot)
+        self.start()
 
     # -- background --------------------------------------------------------------------------
-    def _spin(self):
-        while not self._stop.is_set():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 -- context shut down at teardown
-                if self._stop.is_set():
-                    return
-                raise
-
     def _on_ref(self, msg):
         t = time.monotonic()
         q = np.array(msg.position)
@@ -92,30 +109,16 @@ class Harness:
                 self.refs.append((t, stamp, q, qd))
                 self.robot_q = q
 
-    def _on_diag(self, msg):
-        t = time.monotonic()
-        with self.lock:
-            for s in msg.status:
-                self.diag_messages.append((t, s.name, s.message,
-                                           {kv.key: kv.value for kv in s.values}))
-
     def _robot(self):
         if not self.robot_on:
             return
-        from sensor_msgs.msg import JointState
-        msg = JointState()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
         names = list(self.robot_names)
-        msg.name = names
         with self.lock:
             q = dict(zip(PANDA_JOINTS, self.robot_q.tolist()))
-        msg.position = [q.get(n, FINGER_POSITION) for n in names]
-        self.pub['joint_states'].publish(msg)
+        self.publish('joint_states',
+                     self.joint_state([q.get(n, FINGER_POSITION) for n in names], names))
 
     # -- helpers -----------------------------------------------------------------------------
-    def publish(self, topic, msg):
-        self.pub[topic].publish(msg)
-
     def n_refs(self):
         with self.lock:
             return len(self.refs)
@@ -127,42 +130,6 @@ class Harness:
     def last_ref(self):
         with self.lock:
             return self.refs[-1] if self.refs else None
-
-    def wait(self, pred, timeout):
-        return wait_for(pred, timeout)
-
-    def wait_diag(self, text, since, timeout=30.0, name=None):
-        """Wait for a diagnostics status (after ``since``) whose message contains ``text``."""
-        def found():
-            with self.lock:
-                return any(t >= since and text in m and (name is None or name in nm)
-                           for t, nm, m, _ in self.diag_messages)
-        return self.wait(found, timeout)
-
-    def last_state(self):
-        with self.lock:
-            for t, nm, m, kv in reversed(self.diag_messages):
-                if nm.endswith(': state'):
-                    return m, kv
-        return None, {}
-
-    def make_joint_state(self, positions, names=PANDA_JOINTS, stamp_offset=0.0, zero=False):
-        from sensor_msgs.msg import JointState
-        msg = JointState()
-        if not zero:
-            t = self.node.get_clock().now().nanoseconds + int(stamp_offset * 1e9)
-            msg.header.stamp.sec = t // 1_000_000_000
-            msg.header.stamp.nanosec = t % 1_000_000_000
-        msg.name = list(names)
-        msg.position = [float(v) for v in positions]
-        return msg
-
-    def close(self):
-        self._stop.set()
-        self.thread.join(timeout=5)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.try_shutdown(context=self.context)
 
 
 def max_acceleration(refs):

@@ -54,7 +54,9 @@ def test_recover_command_reports_loss(tmp_path, capsys):
 
 @pytest.mark.ros
 def test_record_and_play_commands(tmp_path):
-    from bag_ros_util import WAIT_S, Lines, recoverable_count, wait_for
+    from bag_ros_util import Lines, recoverable_count
+    from conftest import wait_for
+    from node_harness import WAIT_S
     from conftest import ros_env
     out = str(tmp_path / 'via_cli')
     cdmp = [sys.executable, '-m', 'cdmp_ros.cli.main', 'bag']

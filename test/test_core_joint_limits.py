@@ -10,8 +10,8 @@ from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches, merge_limits
 from cdmp_ros.core.primitive_io import dumps_primitive
 from cdmp_ros.core.streaming.primitives import prepare_primitive
-from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, TIGHT_LOWER, TIGHT_UPPER,
-                           UPPER, VMAX, reach_demo, wide_narrow_cdmp)
+from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, TIGHT_LOWER, TIGHT_UPPER,
+                              UPPER, VMAX, reach_demo, wide_narrow_cdmp)
 
 
 def test_merge_takes_the_tighter_bound_per_joint_and_reports_both_values():

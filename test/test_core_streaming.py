@@ -13,8 +13,8 @@ from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, SmoothStop,
                                               StreamerConfig, StreamFlags, StreamState, _H, _h)
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, TanhTransform
-from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, VMAX, reach_cdmp,
-                           reach_dmp)
+from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, VMAX, reach_cdmp,
+                              reach_dmp)
 
 DT = 0.002
 
@@ -481,7 +481,7 @@ def test_prepare_reorders_shuffled_joints():
     perm = [3, 0, 6, 1, 5, 2, 4]
     names = [PANDA_JOINTS[i] for i in perm]
     from cdmp_ros.core.dmp.dmp import CDMP
-    from streamer_util import reach_demo
+    from streamer_harness import reach_demo
     T, Y = reach_demo()
     shuffled = CDMP(LOWER[perm], UPPER[perm], joint_names=names).fit(T, Y[:, perm])
     prep = prepare_primitive(dumps_primitive(shuffled), PANDA_JOINTS, DT, LOWER, UPPER)
@@ -493,7 +493,7 @@ def test_prepare_reorders_shuffled_joints():
 
 def test_prepare_streams_a_promp_through_its_mean():
     from cdmp_ros.core.promp.promp import ProMP, RbfBasis
-    from streamer_util import reach_demo
+    from streamer_harness import reach_demo
     T, Y = reach_demo(duration=2.0, n=201)
     basis = RbfBasis.uniform(15)
     promp = ProMP.fit([(T, Y)], basis, duration=2.0, joint_names=PANDA_JOINTS)

@@ -166,7 +166,7 @@ def test_goal_and_goal_point_condition_the_end(graph, prims, chain):
     use(h, prims, 'promp')
     goal = Q_GOAL + 0.1
     n0 = h.n_adapted()
-    h.publish('goal', h.make_joint_state(goal))
+    h.publish('goal', h.joint_state(goal))
     d = h.wait_adapted(n0, trigger='goal', pred=lambda d: np.allclose(
         promp_of(d).mean([1.0])[0], goal, atol=0.03))
     assert d is not None
@@ -227,7 +227,7 @@ def test_cdmp_goal_is_retargeted_with_the_same_weights(graph, prims):
     use(h, prims, 'cdmp')
     goal = np.array([0.3, 0.0, -0.2, -1.6, 0.1, 1.8, 0.5])
     n0 = h.n_adapted()
-    h.publish('goal', h.make_joint_state(goal[::-1], names=PANDA_JOINTS[::-1]))  # shuffled
+    h.publish('goal', h.joint_state(goal[::-1], names=PANDA_JOINTS[::-1]))  # shuffled
     d = h.wait_adapted(n0, trigger='goal', pred=lambda d: d['kind'] == 'cdmp' and np.allclose(
         d['dmp']['goal'], goal))
     assert d['kind'] == 'cdmp' and d['metadata']['adapter']['outcome'] == 'retargeted'
@@ -241,7 +241,7 @@ def test_cdmp_goal_outside_the_limits_is_clipped(graph, prims, chain):
     t0 = time.monotonic()
     goal = np.array([0.3, 5.0, -0.2, 1.0, 0.1, 1.8, 0.5])
     n0 = h.n_adapted()
-    h.publish('goal', h.make_joint_state(goal))
+    h.publish('goal', h.joint_state(goal))
     d = h.wait_adapted(n0, trigger='goal', pred=lambda d: d['dmp']['goal'][1] > 1.8)
     assert h.wait_diag('clipped with the CDMP margin: panda_joint2 5 -> 1.831', t0,
                        name='input goal')
@@ -280,7 +280,7 @@ def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
     try:
         t0 = time.monotonic()
         n0 = h.n_adapted()
-        h.publish('goal', h.make_joint_state(Q_GOAL - 0.05))
+        h.publish('goal', h.joint_state(Q_GOAL - 0.05))
         assert h.wait_state(lambda m, lv, kv: 'goal left to the streamer' in m, t0, TIMEOUT)
         assert h.n_adapted() == n0
     finally:
@@ -302,7 +302,7 @@ def test_cdmp_obstacles_are_only_shown(graph, prims):
 # -- bad input: one test per case --------------------------------------------------------------
 def _bad_joint_state(h, case):
     names = list(PANDA_JOINTS)
-    msg = h.make_joint_state(Q_ROBOT)
+    msg = h.joint_state(Q_ROBOT)
     if case == 'nan':
         msg.position[2] = float('nan')
     elif case == 'inf':
@@ -319,9 +319,9 @@ def _bad_joint_state(h, case):
     elif case == 'duplicate_name':
         msg.name = names[:6] + [names[0]]
     elif case == 'future_stamp':
-        msg = h.make_joint_state(Q_ROBOT, stamp_offset=60.0)
+        msg = h.joint_state(Q_ROBOT, stamp_offset=60.0)
     elif case == 'past_stamp':
-        msg = h.make_joint_state(Q_ROBOT, stamp_offset=-3600.0)
+        msg = h.joint_state(Q_ROBOT, stamp_offset=-3600.0)
     elif case == 'outside_limits':
         msg.position[3] = 1.0
     return msg
@@ -561,7 +561,7 @@ def test_flooding_is_dropped_and_latest_request_wins(graph, prims):
 
     def goals(n):
         for _ in range(n):
-            h.publish('goal', h.make_joint_state(Q_GOAL + 0.001 * (sent[0] % 50), zero=True))
+            h.publish('goal', h.joint_state(Q_GOAL + 0.001 * (sent[0] % 50), zero=True))
             sent[0] += 1
     assert _set_param(h, 'max_input_rate', 2.0).successful
     try:

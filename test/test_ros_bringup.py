@@ -8,7 +8,9 @@ import sys
 import pytest
 import yaml
 
-from bag_ros_util import WAIT_S, Lines, recoverable_count, wait_for
+from bag_ros_util import Lines, recoverable_count
+from conftest import wait_for
+from node_harness import WAIT_S
 from cdmp_ros.bag import BagReader
 from cdmp_ros.cli.cmd_bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
 from cdmp_ros.core.errors import ValidationError

@@ -18,9 +18,8 @@ import pytest
 
 from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
-from streamer_harness import Harness
-from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, reach_cdmp,
-                           start_streamer, stop_process)
+from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, Harness, reach_cdmp,
+                              start_streamer, stop_process)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(30)
@@ -170,7 +169,7 @@ def test_robot_joint_states_with_fingers_drive_the_stream(stream):
     names = [n for n in ROBOT_NAMES if n != 'panda_joint7']
     q = dict(zip(PANDA_JOINTS, h.last_ref()[2]))
     for _ in range(5):  # best effort: one may be dropped; stop at the first evidence
-        h.publish('joint_states', h.make_joint_state([q.get(n, 0.02) for n in names], names))
+        h.publish('joint_states', h.joint_state([q.get(n, 0.02) for n in names], names))
         if h.wait_diag("missing joints ['panda_joint7']", t1, timeout=5.0,
                        name='input joint_states'):
             break

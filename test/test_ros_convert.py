@@ -10,7 +10,7 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
 from cdmp_ros.ros.convert import (JointStateMapper, JointStateWriter, ObstacleSet, check_stamp,
                                   stamp_to_ns)
-from streamer_util import PANDA_JOINTS
+from node_harness import PANDA_JOINTS
 
 Q = np.arange(7) * 0.1 - 0.3
 
@@ -217,7 +217,7 @@ def test_parameters_mirror_the_config_with_descriptors(node):
     d = node.describe_parameter('max_catch_up')
     assert d.type == ParameterType.PARAMETER_INTEGER and d.integer_range[0].from_value == 1
     d = node.describe_parameter('repeller.gain')
-    assert 'gain' in d.description and 'm^3/s^2' in d.description  # from the docstring
+    assert 'gain' in d.description and 'm^3/s^2' in d.description  # from the field
     assert node.describe_parameter('joint_names').type == \
         ParameterType.PARAMETER_STRING_ARRAY
     d = node.describe_parameter('tcp_offset')
@@ -236,6 +236,45 @@ def test_parameters_mirror_the_config_with_descriptors(node):
     assert r.successful and p[''].stop_time == 2.0 and changes[-1][''].stop_time == 2.0
     r = node.set_parameters([Parameter('stop_time', value='slow')])[0]
     assert not r.successful and 'stop_time' in r.reason
+
+
+def test_every_node_parameter_has_its_descriptor_in_code():
+    """Every parameter of every node takes its description from the field metadata (no
+    docstring is parsed): a field without one is refused at declaration."""
+    import dataclasses
+    from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig
+    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
+    from cdmp_ros.core.coupling.terms import DampingConfig
+    from cdmp_ros.core.dmp.dmp import DmpConfig
+    from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
+    from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig
+    from cdmp_ros.core.streaming.config import StreamerConfig
+    from cdmp_ros.ros.params import descriptor_for, parameter_fields
+    from cdmp_ros.sim.node_config import SimConfig
+    classes = (StreamerConfig, CouplingConfig, DampingConfig, RepellerField, ConstantField,
+               BoardField, AdapterConfig, AdaptRequestConfig, SimConfig, LearnerConfig, DmpConfig,
+               PrompLearnConfig, ImproveConfig, CostConfig)
+    for cls in classes:
+        for f, kind, _ in parameter_fields(cls):
+            d = descriptor_for(cls, f, kind, f.name)
+            assert d.description.startswith(f.metadata['description']), (cls, f.name)
+    assert 'm/s^2' in descriptor_for(ConstantField, *parameter_fields(ConstantField)[0][:2],
+                                     'box_field.magnitude').description
+
+    @dataclasses.dataclass(frozen=True)
+    class Undocumented:
+        """Attributes
+        ----------
+        gain : float
+            Described only here.
+        """
+        gain: float = 1.0
+
+    (f, kind, _), = parameter_fields(Undocumented)
+    with pytest.raises(TypeError, match='Undocumented.gain: a parameter field needs a '
+                                        'description'):
+        descriptor_for(Undocumented, f, kind, 'gain')
 
 
 def test_diagnostics_reporter_summarises_rejections_and_timings(node):

@@ -16,8 +16,7 @@ import pytest
 
 from cdmp_ros.cli.cmd_bringup import Bringup, parse_graph
 from conftest import ros_env, module_domain
-from streamer_harness import Harness, max_acceleration
-from streamer_util import LOWER, PANDA_JOINTS, UPPER
+from streamer_harness import LOWER, PANDA_JOINTS, UPPER, Harness, max_acceleration
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(3)
@@ -46,7 +45,7 @@ def status(h, prefix, key=None, since=None):
     """The newest diagnostics values of the status named ``prefix``... (a node's state),
     received after ``since`` if given."""
     with h.lock:
-        for t, name, msg, kv in reversed(h.diag_messages):
+        for t, name, msg, _, kv in reversed(h.diag_messages):
             if since is not None and t < since:
                 break
             if name.startswith(prefix) and name.endswith(': state'):
@@ -141,7 +140,7 @@ def test_a_goal_change_is_followed_without_a_jump(graph):
     assert _rest(h)
     goal = h.last_ref()[2] + np.array([0.3, -0.2, 0.2, 0.2, 0.0, -0.2, 0.3])
     i0 = h.n_refs()
-    h.publish('goal', h.make_joint_state(goal))
+    h.publish('goal', h.joint_state(goal))
     assert h.wait(lambda: np.abs(h.last_ref()[2] - goal).max() < 0.02, TIMEOUT)
     refs = h.refs_since(i0)
     assert max_acceleration(refs) < MAX_ACC
@@ -171,7 +170,7 @@ def test_a_killed_adapter_does_not_interrupt_the_stream_and_recovers_the_primiti
     def recovered():
         with h.lock:
             return any(t >= since and name.startswith('adapter') and kv.get('primitive') ==
-                       'cdmp' for t, name, _, kv in h.diag_messages)
+                       'cdmp' for t, name, _, _, kv in h.diag_messages)
     assert h.wait(recovered, STARTUP), log_path.read_text()[-2000:]
     assert new.poll() is None
     assert h.last_ref()[2].shape == (len(PANDA_JOINTS),)

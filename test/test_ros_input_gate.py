@@ -60,7 +60,7 @@ def count(h, name, key):
 
 
 def wait_for(pred, timeout=EVIDENCE):
-    from streamer_util import wait_for as _wait_for
+    from conftest import wait_for as _wait_for
     return _wait_for(pred, timeout)
 
 
@@ -276,8 +276,7 @@ def test_sim_rejects_oversize_input_and_accepts_the_next(tmp_path):
 @pytest.mark.ros
 def test_streamer_rejects_oversize_input_and_accepts_the_next(tmp_path):
     from std_msgs.msg import String
-    from streamer_harness import Harness
-    from streamer_util import start_streamer, stop_process
+    from streamer_harness import Harness, start_streamer, stop_process
     log = tmp_path / 'streamer.log'
     proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
                           log_path=str(log), params_file='config/streamer.yaml')
@@ -357,10 +356,11 @@ def test_a_primitive_replaced_before_it_was_parsed_is_reported():
     """The streamer's latest-wins worker returns the topic of a waiting message that a newer
     one replaced, so the node counts it (reason 'superseded') instead of losing it silently."""
     from cdmp_ros.ros.input_gate import reason_category
-    from cdmp_ros.ros.streamer_worker import PrimitiveWorker
-    worker = PrimitiveWorker(lambda topic, text: text)   # not started: nothing is taken
-    assert worker.submit('primitive', 'a') is None
-    assert worker.submit('adapted_primitive', 'b') == 'primitive'
-    assert worker.submit('primitive', 'c') == 'adapted_primitive'
+    from cdmp_ros.ros.latest_worker import LatestWorker
+    worker = LatestWorker(lambda req: req, lambda req, exc: None, name='test')  # not started
+    assert worker.submit(('primitive', 'a')) is None
+    assert worker.submit(('adapted_primitive', 'b')) == ('primitive', 'a')
+    assert worker.submit(('primitive', 'c')) == ('adapted_primitive', 'b')
+    assert worker.counts['superseded'] == 2
     assert reason_category('primitive: superseded by a newer adapted_primitive before it was '
                            'parsed') == 'superseded'

@@ -16,7 +16,7 @@ import pytest
 
 from conftest import REPO_ROOT, module_domain
 from learner_harness import PANDA_JOINTS, LearnerHarness, start_learner
-from streamer_util import stop_process
+from node_harness import stop_process
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(4)

@@ -9,7 +9,9 @@ import struct
 import numpy as np
 import pytest
 
-from bag_ros_util import WAIT_S, Peer, recoverable_count, start_node, stop, wait_for
+from bag_ros_util import Peer, recoverable_count
+from conftest import wait_for
+from node_harness import WAIT_S, start_node, stop_process
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 
@@ -99,9 +101,9 @@ def test_plays_the_selected_topic_remapped_in_order_with_clock(tmp_path, peer):
     try:
         assert wait_for(lambda: len(got_c) >= 40 and len(got_clock) >= 21, WAIT_S), (
             len(got_c), len(got_clock), open(log).read())
-        assert stop(play) == 0, open(log).read()
+        assert stop_process(play) == 0, open(log).read()
     finally:
-        stop(play, signal.SIGKILL)
+        stop_process(play, signal.SIGKILL)
     texts = [decode_string(m) for _, m in got_c]
     assert texts[:40] == [f'/a:{i:03d}' for i in range(20)] * 2
     bag_times = [t0 + i * 50_000_000 for i in range(20)]
@@ -124,9 +126,9 @@ def test_loop_replays_in_order_until_stopped(tmp_path, peer):
                       extra=['--params-file', os.path.join(ROOT, 'config', 'bag.yaml')])
     try:
         assert wait_for(lambda: len(got) >= 16, WAIT_S), len(got)
-        assert stop(play) == 0
+        assert stop_process(play) == 0
     finally:
-        stop(play, signal.SIGKILL)
+        stop_process(play, signal.SIGKILL)
     texts = [decode_string(m) for _, m in got]
     assert texts[:15] == [f'/a:{i:03d}' for i in range(5)] * 3
 
@@ -155,7 +157,7 @@ def test_refuses_bad_bag_and_publishes_nothing(tmp_path, peer, how):
     try:
         play.wait(timeout=60)
     finally:
-        stop(play, signal.SIGKILL)
+        stop_process(play, signal.SIGKILL)
     assert play.returncode == 2
     text = open(log).read()
     assert any(w in text for w in ('CRC', 'truncated', 'declares', 'corrupted', 'recover')), text
@@ -186,11 +188,11 @@ def test_replay_determinism_record_play_rerecord(tmp_path, peer):
             # every message is on disk before the recorder is stopped
             probe = str(tmp_path / f'probe{gen}')
             assert wait_for(lambda: recoverable_count(out, probe) >= 201, WAIT_S, period=0.1)
-            assert stop(rec) == 0
+            assert stop_process(rec) == 0
         finally:
             if play is not None:
-                stop(play, signal.SIGKILL)
-            stop(rec, signal.SIGKILL)
+                stop_process(play, signal.SIGKILL)
+            stop_process(rec, signal.SIGKILL)
         generations.append(out)
     payloads = [[m.data for m in BagReader(g).messages()] for g in generations]
     assert len(payloads[0]) == 201

@@ -5,7 +5,8 @@ import os
 import numpy as np
 import pytest
 
-from bag_ros_util import Peer, start_node, stop, wait_acked, wait_matched
+from bag_ros_util import Peer
+from node_harness import start_node, stop_process, wait_acked, wait_matched
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.metadata import read_metadata
 from conftest import module_domain
@@ -46,9 +47,9 @@ def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name,
             pub.publish(data)
         # every message is in the recorder's queue; the clean stop must take and write them
         assert wait_acked(pub), 'the recorder never acknowledged every message'
-        assert stop(rec, getattr(signal, sig_name)) == 0
+        assert stop_process(rec, getattr(signal, sig_name)) == 0
     finally:
-        stop(rec, signal.SIGKILL)
+        stop_process(rec, signal.SIGKILL)
     if rt:  # granted (root / CAP_SYS_NICE / rtprio limit) or refused with a warning
         log = (tmp_path / 'rec.log').read_text()
         assert 'under SCHED_FIFO priority 10' in log or 'SCHED_FIFO' in log and 'refused' in log
@@ -81,9 +82,9 @@ def test_records_all_discovered_topics_but_not_rosout(tmp_path, peer):
             pa.publish(String(data=str(i)))
             pb.publish(JointState(name=['q'], position=[float(i)]))
         assert wait_acked(pa) and wait_acked(pb)
-        assert stop(rec) == 0
+        assert stop_process(rec) == 0
     finally:
-        stop(rec, 9)
+        stop_process(rec, 9)
     counts = {t.name: (t.type, t.message_count) for t in read_metadata(bag).topics}
     assert counts == {'/topic_a': ('std_msgs/msg/String', 10),
                       '/topic_b': ('sensor_msgs/msg/JointState', 10)}

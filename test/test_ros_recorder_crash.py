@@ -9,8 +9,9 @@ import signal
 import numpy as np
 import pytest
 
-from bag_ros_util import (WAIT_S, Peer, recoverable_count, start_node, stop, wait_for,
-                          wait_matched)
+from bag_ros_util import Peer, recoverable_count
+from conftest import wait_for
+from node_harness import WAIT_S, start_node, stop_process, wait_matched
 from cdmp_ros.bag import BagError, BagReader, recover_bag
 from cdmp_ros.bag.cdr import decode_string, encode_string
 
@@ -62,7 +63,7 @@ def test_sigkill_at_random_points_leaves_a_gap_free_prefix(tmp_path, peer):
             rec.send_signal(signal.SIGKILL)
             rec.wait(timeout=WAIT_S)
         finally:
-            stop(rec, signal.SIGKILL)
+            stop_process(rec, signal.SIGKILL)
         assert not os.path.exists(os.path.join(bag, 'metadata.yaml'))
         with pytest.raises(BagError):
             BagReader(bag)

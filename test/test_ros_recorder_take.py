@@ -6,7 +6,9 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from bag_ros_util import WAIT_S, Peer, wait_for, wait_matched
+from bag_ros_util import Peer
+from conftest import wait_for
+from node_harness import WAIT_S, wait_matched
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 from cdmp_ros.ros.recorder_take import (PROFILE_OVERRIDE, TakeThread, ThreadTakenGroup,

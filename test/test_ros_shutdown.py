@@ -26,6 +26,7 @@ import pytest
 
 from conftest import REPO_ROOT, module_domain, ros_env
 from conftest import wait_for as conftest_wait_for
+from node_harness import NodeHarness
 
 pytestmark = pytest.mark.ros
 
@@ -69,33 +70,13 @@ def rclpy_loaded(pid: int) -> bool:
         return True
 
 
-class Observer:
+class Observer(NodeHarness):
     """rclpy peer on the test domain: diagnostics per namespace, test publishers."""
 
     def __init__(self):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        self.rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN)
-        self.node = rclpy.create_node('shutdown_test', context=self.context)
-        self.lock = threading.Lock()
+        super().__init__('shutdown_test', DOMAIN, diagnostics=None)
         self.diags = {}     # namespace -> list of (status name, message, {key: value})
         self.counts = {}    # topic -> messages received
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while not self._stop.is_set():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 -- context shut down at teardown
-                if self._stop.is_set():
-                    return
-                raise
 
     def watch_diagnostics(self, ns):
         from diagnostic_msgs.msg import DiagnosticArray
@@ -122,13 +103,6 @@ class Observer:
                 self.counts[topic] += 1
         self.node.create_subscription(msg_type, topic, on_msg, QoSProfile(
             depth=100, reliability=ReliabilityPolicy.BEST_EFFORT), raw=True)
-
-    def close(self):
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.try_shutdown(context=self.context)
 
 
 class Case:

@@ -116,7 +116,7 @@ def test_streamer_drives_the_sim(tmp_path):
 
     from cdmp_ros.core.primitive_io import dumps_primitive
     from cdmp_ros.ros import qos
-    from streamer_util import Q_GOAL, Q_START, reach_cdmp, start_streamer
+    from streamer_harness import Q_GOAL, Q_START, reach_cdmp, start_streamer
     sim = start_sim(DOMAIN, [f'initial_positions:={[float(v) for v in Q_START]}',
                              'diagnostics_period:=0.2'],
                     log_path=str(tmp_path / 'sim.log'), params_file='config/sim.yaml')

@@ -16,9 +16,8 @@ import pytest
 
 from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
-from streamer_harness import Harness, max_acceleration
-from streamer_util import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, reach_cdmp,
-                           start_streamer, stop_process)
+from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, Harness,
+                              max_acceleration, reach_cdmp, start_streamer, stop_process)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(7)
@@ -100,8 +99,8 @@ def test_shuffled_joint_states_are_mapped(graph):
 
     def shuffled():
         for _ in range(30):  # a joint_states stream at 100 Hz
-            h.publish('joint_states', h.make_joint_state(q[perm],
-                                                         [PANDA_JOINTS[i] for i in perm]))
+            h.publish('joint_states', h.joint_state(q[perm],
+                                                    [PANDA_JOINTS[i] for i in perm]))
             time.sleep(0.01)
         stream_continues(h, proc)
     h.robot_on = False
@@ -115,7 +114,7 @@ def test_goal_change_is_followed_without_a_jump(graph):
     h, proc, _ = graph
     i0 = h.n_refs()
     goal = np.array([0.3, 0.0, -0.2, -1.6, 0.1, 1.8, 0.5])
-    h.publish('goal', h.make_joint_state(goal))
+    h.publish('goal', h.joint_state(goal))
     assert h.wait(lambda: np.abs(h.last_ref()[2] - goal).max() < 0.02, TIMEOUT)
     refs = h.refs_since(i0)
     assert max_acceleration(refs) < MAX_ACC
@@ -126,7 +125,7 @@ def test_new_primitive_switches_without_a_jump(graph):
     h, proc, _ = graph
     q = h.last_ref()[2]
     target = np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15])
-    h.publish('goal', h.make_joint_state(target))  # goal override follows the new primitive
+    h.publish('goal', h.joint_state(target))  # goal override follows the new primitive
     i0 = h.n_refs()
     # the adapter's topic; starts far away, from a different start
     h.publish('adapted_primitive', String(data=dumps_primitive(reach_cdmp(Q_GOAL, target,
@@ -178,13 +177,13 @@ def test_sphere_obstacle_changes_the_reference(graph):
 
 # -- bad input: one test per case --------------------------------------------------------------
 def _js(h, **kw):
-    return h.make_joint_state(h.last_ref()[2], **kw)
+    return h.joint_state(h.last_ref()[2], **kw)
 
 
 def _bad_joint_state(h, case):
     q = h.last_ref()[2]
     names = list(PANDA_JOINTS)
-    msg = h.make_joint_state(q)
+    msg = h.joint_state(q)
     if case == 'nan':
         msg.position[2] = float('nan')
     elif case == 'inf':
@@ -201,9 +200,9 @@ def _bad_joint_state(h, case):
     elif case == 'duplicate_name':
         msg.name = names[:6] + [names[0]]
     elif case == 'future_stamp':
-        msg = h.make_joint_state(q, stamp_offset=60.0)
+        msg = h.joint_state(q, stamp_offset=60.0)
     elif case == 'past_stamp':
-        msg = h.make_joint_state(q, stamp_offset=-3600.0)
+        msg = h.joint_state(q, stamp_offset=-3600.0)
     return msg
 
 
@@ -240,14 +239,14 @@ def test_goal_outside_the_limits_is_clipped_and_reported(graph):
     h, proc, _ = graph
     t0 = time.monotonic()
     goal = np.array([0.3, 5.0, -0.2, 1.0, 0.1, 1.8, 0.5])  # joints 2 and 4 beyond the limits
-    h.publish('goal', h.make_joint_state(goal))
+    h.publish('goal', h.joint_state(goal))
     assert h.wait_diag('clipped with the CDMP margin: panda_joint2 5 -> 1.831', t0,
                        name='input goal')
     assert h.wait(lambda: h.last_ref()[2][1] > 1.8, TIMEOUT)
     refs = h.refs_since(0)
     assert all(np.all(r[2] <= UPPER) and np.all(r[2] >= LOWER) for r in refs)
     stream_continues(h, proc)
-    h.publish('goal', h.make_joint_state(Q_GOAL))
+    h.publish('goal', h.joint_state(Q_GOAL))
 
 
 def _marker(**kw):
@@ -340,7 +339,7 @@ def test_bad_primitives_are_rejected(graph, case):
 def test_flooding_is_dropped_and_reported(graph):
     h, proc, _ = graph
     t0 = time.monotonic()
-    msg = h.make_joint_state(Q_GOAL, zero=True)
+    msg = h.joint_state(Q_GOAL, zero=True)
 
     def burst():  # until the node reports the drops
         for _ in range(50):
@@ -353,7 +352,7 @@ def test_flooding_is_dropped_and_reported(graph):
 
 def test_stale_joint_states_stop_smoothly_and_resume(graph):
     h, proc, _ = graph
-    h.publish('goal', h.make_joint_state(Q_START))
+    h.publish('goal', h.joint_state(Q_START))
     # moving towards Q_START (from the clipped goal of an earlier test, or from Q_GOAL)
     assert h.wait(lambda: np.abs(h.last_ref()[3]).max() > 0.05, TIMEOUT)
     i0 = h.n_refs()

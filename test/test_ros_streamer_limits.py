@@ -9,9 +9,8 @@ import pytest
 
 from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
-from streamer_harness import Harness
-from streamer_util import (Q_START, TIGHT_LOWER, TIGHT_UPPER, UPPER, start_streamer,
-                           stop_process, wide_narrow_cdmp)
+from streamer_harness import (Q_START, TIGHT_LOWER, TIGHT_UPPER, UPPER, Harness, start_streamer,
+                              stop_process, wide_narrow_cdmp)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(31)

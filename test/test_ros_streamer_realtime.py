@@ -20,8 +20,7 @@ import numpy as np
 import pytest
 
 from cdmp_ros.core.primitive_io import dumps_primitive
-from streamer_harness import Harness
-from streamer_util import reach_cdmp, start_streamer, stop_process, wait_for
+from streamer_harness import Harness, reach_cdmp, start_streamer, stop_process, wait_for
 from conftest import module_domain
 
 pytestmark = pytest.mark.ros

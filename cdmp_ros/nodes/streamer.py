@@ -16,16 +16,7 @@ stops the tick thread before the node is destroyed.
 """
 import sys
 
-from cdmp_ros.ros.node_main import catch_stop_signals, run_node
-
-
-def make_executor():
-    """rclpy's EventsExecutor when available, else None (run_node's SingleThreadedExecutor)."""
-    try:
-        from rclpy.experimental import EventsExecutor
-    except ImportError:
-        return None
-    return EventsExecutor()
+from cdmp_ros.ros.node_main import catch_stop_signals, make_executor, run_node
 
 
 def main(args=None) -> int:

@@ -1,20 +1,20 @@
 """The adapter's solver thread: constrained ProMP adaptations off the executor thread.
 
-:class:`SolveWorker` runs one request at a time; ``submit`` replaces a request that has not
-started yet (latest request wins: the replaced one is counted as *dropped*). A running solve is
-never interrupted by a newer request; only :meth:`SolveWorker.stop` (node shutdown) cancels
-it, within one evaluation of the Lagrangian (``solve_job(job, chain, worker.stopping)``).
-When a solve finishes while a newer request is already waiting, its result is marked *stale*;
-the node still publishes a stale result if it converged (a newer plan follows within one solve
-time, and publishing avoids starving the output while obstacles keep moving), and says so on
-``diagnostics``. A result computed for a primitive that has been replaced in the meantime is
-discarded by the node (counted as ``requests_outdated``).
+:class:`SolveWorker` (a :class:`~cdmp_ros.ros.latest_worker.LatestWorker`) runs one request at
+a time; ``submit`` replaces a request that has not started yet (latest request wins: the
+replaced one is counted as *dropped*). A running solve is never interrupted by a newer request;
+only :meth:`SolveWorker.stop` (node shutdown) cancels it, within one evaluation of the
+Lagrangian (``solve_job(job, chain, worker.stopping)``). When a solve finishes while a newer
+request is already waiting, its result is marked *stale*; the node still publishes a stale
+result if it converged (a newer plan follows within one solve time, and publishing avoids
+starving the output while obstacles keep moving), and says so on ``diagnostics``. A result
+computed for a primitive that has been replaced in the meantime is discarded by the node
+(counted as ``requests_outdated``).
 
 The worker calls ``notify()`` (a ROS guard condition's ``trigger``) after each result, so the
 executor publishes it without polling. Everything computed here is plain data (JSON text,
 numpy arrays); no ROS call is made from this thread.
 """
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
@@ -25,6 +25,7 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_ban
                                                promp_message, run_request)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError
+from cdmp_ros.ros.latest_worker import LatestWorker
 
 
 @dataclass
@@ -95,8 +96,10 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None)
                      solve_cpu=c_solve)
 
 
-class SolveWorker(threading.Thread):
-    """Latest-request-wins solver thread (see the module docstring).
+class SolveWorker(LatestWorker):
+    """The adapter's latest-request-wins solver thread (see the module docstring): a
+    :class:`~cdmp_ros.ros.latest_worker.LatestWorker` of :class:`Job` -> :class:`JobResult`
+    that numbers the jobs, marks stale results and time-stamps them.
 
     Parameters
     ----------
@@ -107,76 +110,30 @@ class SolveWorker(threading.Thread):
     """
 
     def __init__(self, solve: Callable[[Job], JobResult], notify: Callable[[], None]):
-        super().__init__(name='adapter-solver', daemon=True)
-        self._solve = solve
-        self._notify = notify
-        self._cv = threading.Condition()
-        self._pending: Optional[Job] = None
-        self._results: List[JobResult] = []
-        self._stopping = False
-        self._stop_event = threading.Event()  # read without the lock by a running solve
-        self.busy = False
-        self.counts: Dict[str, int] = {'requests_received': 0, 'requests_dropped': 0,
-                                       'requests_stale': 0, 'requests_solved': 0}
+        super().__init__(solve, _failed, name='adapter-solver', notify=notify)
 
-    def submit(self, job: Job) -> None:
-        with self._cv:
-            self.counts['requests_received'] += 1
-            job.id = self.counts['requests_received']
-            if self._pending is not None:
-                self.counts['requests_dropped'] += 1   # coalesced: only the newest counts
-            self._pending = job
-            self._cv.notify()
+    def _accepted(self, job: Job, number: int) -> None:
+        job.id = number
 
-    def take(self) -> List[JobResult]:
-        with self._cv:
-            out, self._results = self._results, []
-        return out
-
-    def stop(self) -> None:
-        """Stop the thread: a waiting request is dropped, a running solve is cancelled (when
-        the solve polls :meth:`stopping`); join the thread afterwards."""
-        self._stop_event.set()
-        with self._cv:
-            self._stopping = True
-            self._cv.notify()
-
-    def stopping(self) -> bool:
-        """True once :meth:`stop` was called (``should_stop`` of a running solve)."""
-        return self._stop_event.is_set()
-
-    def run(self) -> None:
-        while True:
-            with self._cv:
-                while self._pending is None and not self._stopping:
-                    self._cv.wait()
-                if self._stopping:
-                    return
-                job, self._pending = self._pending, None
-                self.busy = True
-            try:
-                res = self._solve(job)
-            except Exception as exc:  # noqa: BLE001 -- the solver thread must survive anything
-                res = JobResult(job, 'rejected', 0.0, error=f'adaptation failed: {exc!r}',
-                                error_topic=job.trigger)
-            res.finished = time.monotonic()
-            with self._cv:
-                self.busy = False
-                if self._stopping:  # the node is shutting down: nobody takes results
-                    return
-                res.stale = self._pending is not None
-                self.counts['requests_solved'] += 1
-                if res.stale:
-                    self.counts['requests_stale'] += 1
-                self._results.append(res)
-            try:
-                self._notify()
-            except Exception:  # noqa: BLE001 -- guard condition destroyed at shutdown
-                return
+    def _finished(self, job: Job, res: JobResult, stale: bool) -> JobResult:
+        res.finished = time.monotonic()
+        res.stale = stale
+        return res
 
     def summary(self) -> Dict[str, Any]:
+        """The request counters (diagnostics names) and whether a solve is running."""
         with self._cv:
-            return dict(self.counts, solver_busy=self.busy)
+            c = dict(self.counts)
+            busy = self.busy
+        return {'requests_received': c['received'], 'requests_dropped': c['superseded'],
+                'requests_stale': c['stale'], 'requests_solved': c['done'],
+                'solver_busy': busy}
+
+
+def _failed(job: Job, exc: Exception) -> JobResult:
+    """A solve that raised: a rejected result (the solver thread goes on)."""
+    return JobResult(job, 'rejected', 0.0, error=f'adaptation failed: {exc!r}',
+                     error_topic=job.trigger)
 
 
 def result_values(res: JobResult) -> Dict[str, Any]:

@@ -1,20 +1,21 @@
 """ROS parameters mirroring frozen config dataclasses 1:1.
 
 :func:`declare_config` declares one parameter per dataclass field (``prefix.field`` for nested
-configs), with a ``ParameterDescriptor`` carrying the description, the type, the range and
-``read_only`` taken from the field metadata (``description``, ``range=(lo, hi)``,
-``read_only``) or, for dataclasses without metadata, from the numpydoc ``Attributes`` section
-of the class docstring. The values are validated by the dataclass itself (``__post_init__``):
-a bad startup value raises :class:`~cdmp_ros.core.errors.ValidationError` (the node exits
-non-zero with the reason), a bad value set at run time is refused with the reason
-(:class:`ConfigParameters`, through ``add_on_set_parameters_callback``).
+configs), with a ``ParameterDescriptor`` carrying the description, the type, the range,
+the choices and ``read_only``, all taken from the field metadata that
+:func:`cdmp_ros.core.config_fields.param` writes (``description``, ``range=(lo, hi)``,
+``choices``, ``read_only``): the ROS interface is declared in code, never read from a
+docstring, and a parameter field without a description is a programming error
+(:class:`TypeError` at declaration). The values are validated by the dataclass itself
+(``__post_init__``): a bad startup value raises :class:`~cdmp_ros.core.errors.ValidationError`
+(the node exits non-zero with the reason), a bad value set at run time is refused with the
+reason (:class:`ConfigParameters`, through ``add_on_set_parameters_callback``).
 
 Supported field types: bool, int, float, str, tuples of str and (non-empty) tuples of floats;
 fields of other types (or whose default is None) are not exposed as parameters.
 """
 import dataclasses
 import math
-import re
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -26,25 +27,6 @@ from cdmp_ros.core.errors import ValidationError
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
-
-
-def _attribute_docs(cls) -> Dict[str, str]:
-    """``name -> description`` from the numpydoc Attributes section of ``cls.__doc__``."""
-    doc = cls.__doc__ or ''
-    out: Dict[str, str] = {}
-    current: List[str] = []
-    for line in doc.splitlines():
-        m = re.match(r'^    ([a-zA-Z_][\w, ]*) : .+$', line)
-        if m:
-            current = [n.strip() for n in m.group(1).split(',')]
-            continue
-        text = line.strip()
-        if current and line.startswith('        ') and text:
-            for n in current:
-                out[n] = (out.get(n, '') + ' ' + text).strip()
-        elif not line.startswith('        '):
-            current = []
-    return out
 
 
 class FloatTuple(tuple):
@@ -89,10 +71,18 @@ def parameter_fields(cls) -> List[Tuple[dataclasses.Field, type, Any]]:
 
 
 def descriptor_for(cls, f: dataclasses.Field, kind: type, name: str) -> ParameterDescriptor:
-    """The ParameterDescriptor of one field."""
+    """The ParameterDescriptor of one field, from its metadata.
+
+    Raises
+    ------
+    TypeError
+        The field has no ``description`` in its metadata.
+    """
     meta = f.metadata
-    fallback = f'{cls.__name__}.{f.name}'
-    text = meta.get('description') or _attribute_docs(cls).get(f.name, fallback)
+    text = meta.get('description')
+    if not text:
+        raise TypeError(f'{cls.__name__}.{f.name}: a parameter field needs a description in '
+                        f'its metadata (declare it with cdmp_ros.core.config_fields.param)')
     desc = ParameterDescriptor(name=name, description=text,
                                read_only=bool(meta.get('read_only', False)))
     if kind is tuple:

@@ -183,6 +183,39 @@ def set_threads_fifo(priority: int, tids: Sequence[int]) -> Tuple[int, str]:
     return done, '; '.join(problems)
 
 
+def lift_other_threads(logger, priority: int, tick_thread, worker) -> str:
+    """SCHED_FIFO for the threads a real-time tick depends on (the streamer's
+    ``realtime_threads: all``): every thread of the process but the tick thread at
+    ``priority - 1``, the (primitive) worker at 1. Returns the text appended to the log line."""
+    own, wid = tick_thread.native_id, worker.native_id
+    others = [t for t in process_thread_ids() if t not in (own, wid)]
+    n, problems = set_threads_fifo(max(1, priority - 1), others)
+    _, worker_problems = set_threads_fifo(1, [wid])
+    problems = '; '.join(p for p in (problems, worker_problems) if p)
+    if problems:
+        logger.warning(f'tick thread: {problems}')
+    return (f'; {n} other threads at SCHED_FIFO {max(1, priority - 1)}, primitive worker '
+            f'at 1')
+
+
+def report_scheduling(logger, status: Optional[RealtimeStatus], realtime_threads: str,
+                      tick_thread, worker, spin: float) -> None:
+    """Log a tick thread's scheduling (``status``: its RealtimeStatus, None if it did not
+    start) and lift the other threads (:func:`lift_other_threads`) when it runs under
+    SCHED_FIFO and ``realtime_threads`` is ``'all'``."""
+    if status is None:
+        logger.error('tick thread: did not start within 5 s')
+        return
+    if not status.ok:
+        logger.warning(f'tick thread: {status.message}')
+    others = ''
+    if status.realtime and realtime_threads == 'all':
+        others = lift_other_threads(logger, status.priority, tick_thread, worker)
+    policy = f'SCHED_FIFO priority {status.priority}' if status.realtime else 'normal'
+    logger.info(f'tick thread: {policy} scheduling, CPUs {list(status.cpus)}, '
+                f'spin {spin * 1e3:g} ms{others}')
+
+
 def reset_thread() -> None:
     """Back to normal scheduling (SCHED_OTHER) for the calling thread, if permitted."""
     try:

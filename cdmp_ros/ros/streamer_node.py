@@ -25,8 +25,10 @@ Everything allocated at start-up is frozen out of the garbage collector (``gc.fr
 full collection does not stall the tick. With ``obstacle_wakeup`` an obstacle message wakes
 the tick thread: the next slot is integrated with the new obstacle set and published at once
 with its own scheduled stamp (at most one period early); the schedule and the stamps are those
-of the fixed grid, each slot is published exactly once. ``tick_thread: false`` falls back to a
-steady-clock executor timer.
+of the fixed grid, each slot is published exactly once. The deadlines, the catch-up of a late
+tick (``max_catch_up``), the late/early/missed counts and the stamps are
+:class:`cdmp_ros.core.streaming.schedule.TickSchedule` (ROS-free, unit-tested with a fake
+clock). ``tick_thread: false`` falls back to a steady-clock executor timer.
 """
 import gc
 import sys
@@ -43,26 +45,26 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig
-from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
+from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
                                               StreamState, streamer_coupling)
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
-from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.diagnostics import (LATENCY_SAMPLES, OK, WARN, DiagnosticsReporter,
+                                      latency_values)
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
+from cdmp_ros.ros.latest_worker import LatestWorker
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread
+from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
-from cdmp_ros.ros.streamer_timing import (LATENCY_SAMPLES, clock_offset_ns, latency_values,
-                                          report_scheduling)
-from cdmp_ros.ros.streamer_worker import PrimitiveWorker
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
@@ -123,11 +125,11 @@ class StreamerNode(Node):
         self.gate.subscribe(MarkerArray, 'obstacles', self._on_obstacles, qos.COMMAND,
                             size=marker_count(lambda: cfg_now().max_obstacles))
 
-        self.worker = PrimitiveWorker(self._prepare)
+        # primitive messages are parsed and prepared off the executor and tick threads
+        self.worker = LatestWorker(self._prepare, _prepare_failed, name='primitive-worker')
         self.worker.start()
-        self.counts = {'ticks': 0, 'published': 0, 'missed_ticks': 0, 'clamped': 0,
-                       'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
-                       'late_ticks': 0}
+        self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
+                       'coupled': 0}
         self.active_text = None
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
@@ -137,13 +139,10 @@ class StreamerNode(Node):
         self._dt = cfg.dt
         self._lock = threading.RLock()  # the tick reports rejections while holding it
         self._tick_errors = 0
-        self._t0 = time.monotonic()
-        # stamps: slot j is stamped stamp0 + j / rate exactly (ROS clock = steady clock +
-        # an offset measured at start and re-measured with every diagnostics message)
-        self._dt_ns = 1e9 / cfg.rate
-        self._stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
+        # deadlines, catch-up and stamps: slot j is stamped stamp0 + j / rate exactly (ROS
+        # clock = steady clock + an offset measured at start and with every diagnostics message)
+        self.schedule = TickSchedule(cfg.rate, time.monotonic(), self._clock_offset_ns())
         self._pub_slot0 = 0
-        self._k = 0
         self.timer = None
         self.tick_thread = None
         self.realtime_status = None
@@ -275,16 +274,19 @@ class StreamerNode(Node):
         self.gate.reject_all('obstacles', errors)
 
     def _on_primitive(self, topic: str, msg: String) -> None:
-        replaced = self.worker.submit(topic, msg.data)
+        replaced = self.worker.submit((topic, msg.data))
         if replaced is not None:  # dropped unparsed: counted, so that nothing goes unreported
-            self.gate.reject(replaced, f'{replaced}: superseded by a newer {topic} before it '
-                             'was parsed', 'superseded')
+            old = replaced[0]
+            self.gate.reject(old, f'{old}: superseded by a newer {topic} before it was parsed',
+                             'superseded')
 
-    def _prepare(self, topic: str, text: str):
-        """Worker thread: parse and prepare (no ROS calls, no shared state)."""
+    def _prepare(self, request):
+        """Worker thread: parse and prepare ``(topic, text)`` (no ROS calls, no shared
+        state); returns ``(topic, prepared, None)``."""
+        topic, text = request
         chain = self.chain
-        return prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
-                                 chain.upper, chain.velocity_limits, source=topic)
+        return topic, prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
+                                        chain.upper, chain.velocity_limits, source=topic), None
 
     # -- the tick ----------------------------------------------------------------------------
     def _tick_loop(self) -> None:
@@ -296,26 +298,21 @@ class StreamerNode(Node):
             self._sleeper.spin = 0.0  # never spin under SCHED_FIFO
         self.realtime_status = st
         self._configured.set()
-        dt, t0, sleeper, lock, stopping = self._dt, self._t0, self._sleeper, self._lock, \
+        sched, sleeper, lock, stopping = self.schedule, self._sleeper, self._lock, \
             self._stopping
         clock = time.monotonic
         timing = self.reporter.timing
         while not stopping.is_set():
-            deadline = t0 + (self._k + 1) * dt
-            woken = sleeper.sleep_until(deadline)
+            woken = sleeper.sleep_until(sched.deadline())
             if stopping.is_set():
                 return
-            if woken and self._k > (clock() - t0) / dt:
+            if woken and sched.is_ahead(clock()):
                 continue  # already one slot ahead: wait for the schedule
             try:
                 with lock:
+                    late = sched.woke(clock(), woken)
                     if not woken:  # deadline -> tick running (sleep, GIL and lock)
-                        late = clock() - deadline
                         timing('tick_wake_late', late)
-                        if late > dt:  # the slot went out after the next slot's deadline
-                            self.counts['late_ticks'] += 1
-                    elif clock() < deadline:  # the next slot goes out now, stamped on the grid
-                        self.counts['early_ticks'] += 1
                     self._tick()
             except Exception as exc:  # noqa: BLE001 -- the stream must go on
                 self._tick_errors += 1
@@ -347,20 +344,11 @@ class StreamerNode(Node):
                 log = (self.get_logger().warning if prepared.limit_mismatches
                        else self.get_logger().info)
                 log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
-        dt = self._dt
-        k = int((now - self._t0) / dt)  # the slot that began most recently
-        steps = k - self._k
-        if steps < 1:
-            steps, k = 1, self._k + 1
-        cap = self.config.max_catch_up
-        if steps > cap:  # too late: skip the oldest slots (they are reported as missed)
-            self.counts['missed_ticks'] += steps - cap
-            steps = cap
-        self._k = k
+        first, steps = self.schedule.advance(now, self.config.max_catch_up)
         st = self.streamer
         if st.state is not StreamState.WAITING:
             # every integrated slot is published with its own stamp (a late tick catches up)
-            self._pub_slot0 = k - steps + 1
+            self._pub_slot0 = first
             flags = st.advance(steps, now, self._publish_step)
         else:
             flags = st.advance(steps, now)
@@ -377,7 +365,7 @@ class StreamerNode(Node):
 
     def _publish_step(self, i: int) -> None:
         st = self.streamer
-        stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
+        stamp = self.schedule.stamp_ns(self._pub_slot0 + i)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
         if self.controller_pub is not None:  # the same reference, the controller's order
             self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
@@ -388,22 +376,21 @@ class StreamerNode(Node):
             self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
             self._latency_n += 1
 
-    def _resync_stamps(self) -> None:
-        """Follow a step of the ROS clock (NTP step, sim time): re-anchor when the stamp
-        grid is more than 1 ms off; otherwise the grid stays exact."""
-        stamp0 = clock_offset_ns(self.get_clock()) + round(self._t0 * 1e9)
-        if abs(stamp0 - self._stamp0) > 1_000_000:
-            self._stamp0 = stamp0
+    def _clock_offset_ns(self) -> int:
+        """ROS clock - steady clock [ns]."""
+        clock = self.get_clock()
+        return clock_offset_ns(lambda: clock.now().nanoseconds)
 
     def _publish_diagnostics(self) -> None:
-        self._resync_stamps()
+        # follow a step of the ROS clock (NTP step, sim time); otherwise the grid stays exact
+        self.schedule.anchor(self._clock_offset_ns())
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())
             self.streamer.obstacles = self.obstacles.snapshot.items
             n_lat = self._latency_n
             lat = self._latency_ms[:min(n_lat, LATENCY_SAMPLES)].copy()
-            counts = dict(self.counts)
+            counts = dict(self.counts, **self.schedule.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
         level = OK if state is StreamState.RUNNING else WARN
@@ -439,3 +426,11 @@ class StreamerNode(Node):
             self.tick_thread.join(timeout=2.0)
         self.worker.stop()
         self.worker.join(timeout=2.0)
+
+
+def _prepare_failed(request, exc: Exception):
+    """``(topic, None, reason)`` of a primitive message that cannot be prepared."""
+    topic = request[0]
+    if isinstance(exc, CdmpError):
+        return topic, None, str(exc)
+    return topic, None, f'{topic}: cannot be prepared: {exc!r}'

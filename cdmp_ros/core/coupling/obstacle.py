@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d, scalar_coupling
+from cdmp_ros.core.config_fields import param
 from cdmp_ros.core.coupling.kernel import compile_coupling
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.potential_fields import (ZERO, BoardField, ConstantField,
@@ -75,11 +76,21 @@ class CouplingConfig:
     """
 
     damping: DampingConfig = field(default_factory=DampingConfig)
-    link_radius: float = 0.0
-    end_effector: bool = True
-    limit_aware: bool = True
-    limit_onset: float = 0.9
-    limit_lock: float = 0.95
+    link_radius: float = param(
+        0.0, 'Radius [m] of the capsules modelling the links (distances are to the capsule '
+        'surface).')
+    end_effector: bool = param(
+        True, 'Apply the fields to the end-effector point (Eq. 7). The link terms always act in '
+        'the null space of the end-effector task.')
+    limit_aware: bool = param(
+        True, 'Weight the link terms (Eq. 12) away from joints near their limits (weighted '
+        'least norm); false: Eq. (12) as is.')
+    limit_onset: float = param(
+        0.9, 'Joint limit usage |q - q_o| / y_delta above which the limit-aware weighting of '
+        'the link terms starts; 0 < limit_onset < limit_lock <= 1.')
+    limit_lock: float = param(
+        0.95, 'Limit usage from which the link terms no longer move that joint (its weight is '
+        'infinite); 0 < limit_onset < limit_lock <= 1.')
 
     def __post_init__(self):
         if not isinstance(self.damping, DampingConfig):

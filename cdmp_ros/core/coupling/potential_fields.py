@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
+from cdmp_ros.core.config_fields import param
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.closest import Box
 from cdmp_ros.core.validation import check_positive
@@ -42,10 +43,15 @@ class RepellerField:
         Gain [1/s] on the approach speed (``xd`` towards the obstacle), 0 to disable.
     """
 
-    gain: float = 0.01
-    influence_distance: float = 0.2
-    min_distance: float = 0.005
-    damping: float = 0.0
+    gain: float = param(
+        0.01, 'Repeller gain [m^3/s^2]; at distance d << influence_distance the acceleration '
+        'is about gain / d^3.')
+    influence_distance: float = param(
+        0.2, 'Influence distance d0 [m] of the repeller; no effect at or beyond it.')
+    min_distance: float = param(
+        0.005, 'Floor of the distance d [m] (caps the repeller at contact or penetration).')
+    damping: float = param(
+        0.0, 'Gain [1/s] on the approach speed (towards the obstacle), 0 to disable.')
 
     def __post_init__(self):
         check_positive('RepellerField.gain', self.gain, allow_zero=True)
@@ -86,8 +92,11 @@ class ConstantField:
     ``direction`` (a fixed world vector, normalised) or, if ``direction`` is None, along the
     obstacle normal (away from the obstacle)."""
 
-    magnitude: float = 1.0
-    influence_distance: float = 0.1
+    magnitude: float = param(
+        1.0, 'Acceleration [m/s^2] of the constant box field (paper 000, IV-B), away from the '
+        'box, while the point is closer than influence_distance.')
+    influence_distance: float = param(
+        0.1, 'Distance [m] from the box below which the constant box field acts.')
     direction: Optional[tuple] = None
 
     def __post_init__(self):
@@ -153,15 +162,20 @@ class BoardField:
         Floor [m] of the vertical distance in Eq. (30).
     """
 
-    beta_y: float = 0.01
-    beta_z: float = 0.01
-    alpha: float = 1.0
-    goal_height: float = 0.0
-    horizontal_axis: int = 1
-    vertical_axis: int = 2
-    edge_side: int = 1
-    vertical_side: int = -1
-    min_distance: float = 0.005
+    beta_y: float = param(0.01, 'Gain [m/s^2] of the horizontal escape towards the edge '
+                          '(paper 000 Eq. 30).')
+    beta_z: float = param(0.01, 'Gain [m^2/s^2] of the vertical push away from the board '
+                          'surface (Eq. 30).')
+    alpha: float = param(1.0, 'Gain [m^0.5/s^2] of the attraction towards goal_height once '
+                         'past the edge (Eq. 31).')
+    goal_height: float = param(0.0, 'Height [m] on the vertical axis of the final goal '
+                               '(Eq. 31).')
+    horizontal_axis: int = param(1, 'World axis (0, 1, 2) of the escape direction.', 0, 2)
+    vertical_axis: int = param(2, 'World axis (0, 1, 2) of the vertical.', 0, 2)
+    edge_side: int = param(1, '+1: escape past the board face on the upper side of the '
+                           'horizontal axis; -1: past its lower face.', -1, 1)
+    vertical_side: int = param(-1, '-1: the point is under the board; +1: over it.', -1, 1)
+    min_distance: float = param(0.005, 'Floor [m] of the vertical distance in Eq. 30.')
 
     def __post_init__(self):
         for name in ('beta_y', 'beta_z', 'alpha'):

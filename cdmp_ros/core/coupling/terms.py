@@ -59,6 +59,7 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdmp_ros.core.config_fields import param
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 
@@ -77,8 +78,12 @@ class DampingConfig:
         Damping at an exact singularity (same unit as ``epsilon``).
     """
 
-    epsilon: float = 0.02
-    lambda_max: float = 0.05
+    epsilon: float = param(
+        0.02, 'Singular value [m/rad for position Jacobians] below which the damping of the '
+        'pseudo-inverses starts.')
+    lambda_max: float = param(
+        0.05, 'Damping of the pseudo-inverses at an exact singularity (same unit as '
+        'epsilon).')
 
     def __post_init__(self):
         check_positive('DampingConfig.epsilon', self.epsilon)

@@ -1,0 +1,106 @@
+"""The streamer's tick schedule (cdmp_ros.core.streaming.schedule), with a fake clock: slots on
+the grid, late ticks and their catch-up, the catch-up limit, early (woken) ticks, stamps exactly
+on the grid, the clock offset and its re-anchoring. No process, no ROS."""
+import pytest
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
+
+RATE = 1000.0
+T0 = 100.0
+OFFSET_NS = 1_700_000_000_000_000_000 - round(T0 * 1e9)  # ROS time = steady + offset
+
+
+def at(slot: float) -> float:
+    """The fake steady clock, ``slot`` periods after t0."""
+    return T0 + slot / RATE
+
+
+def make() -> TickSchedule:
+    return TickSchedule(RATE, T0, OFFSET_NS)
+
+
+def test_on_time_ticks_integrate_one_slot_each_stamped_on_the_grid():
+    s = make()
+    assert s.deadline() == pytest.approx(at(1))
+    stamps = []
+    for j in range(1, 6):
+        late = s.woke(at(j + 0.2), woken=False)
+        assert late == pytest.approx(0.2 / RATE)
+        first, steps = s.advance(at(j + 0.2), max_catch_up=5)
+        assert (first, steps) == (j, 1)
+        stamps.append(s.stamp_ns(first))
+        assert s.deadline() == pytest.approx(at(j + 1))
+    assert stamps == [1_700_000_000_000_000_000 + j * 1_000_000 for j in range(1, 6)]
+    assert s.counts == {'missed_ticks': 0, 'late_ticks': 0, 'early_ticks': 0}
+
+
+def test_a_late_tick_catches_up_every_slot_it_missed():
+    s = make()
+    s.advance(at(1.5), max_catch_up=5)
+    late = s.woke(at(4.5), woken=False)       # the deadline was slot 2: 2.5 periods late
+    assert late == pytest.approx(2.5 / RATE)
+    assert s.counts['late_ticks'] == 1
+    assert s.advance(at(4.5), max_catch_up=5) == (2, 3)   # slots 2, 3, 4, each once
+    assert s.k == 4 and s.counts['missed_ticks'] == 0
+    s.woke(at(5.9), woken=False)              # 0.9 periods late: on time
+    assert s.counts['late_ticks'] == 1
+    assert s.advance(at(5.9), max_catch_up=5) == (5, 1)
+
+
+def test_the_catch_up_limit_skips_the_oldest_slots_and_counts_them_missed():
+    s = make()
+    s.advance(at(1.5), max_catch_up=3)
+    first, steps = s.advance(at(11.5), max_catch_up=3)   # slots 2..11 began: 10 slots
+    assert (first, steps) == (9, 3)                     # the newest 3: 9, 10, 11
+    assert s.counts['missed_ticks'] == 7
+    assert s.stamp_ns(first + steps - 1) == s.stamp_ns(0) + 11 * 1_000_000
+    assert s.advance(at(12.5), max_catch_up=3) == (12, 1)   # and on from there
+
+
+def test_an_early_wake_up_publishes_the_next_slot_once_then_waits_for_the_schedule():
+    s = make()
+    s.advance(at(1.1), max_catch_up=5)       # slot 1
+    assert not s.is_ahead(at(1.4))
+    late = s.woke(at(1.4), woken=True)        # an obstacle message, before slot 2's deadline
+    assert late == pytest.approx(-0.6 / RATE)
+    assert s.counts['early_ticks'] == 1
+    assert s.advance(at(1.4), max_catch_up=5) == (2, 1)   # slot 2 now, with its own stamp
+    assert s.is_ahead(at(1.6))                # a second wake-up in slot 1 must wait
+    assert s.deadline() == pytest.approx(at(3))
+    assert not s.is_ahead(at(2.1))
+    s.woke(at(3.05), woken=False)
+    assert s.advance(at(3.05), max_catch_up=5) == (3, 1)  # slot 2 is not published twice
+    woken_late = s.woke(at(4.2), woken=True)  # woken after the deadline: not early
+    assert woken_late > 0 and s.counts['early_ticks'] == 1
+    assert s.counts['late_ticks'] == 0
+
+
+def test_stamps_stay_exactly_on_the_grid_at_a_rate_without_an_integer_period():
+    s = TickSchedule(300.0, 0.0, 0)
+    assert s.stamp_ns(3) == 10_000_000
+    assert s.stamp_ns(300 * 3600 * 24) == 24 * 3600 * 1_000_000_000  # a day: no drift
+    assert s.stamp_ns(1) == 3_333_333 and s.stamp_ns(2) == 6_666_667
+
+
+def test_a_clock_step_re_anchors_the_stamps_a_small_drift_does_not():
+    s = make()
+    base = s.stamp_ns(10)
+    assert not s.anchor(OFFSET_NS + 500_000)      # 0.5 ms: the grid stays exact
+    assert s.stamp_ns(10) == base
+    assert s.anchor(OFFSET_NS + 2_000_000)        # 2 ms step: re-anchored
+    assert s.stamp_ns(10) == base + 2_000_000
+    assert s.anchor(OFFSET_NS - 3_600_000_000_000)  # a step back of an hour
+    assert s.stamp_ns(10) == base - 3_600_000_000_000
+
+
+def test_clock_offset_takes_the_closest_of_three_readings():
+    steady = iter([0, 100, 1000, 1010, 2000, 2500])   # the pair 1000..1010 is the tightest
+    other = iter([5_000_050, 5_001_005, 5_002_100])
+    off = clock_offset_ns(lambda: next(other), lambda: next(steady))
+    assert off == 5_001_005 - 1005
+
+
+def test_a_non_positive_rate_is_refused():
+    with pytest.raises(ValidationError, match='rate'):
+        TickSchedule(0.0, T0)
