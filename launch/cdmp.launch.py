@@ -44,7 +44,7 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'robot_description', default_value='',
             description='URDF XML of the robot that runs (as robot_state_publisher takes it, '
-                        "e.g. robot_description:=\"$(xacro my_robot.urdf.xacro)\"); given to "
+                        'e.g. robot_description:="$(xacro my_robot.urdf.xacro)"); given to '
                         'every node, which then take their joint limits and kinematics from it '
                         "instead of urdf_path (the sim: robot 'panda' only). '' = the "
                         "parameter files' urdf_path."),

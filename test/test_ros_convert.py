@@ -272,8 +272,8 @@ def test_every_node_parameter_has_its_descriptor_in_code():
         gain: float = 1.0
 
     (f, kind, _), = parameter_fields(Undocumented)
-    with pytest.raises(TypeError, match='Undocumented.gain: a parameter field needs a '
-                                        'description'):
+    with pytest.raises(ValidationError, match='Undocumented.gain: a parameter field needs a '
+                                              'description'):
         descriptor_for(Undocumented, f, kind, 'gain')
 
 

@@ -75,14 +75,16 @@ def descriptor_for(cls, f: dataclasses.Field, kind: type, name: str) -> Paramete
 
     Raises
     ------
-    TypeError
-        The field has no ``description`` in its metadata.
+    ValidationError
+        The field has no ``description`` in its metadata (a config class defined without
+        :func:`cdmp_ros.core.config_fields.param`).
     """
     meta = f.metadata
     text = meta.get('description')
     if not text:
-        raise TypeError(f'{cls.__name__}.{f.name}: a parameter field needs a description in '
-                        f'its metadata (declare it with cdmp_ros.core.config_fields.param)')
+        raise ValidationError(f'{cls.__name__}.{f.name}: a parameter field needs a description '
+                              f'in its metadata (declare it with '
+                              f'cdmp_ros.core.config_fields.param)')
     desc = ParameterDescriptor(name=name, description=text,
                                read_only=bool(meta.get('read_only', False)))
     if kind is tuple:
