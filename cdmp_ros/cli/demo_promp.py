@@ -121,9 +121,11 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
     if prior and obs.get('center') is not None:
         out['prior_violation'] = sphere_violation(
             _promp(prior[0][1], chain), chain, links, obs['center'], radius, rng)
-    if after and obs.get('center') is not None:
+    # the last adaptation answers the sphere's last position (a crossing sphere moved on)
+    last = driver['crossing'][-1] if driver.get('crossing') else obs.get('center')
+    if after and last is not None:
         out['adapted_violation'] = sphere_violation(
-            _promp(after[-1], chain), chain, links, obs['center'], radius, rng)
+            _promp(after[-1], chain), chain, links, last, radius, rng)
     return out
 
 

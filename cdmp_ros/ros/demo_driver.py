@@ -10,7 +10,8 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    ``--obstacle-at`` of its arc length;
 2. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
-   ``DROP_PERIOD``);
+   ``DROP_PERIOD``), or with ``--motion cross`` move it horizontally across the path through
+   the point (``--cross-length`` at ``--cross-speed``, ``--cross-rate`` messages per second);
 3. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
    skipped with ``--no-goal-change``);
 4. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
@@ -66,6 +67,15 @@ def parse_args(argv):
                     help='rad added to the primitive goal for the goal change (default: the '
                          'hand ~25 cm to the left and ~10 cm higher, every link outside the '
                          'field of the sphere at the new goal)')
+    ap.add_argument('--motion', choices=('drop', 'cross'), default='drop',
+                    help='drop (default): the sphere falls onto the path; cross: it moves '
+                         'horizontally across the path through the landing point at '
+                         '--cross-speed, published at --cross-rate')
+    ap.add_argument('--cross-speed', type=float, default=0.2, help='m/s (default 0.2)')
+    ap.add_argument('--cross-rate', type=float, default=30.0,
+                    help='obstacle messages per second while crossing (default 30)')
+    ap.add_argument('--cross-length', type=float, default=0.6,
+                    help='m travelled, centred on the landing point (default 0.6)')
     ap.add_argument('--no-goal-change', action='store_true',
                     help='end after the first motion rests (cdmp demo --kind promp)')
     ap.add_argument('--frame', default='panda_link0')
@@ -130,6 +140,7 @@ class DemoDriver(Node):
         across /= max(np.linalg.norm(across), 1e-9)
         self.obstacle = p + a.lateral * across + [0.0, 0.0, a.vertical]
         self.drop = list(drop_positions(self.obstacle, a.drop_height, a.drop_messages))
+        self.across = across
 
     def _on_ref(self, msg):
         q = np.array(msg.position)
@@ -189,7 +200,21 @@ class DemoDriver(Node):
             ee = self.chain.forward(self.ref[0], self.ee)[0]
             if path_progress(self.path, ee) >= a.drop_at:
                 self._event('drop_start')
-                self.phase = 'drop'
+                self.phase = 'drop' if a.motion == 'drop' else 'cross'
+                self.cross_t0 = self.next_drop = time.monotonic()
+                self.crossed = []
+        elif self.phase == 'cross':
+            now = time.monotonic()
+            if now < self.next_drop:
+                return
+            self.next_drop += 1.0 / a.cross_rate  # an average of cross_rate messages/s
+            travelled = a.cross_speed * (now - self.cross_t0)
+            p = self.obstacle + (travelled - 0.5 * a.cross_length) * self.across
+            self._publish_sphere(p, 0)
+            self.crossed.append([float(v) for v in p])
+            if travelled >= a.cross_length:
+                self._event('drop_end')
+                self.phase = 'wait_rest_1'
         elif self.phase == 'drop':
             if time.monotonic() < getattr(self, 'next_drop', 0.0):
                 return
@@ -244,6 +269,7 @@ class DemoDriver(Node):
                             [float(v) for v in self.obstacle], 'radius': self.args.radius,
                             'frame': self.args.frame},
                'planned_path': None if self.path is None else self.path[::5].tolist(),
+               'crossing': getattr(self, 'crossed', []),
                'snapshot': self.snapshot, 'diagnostics': self.diagnostics}
         with open(os.path.join(self.args.out, 'driver.json'), 'w') as f:
             json.dump(out, f, indent=1)

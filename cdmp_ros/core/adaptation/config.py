@@ -199,8 +199,9 @@ class AdapterConfig:
     max_stamp_lead: float = stamp_lead_param()
     accept_unstamped: bool = accept_unstamped_param()
     max_input_rate: float = _param(
-        20.0, 'Messages per second accepted on each of primitive, obstacles, goal, goal_point '
-        'and constraints; the excess is dropped and reported (flooding).', 0.1, 10000.0)
+        50.0, 'Messages per second accepted on each of primitive, obstacles, goal, goal_point '
+        'and constraints (a 30 Hz obstacle tracker fits); the excess is dropped and reported '
+        '(flooding); the solver itself takes the newest request only.', 0.1, 10000.0)
     max_joint_states_rate: float = _param(
         2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
         1.0, 100000.0)
