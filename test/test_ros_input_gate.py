@@ -355,12 +355,15 @@ def test_learner_rejects_oversize_input_and_accepts_the_next(tmp_path):
 
 def test_a_primitive_replaced_before_it_was_parsed_is_reported():
     """The streamer's latest-wins worker returns the topic of a waiting message that a newer
-    one replaced, so the node counts it (reason 'superseded') instead of losing it silently."""
+    one of the same topic replaced, so the node counts it (reason 'superseded') instead of
+    losing it silently; primitive and adapted_primitive wait in separate slots (a restarted
+    streamer needs both latched messages)."""
     from cdmp_ros.ros.input_gate import reason_category
     from cdmp_ros.ros.streamer_worker import PrimitiveWorker
     worker = PrimitiveWorker(lambda topic, text: text)   # not started: nothing is taken
     assert worker.submit('primitive', 'a') is None
-    assert worker.submit('adapted_primitive', 'b') == 'primitive'
-    assert worker.submit('primitive', 'c') == 'adapted_primitive'
-    assert reason_category('primitive: superseded by a newer adapted_primitive before it was '
+    assert worker.submit('adapted_primitive', 'b') is None
+    assert worker.submit('primitive', 'c') == 'primitive'
+    assert worker.submit('adapted_primitive', 'd') == 'adapted_primitive'
+    assert reason_category('primitive: superseded by a newer primitive before it was '
                            'parsed') == 'superseded'

@@ -48,7 +48,9 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.potential_fields import ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.streaming.latency import LatencyRing
 from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming.streamer import (CouplingSource, ReferenceStreamer, StreamerConfig,
                                               StreamFlags, StreamState)
@@ -128,6 +130,12 @@ class StreamerNode(Node):
                        'coupling_rejected': 0, 'coupled': 0, 'early_ticks': 0,
                        'late_ticks': 0}
         self.active_text = None
+        # which primitive is streamed (issue 13: deterministic restart) and the latency from
+        # an adaptation's trigger stamp to the first reference computed from it
+        self.selection = AdaptationSelector()
+        self._adapt_latency = LatencyRing('adaptation_latency')
+        self._adapt_pending = None  # the switched-in adaptation awaiting its first reference
+        self._adapt_first = {}
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
         self._latency_n = 0
@@ -284,8 +292,11 @@ class StreamerNode(Node):
     def _prepare(self, topic: str, text: str):
         """Worker thread: parse and prepare (no ROS calls, no shared state)."""
         chain = self.chain
-        return prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
-                                 chain.upper, chain.velocity_limits, source=topic)
+        prepared = prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
+                                     chain.upper, chain.velocity_limits, source=topic)
+        if topic != 'primitive':
+            prepared.provenance = read_provenance(prepared.metadata)
+        return prepared
 
     # -- the tick ----------------------------------------------------------------------------
     def _tick_loop(self) -> None:
@@ -344,10 +355,7 @@ class StreamerNode(Node):
             if prepared is None:
                 self.gate.reject(topic, error)
             else:
-                text = self.streamer.activate(prepared, now)
-                log = (self.get_logger().warning if prepared.limit_mismatches
-                       else self.get_logger().info)
-                log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
+                self._switch_in(topic, prepared, now)
         dt = self._dt
         k = int((now - self._t0) / dt)  # the slot that began most recently
         steps = k - self._k
@@ -376,9 +384,41 @@ class StreamerNode(Node):
                 c['coupled'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
+    def _switch_in(self, topic: str, prepared, now: float) -> None:
+        """Tick thread: switch in what :class:`AdaptationSelector` selects (issue 13)."""
+        dec = self.selection.offer(topic, prepared)
+        for _, message in dec.ignored:
+            self.get_logger().warning(message)
+        chosen = dec.activate
+        if chosen is None:
+            return
+        text = self.streamer.activate(chosen, now)
+        log = self.get_logger().warning if chosen.limit_mismatches else self.get_logger().info
+        if dec.provenance is not None:
+            text += f' (generation {dec.provenance.generation}, {dec.provenance.trigger_topic})'
+        log(text + ('; ' + '; '.join(chosen.notes) if chosen.notes else ''))
+        prov = dec.provenance
+        self._adapt_pending = (chosen, prov) if prov and prov.trigger_stamp_ns else None
+
+    def _note_adapted_reference(self, stamp: int) -> None:
+        """The first reference computed from a switched-in adaptation: trigger -> stamp."""
+        prepared, prov = self._adapt_pending
+        if self.streamer.active is not prepared:
+            self._adapt_pending = None  # replaced before it produced a reference
+            return
+        if self.streamer.state is not StreamState.RUNNING:
+            return  # stored while the inputs are stale: its first reference comes later
+        self._adapt_pending = None
+        self._adapt_latency.add((stamp - prov.trigger_stamp_ns) * 1e-6)
+        self._adapt_first = {'adapted_reference_stamp_ns': stamp,
+                             'adapted_trigger_stamp_ns': prov.trigger_stamp_ns,
+                             'adapted_reference_generation': prov.generation}
+
     def _publish_step(self, i: int) -> None:
         st = self.streamer
         stamp = self._stamp0 + round((self._pub_slot0 + i) * self._dt_ns)
+        if self._adapt_pending is not None:
+            self._note_adapted_reference(stamp)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
         if self.controller_pub is not None:  # the same reference, the controller's order
             self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
@@ -407,6 +447,8 @@ class StreamerNode(Node):
             counts = dict(self.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
+            adaptation = dict(self.selection.values(), **self._adapt_latency.values(),
+                              **self._adapt_first)
         level = OK if state is StreamState.RUNNING else WARN
         # the active primitive's limits against the robot's (the tighter ones are used)
         mismatches = active.limit_mismatches if active is not None else ()
@@ -427,7 +469,8 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.coupling_source.min_distance:.4f}',
-                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
+                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **adaptation,
+                **extra,
                 **extra_limits,
                 **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())

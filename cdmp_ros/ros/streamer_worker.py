@@ -1,7 +1,9 @@
 """The streamer's primitive worker: parses and prepares primitive messages off the executor
-and tick threads (the latest message wins), so a large primitive never delays a tick."""
+and tick threads (the latest message of each topic wins), so a large primitive never delays a
+tick. ``primitive`` and ``adapted_primitive`` wait in separate slots: a restarted streamer
+receives both latched messages at once and needs both (issue 13, deterministic restart)."""
 import threading
-from typing import Optional, Tuple
+from typing import Dict, Optional
 
 from cdmp_ros.core.errors import CdmpError
 
@@ -13,16 +15,16 @@ class PrimitiveWorker(threading.Thread):
         super().__init__(name='primitive-worker', daemon=True)
         self._prepare = prepare
         self._cv = threading.Condition()
-        self._pending: Optional[Tuple[str, str]] = None
+        self._pending: Dict[str, str] = {}  # topic -> newest unparsed text
         self._results = []
         self._stopping = False
 
     def submit(self, topic: str, text: str) -> Optional[str]:
-        """Queue ``text``; returns the topic of a waiting message it replaced (never parsed),
-        or None."""
+        """Queue ``text``; returns ``topic`` if it replaced a waiting message of the same topic
+        (never parsed), else None."""
         with self._cv:
-            replaced = self._pending[0] if self._pending is not None else None
-            self._pending = (topic, text)  # coalesce: only the newest counts
+            replaced = topic if topic in self._pending else None
+            self._pending[topic] = text  # coalesce per topic: only the newest counts
             self._cv.notify()
         return replaced
 
@@ -42,12 +44,12 @@ class PrimitiveWorker(threading.Thread):
     def run(self) -> None:
         while True:
             with self._cv:
-                while self._pending is None and not self._stopping:
+                while not self._pending and not self._stopping:
                     self._cv.wait()
                 if self._stopping:
                     return
-                topic, text = self._pending
-                self._pending = None
+                topic = next(iter(self._pending))  # the oldest waiting topic first
+                text = self._pending.pop(topic)
             try:
                 res = (topic, self._prepare(topic, text), None)
             except CdmpError as exc:
