@@ -7,7 +7,13 @@ exogenous space, Eq. 21), and guarantees what the node promises:
 
 - *No jump on a switch*: a new primitive, and a resumption after a stop, restart the stepper
   from the current reference position **and velocity**; a new goal only moves the goal target
-  ``g_0``, which the goal state follows smoothly (Eq. 14/22).
+  ``g_0``, which the goal state follows smoothly (Eq. 14/22). The acceleration of the new
+  stepper at its restart differs from the reference's (another forcing term at phase 0), so a
+  primitive switched in while streaming gets, over ``switch_blend_time``, an extra coupling
+  term that starts at exactly that difference and fades out with a quintic weight
+  (:class:`SwitchBlend`): the acceleration is continuous and changes by at most about
+  ``1.9 |difference| dt / switch_blend_time`` per step. It enters like the obstacle coupling,
+  in the exogenous space (Eq. 21), so the limit guarantee holds during the blend.
 - *Smooth stop on stale inputs*: without fresh ``joint_states`` (``joint_states_timeout``)
   or without a primitive, the reference decelerates to rest along the closed-form profile of
   :class:`SmoothStop` (velocity continuous, zero acceleration at both ends), in the exogenous
@@ -129,6 +135,35 @@ class SmoothStop:
         return s >= 1.0
 
 
+class SwitchBlend:
+    """The fade-out of the acceleration difference at a switch, over ``n_steps`` steps.
+
+    ``corr`` is the difference (reference acceleration before the switch minus the new
+    stepper's at its restart) in the stepper's internal units (``tau^2 xidd``, the units of the
+    coupling input). Step ``i`` adds ``corr * (1 - w(i / n_steps))`` to the coupling input,
+    with ``w(s) = 10 s^3 - 15 s^4 + 6 s^5`` (``w' = w'' = 0`` at both ends): the first
+    acceleration equals the old one and the correction vanishes smoothly.
+    """
+
+    def __init__(self, corr: List[float], base: List[float], n_steps: int):
+        self.corr = corr
+        self.base = list(base)  # the coupling input without the correction
+        self.n_steps = int(n_steps)
+        self.i = 0
+
+    def apply(self, P: List[float]) -> bool:
+        """Write ``base + corr * (1 - w)`` of the next step into ``P``; True when over (then
+        ``P`` is ``base`` again)."""
+        self.i += 1
+        s = self.i / self.n_steps
+        done = s >= 1.0
+        f = 0.0 if done else 1.0 - s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+        base, corr = self.base, self.corr
+        for d in range(len(P)):
+            P[d] = base[d] + f * corr[d]
+        return done
+
+
 class ReferenceStreamer:
     """The streamer's reference generator (see the module docstring).
 
@@ -163,6 +198,9 @@ class ReferenceStreamer:
         self.last_measure: Optional[float] = None
         self.steps = 0
         self._stop: Optional[SmoothStop] = None
+        self._blend: Optional[SwitchBlend] = None
+        self._last: Optional[PreparedPrimitive] = None  # whose stepper ran last
+        self._coupling_joint = [0.0] * n  # the last coupling term [rad/s^2]
         self._calls = 0
         self._coupling_flags = 0
         self._jac_scale: Optional[List[float]] = None
@@ -221,7 +259,10 @@ class ReferenceStreamer:
         if self.state is StreamState.WAITING:
             return f'{prepared.source}: stored; waiting for joint_states to start'
         if self._fresh(now):
+            blend = self.state is StreamState.RUNNING and self._last is not prepared
             jump = self._start_stepper()
+            if blend:
+                self._begin_blend()
             return (f'{prepared.source}: switched in at the current reference'
                     + (f' (start clipped by {jump:.3g} rad to the primitive limits)'
                        if jump > 0 else ''))
@@ -298,12 +339,31 @@ class ReferenceStreamer:
         y = np.asarray(self.y)
         prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
         self._calls = self.config.coupling_decimation  # evaluate at the first step
+        self._blend = None
+        self._last = prep
+        P = prep.stepper.input.coupling
+        for d in range(self.n_dims):
+            P[d] = 0.0  # until the coupling is evaluated at the first step
         self._jac_scale = (prim.transform.y_delta.tolist() if prim.kind == 'cdmp' else None)
         self.state = StreamState.RUNNING
         self.reason = f'streaming the {prep.kind} from {prep.source}'
         return float(np.max(np.abs(np.asarray(prep.stepper.output.y) - y)))
 
+    def _begin_blend(self) -> None:
+        """After a switch while running: fade the acceleration difference out."""
+        n = round(self.config.switch_blend_time / self.config.dt)
+        if n < 1:
+            return
+        stepper = self.active.stepper
+        # the new stepper's first step adds the obstacle coupling again: compare without it
+        a = [self.ydd[d] - stepper.output.ydd[d] - self._coupling_joint[d]
+             for d in range(self.n_dims)]
+        corr = [0.0] * self.n_dims
+        self._to_internal(stepper, a, corr)
+        self._blend = SwitchBlend(corr, stepper.input.coupling, n)
+
     def _begin_stop(self, now: float) -> None:
+        self._blend = None
         self.reason = 'stopping: ' + self._stale_reason(now)
         self._stop = SmoothStop(self.transform, self.y, self.yd, self.config.stop_time)
         self.state = StreamState.STOPPING
@@ -317,6 +377,9 @@ class ReferenceStreamer:
 
     def _step_primitive(self) -> int:
         stepper = self.active.stepper
+        blend = self._blend
+        if blend is not None and blend.apply(stepper.input.coupling):
+            self._blend = None
         out, status = stepper.update(stepper.input)
         self.y[:] = out.y
         self.yd[:] = out.yd
@@ -332,6 +395,13 @@ class ReferenceStreamer:
         an exogenous acceleration that crosses the whole range in one tick.
         """
         P = stepper.input.coupling
+        flags = self._coupling_into_p(stepper, P)
+        if self._blend is not None:  # the coupling changed: the correction is added on top
+            self._blend.base[:] = P
+        return flags
+
+    def _coupling_into_p(self, stepper, P) -> int:
+        cj = self._coupling_joint
         try:
             a = self.coupling(self.y, self.yd)
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
@@ -339,7 +409,7 @@ class ReferenceStreamer:
         n = self.n_dims
         if a is None:
             for d in range(n):
-                P[d] = 0.0
+                P[d] = cj[d] = 0.0
             return 0
         try:
             vals = [float(v) for v in a] if a is not False else []
@@ -347,23 +417,26 @@ class ReferenceStreamer:
             vals = []
         if len(vals) != n or not all(-1e12 < v < 1e12 for v in vals):
             for d in range(n):
-                P[d] = 0.0
+                P[d] = cj[d] = 0.0
             return int(StreamFlags.COUPLING_REJECTED)
+        cj[:] = vals
+        self._to_internal(stepper, vals, P)
+        return int(StreamFlags.COUPLED) if any(v != 0.0 for v in vals) else 0
+
+    def _to_internal(self, stepper, a: Sequence[float], P: List[float]) -> None:
+        """Joint accelerations ``a`` -> the stepper's internal units ``tau^2 xidd`` into ``P``
+        (Eq. 21/29), ``1 - tanh(xi)^2`` floored at :data:`SATURATION_FLOOR`."""
         tau2 = stepper.tau * stepper.tau
         scale = self._jac_scale
         xi = stepper.output.xi
-        any_nonzero = False
         floor = SATURATION_FLOOR
-        for d in range(n):
-            v = vals[d]
-            if v != 0.0:
-                any_nonzero = True
+        for d in range(self.n_dims):
+            v = a[d]
             if scale is not None:  # xidd = ydd / J(xi), J = y_delta (1 - tanh^2), Eq. (28)
                 t = math.tanh(xi[d])
                 s = 1.0 - t * t
                 v = v / max(scale[d] * (s if s > floor else floor), 1e-300)
             P[d] = tau2 * v
-        return int(StreamFlags.COUPLED) if any_nonzero else 0
 
     def _guard(self) -> int:
         flags = 0
