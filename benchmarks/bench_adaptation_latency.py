@@ -132,10 +132,16 @@ def run(args):
     try:
         user.q = prior.mean([0.0])[0]
         user.pub_prim.publish(String(data=dumps_primitive(prior)))
-        if not user.wait(lambda: user.adapted, 90.0):
-            raise SystemExit(f'no adapted primitive within 90 s; see {alog_path}')
-        if not user.wait(lambda: len(log_switches(slog_path)) >= 1, 60.0):
-            raise SystemExit(f'the streamer did not switch the adaptation in; see {slog_path}')
+
+        def first_solve():  # of this run's primitive (not a latched one of an earlier run)
+            with user.lock:
+                return (any(m.get('trigger') == 'primitive' for _, m in user.adapted)
+                        or any(kv.get('trigger') == 'primitive' and 'solve_cpu_ms' in kv
+                               for _, kv in user.states))
+        if not user.wait(first_solve, 90.0):
+            raise SystemExit(f'no adaptation of the primitive within 90 s; see {alog_path}')
+        if not user.wait(lambda: user.refs, 60.0):
+            raise SystemExit(f'no joint_reference within 60 s; see {slog_path}')
         # three spheres: two near the end-effector path, one near the elbow path
         elbow = PointOfInterest('panda_link4')
         centres, radii = [], []
@@ -185,21 +191,27 @@ def run(args):
                                     ref = int(kv['adapted_reference_stamp_ns'])
                                     if ref in user.refs:
                                         return ref, user.refs[ref]
+                                    if time.monotonic() - t > 2.0:  # reported, not received
+                                        return ref, None
                         return None
                     got = user.wait(first_ref, args.timeout)
-                    if got:
+                    if got and got[1] is None:
+                        row['outcome'] = 'reference not received'
+                        row['unverified_ms'] = (got[0] - stamp_ns) * 1e-6
+                    elif got:
                         row['latency_ms'] = (got[0] - stamp_ns) * 1e-6
                         row['received_ms'] = (got[1] - t0) * 1e3
 
-                def solve():
+                def solve():  # the adapter's diagnostics of the request that was published
                     with user.lock:
                         for _, kv in user.states[n_s:]:
-                            if kv.get('trigger') == 'obstacles' and 'solve_cpu_ms' in kv:
+                            if kv.get('request_id') == str(meta.get('request_id')) \
+                                    and 'solve_cpu_ms' in kv:
                                 return float(kv['solve_time_ms']), float(kv['solve_cpu_ms'])
                     return None
                 row['solve_ms'], row['solve_cpu_ms'] = user.wait(solve, 5.0) or (None, None)
             rows.append(row)
-            print(f'event {k + 1}: {outcome}, latency '
+            print(f'event {k + 1}: {row["outcome"]}, latency '
                   f'{row.get("latency_ms", float("nan")):.0f} ms (received '
                   f'{row.get("received_ms", float("nan")):.0f} ms), solve '
                   f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms), load '
