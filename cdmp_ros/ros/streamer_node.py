@@ -387,18 +387,28 @@ class StreamerNode(Node):
     def _switch_in(self, topic: str, prepared, now: float) -> None:
         """Tick thread: switch in what :class:`AdaptationSelector` selects (issue 13)."""
         dec = self.selection.offer(topic, prepared)
-        for _, message in dec.ignored:
-            self.get_logger().warning(message)
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        for counter, message in dec.ignored:
+            if counter == 'adapted_held':
+                self.get_logger().info(message)
+            else:
+                self.get_logger().warning(message)
         chosen = dec.activate
         if chosen is None:
             return
         text = self.streamer.activate(chosen, now)
-        log = self.get_logger().warning if chosen.limit_mismatches else self.get_logger().info
         if dec.provenance is not None:
             text += f' (generation {dec.provenance.generation}, {dec.provenance.trigger_topic})'
-        log(text + ('; ' + '; '.join(chosen.notes) if chosen.notes else ''))
+        text += '; ' + '; '.join(chosen.notes) if chosen.notes else ''
+        if chosen.limit_mismatches:
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
         prov = dec.provenance
-        self._adapt_pending = (chosen, prov) if prov and prov.trigger_stamp_ns else None
+        # timed only when triggered while this streamer runs (not a latched adaptation from
+        # before a restart)
+        self._adapt_pending = ((chosen, prov) if prov and prov.trigger_stamp_ns > self._stamp0
+                               else None)
 
     def _note_adapted_reference(self, stamp: int) -> None:
         """The first reference computed from a switched-in adaptation: trigger -> stamp."""
