@@ -20,6 +20,11 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states).
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
+- Every published primitive carries in ``metadata.adapter`` its provenance
+  (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
+  ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
+  increasing), ``trigger`` and ``trigger_stamp_ns``; the streamer uses it to stream only the
+  newest adaptation of its current primitive.
 
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the

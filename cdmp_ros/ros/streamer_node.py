@@ -12,7 +12,12 @@ switches the prepared stepper in. Every input passes
 :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time size checks before
 deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint count), then the
 per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
-``diagnostics``.
+``diagnostics``. Which prepared primitive is switched in is decided by
+:class:`cdmp_ros.core.streaming.selection.AdaptationSelector` (issue 13: only the newest
+adaptation of the current ``primitive``, in any arrival order; counters ``adapted_ignored_*``,
+``adapted_held``); per switched-in adaptation the node reports the latency from its trigger
+stamp to the stamp of the first reference computed from it (``adaptation_latency_ms_*``,
+``adapted_reference_stamp_ns``).
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
 deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
