@@ -577,3 +577,53 @@ def test_streamer_coupling_uses_the_board_field_when_selected():
                                  box_field=ConstantField(magnitude=2.0, influence_distance=0.1))
     assert isinstance(constant.box_field, ConstantField)
     assert np.abs(np.subtract(constant.joint_acceleration(q, None, [board]), got)).max() > 1e-3
+
+
+# -- acceleration across a switch (issue 13) ---------------------------------------------------
+def fd_acceleration_changes(blend_time, coupling=None, switch_at=400, n=700):
+    """Stream a reach, switch to another primitive at step ``switch_at``; returns the largest
+    tick-to-tick change of the finite-difference acceleration [rad/s^2] before the switch, in
+    the 60 steps after it, and the largest |yd| change over the run."""
+    cfg = StreamerConfig(joint_states_timeout=0.0, switch_blend_time=blend_time)
+    rs = ReferenceStreamer(LOWER, UPPER, cfg, coupling=coupling)
+    if coupling is not None:
+        rs.obstacles = ('an obstacle',)  # the coupling is only asked with obstacles
+    other = np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15])
+    a, b = (prepare_primitive(dumps_primitive(reach_cdmp(Q_START, g, 2.0)), PANDA_JOINTS,
+                              cfg.dt, LOWER, UPPER, VMAX) for g in (Q_GOAL, other))
+    t = 0.0
+    rs.activate(a, t)
+    rec = []
+    for k in range(n):
+        t += cfg.dt
+        if k == switch_at:
+            assert 'switched in' in rs.activate(b, t)
+        rs.advance(1, t)
+        rec.append((list(rs.y), list(rs.yd), rs.state))
+    Y = np.array([r[0] for r in rec])
+    assert np.all((Y > LOWER) & (Y < UPPER))
+    acc = np.diff(Y, 2, axis=0) / cfg.dt ** 2
+    dacc = np.abs(np.diff(acc, axis=0)).max(axis=1)
+    _, dyd = max_step_changes(rec)
+    return dacc[:switch_at - 5].max(), dacc[switch_at - 5:switch_at + 60].max(), dyd.max()
+
+
+class ConstantCoupling:
+    """A Coupling (core/coupling/contract.py) of constant joint acceleration."""
+    last_distances = [0.5]
+
+    def joint_acceleration(self, q, qd, obstacles):
+        return [3.0, -2.0, 2.0, 0.0, 1.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize('coupling', [None, ConstantCoupling()], ids=['free', 'coupled'])
+def test_switch_keeps_the_acceleration_continuous(coupling):
+    normal, jump, _ = fd_acceleration_changes(0.0, coupling)
+    assert jump > 100 * normal  # without blending the acceleration jumps at the switch
+    blend = 0.05
+    normal_b, switched, dyd = fd_acceleration_changes(blend, coupling)
+    assert normal_b == pytest.approx(normal)
+    # the difference fades out with a quintic weight: per step at most 1.875 dt / T of it
+    # (+ the normal change), here about 14 x smaller than the jump
+    assert switched < 1.875 * 0.002 / blend * jump * 1.1 + 2 * normal
+    assert dyd < 0.05  # rad/s per step: velocity continuous throughout

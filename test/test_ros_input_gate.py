@@ -354,13 +354,20 @@ def test_learner_rejects_oversize_input_and_accepts_the_next(tmp_path):
 
 def test_a_primitive_replaced_before_it_was_parsed_is_reported():
     """The streamer's latest-wins worker returns the topic of a waiting message that a newer
-    one replaced, so the node counts it (reason 'superseded') instead of losing it silently."""
+    one of the same topic replaced, so the node counts it (reason 'superseded') instead of
+    losing it silently; primitive and adapted_primitive wait in separate slots (a restarted
+    streamer needs both latched messages)."""
     from cdmp_ros.ros.input_gate import reason_category
     from cdmp_ros.ros.latest_worker import LatestWorker
-    worker = LatestWorker(lambda req: req, lambda req, exc: None, name='test')  # not started
+    worker = LatestWorker(lambda req: req, lambda req, exc: None, name='test',
+                          key=lambda req: req[0])  # as the streamer's; not started
     assert worker.submit(('primitive', 'a')) is None
-    assert worker.submit(('adapted_primitive', 'b')) == ('primitive', 'a')
-    assert worker.submit(('primitive', 'c')) == ('adapted_primitive', 'b')
+    assert worker.submit(('adapted_primitive', 'b')) is None
+    assert worker.submit(('primitive', 'c')) == ('primitive', 'a')
+    assert worker.submit(('adapted_primitive', 'd')) == ('adapted_primitive', 'b')
     assert worker.counts['superseded'] == 2
-    assert reason_category('primitive: superseded by a newer adapted_primitive before it was '
+    single = LatestWorker(lambda req: req, lambda req, exc: None, name='test')  # one slot
+    assert single.submit(('primitive', 'a')) is None
+    assert single.submit(('adapted_primitive', 'b')) == ('primitive', 'a')
+    assert reason_category('primitive: superseded by a newer primitive before it was '
                            'parsed') == 'superseded'

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from conftest import module_domain, wait_for
-from streamer_util import LOWER, UPPER
+from node_harness import LOWER, UPPER
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(33)
@@ -94,7 +94,7 @@ def test_adapter_adapts_within_the_tighter_limits(tmp_path):
         goal = Q_GOAL.copy()
         goal[0] = 2.8
         h.robot_q = Q_START
-        h.publish('goal', h.make_joint_state(goal))
+        h.publish('goal', h.joint_state(goal))
         out = h.wait_adapted(n0, STARTUP, trigger='goal', source=text)
         assert out is not None, (h.states_since(0.0)[-3:], log.read_text())
         assert out['metadata']['adapter']['outcome'] == 'converged'

@@ -1,6 +1,5 @@
 """Validation of the adapter's structured inputs (primitive and constraint-set JSON, Cartesian
 goals); every failure raises :class:`~cdmp_ros.core.errors.ValidationError` naming the field."""
-import hashlib
 import json
 import math
 from typing import Any, Dict, Optional, Sequence
@@ -13,6 +12,7 @@ from cdmp_ros.core.adaptation.constraints.parse import (RobotContext, parse_cons
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import merge_limits
 from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
+from cdmp_ros.core.streaming.selection import primitive_id
 
 
 def decode_json(topic: str, text: str, max_bytes: int) -> Any:
@@ -45,7 +45,7 @@ def parse_primitive(text: str, joint_names: Sequence[str], max_bytes: int) -> Di
     except (ValueError, TypeError, KeyError) as exc:
         raise ValidationError(f'primitive: cannot be used: {exc!r}') from None
     return {'kind': d['kind'], 'd': d, 'prim': prim, 'perm': perm,
-            'sha1': hashlib.sha1(text.encode('utf-8', 'surrogatepass')).hexdigest()}
+            'sha1': primitive_id(text)}
 
 
 def primitive_limits(p: Dict[str, Any], chain):

@@ -26,6 +26,11 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   they bound the joint-limit constraints of a ProMP adaptation and are written as the
   adapted ProMP's ``limits``. A difference is logged as a warning and reported.
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
+- Every published primitive carries in ``metadata.adapter`` its provenance
+  (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
+  ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
+  increasing), ``trigger`` and ``trigger_stamp_ns``; the streamer uses it to stream only the
+  newest adaptation of its current primitive.
 
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
@@ -58,6 +63,7 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, clip_goal, retarget
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches
+from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.core.primitive_io import primitive_from_dict
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
@@ -101,6 +107,7 @@ class AdapterNode(Node):
         # state
         self.primitive = None        # dict: kind, d (validated dict), prim, perm
         self.primitive_id = 0
+        self._generation = 0         # of the last adaptation (ROS time [ns] at the request)
         self.constraint_doc = None
         self.goal_y: Optional[np.ndarray] = None
         self.goal_point: Optional[np.ndarray] = None
@@ -297,16 +304,23 @@ class AdapterNode(Node):
                 self._publish_dmp_visualization(
                     retarget_primitive_dict(p['d'], self.goal_y, self.joint_names))
             else:
-                self._retarget_dmp(topic)
+                self._retarget_dmp(topic, stamp_ns)
             return
         cfg = self.config
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
         req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
                            self.goal_y, start, p['limits'])
         self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
-                               time.monotonic(), self.primitive_id, p['sha1']))
+                               time.monotonic(), self.primitive_id, p['sha1'],
+                               generation=self._next_generation()))
 
-    def _retarget_dmp(self, topic: str) -> None:
+    def _next_generation(self) -> int:
+        """Generation of a new adaptation: the ROS time [ns] now, strictly increasing (also
+        across adapter restarts, as the clock moves on)."""
+        self._generation = max(self.get_clock().now().nanoseconds, self._generation + 1)
+        return self._generation
+
+    def _retarget_dmp(self, topic: str, stamp_ns: int = 0) -> None:
         """DMP / CDMP: publish the primitive with the new goal (same weights)."""
         if self.goal_y is None:
             self._publish_dmp_visualization()
@@ -318,8 +332,9 @@ class AdapterNode(Node):
             self.gate.reject(topic, f'{topic} outside the primitive limits, clipped: '
                                     + ', '.join(self.joint_names[j] for j in clipped))
         d['metadata'] = dict(d.get('metadata') or {})
-        d['metadata']['adapter'] = {'trigger': topic, 'outcome': 'retargeted',
-                                    'source_sha1': p['sha1']}
+        d['metadata']['adapter'] = {'outcome': 'retargeted', 'source_sha1': p['sha1'],
+                                    **Provenance(p['sha1'], self._next_generation(), topic,
+                                                 stamp_ns).as_dict()}
         self.pub.publish(String(data=json.dumps(d)))
         self.counts['published'] += 1
         self._clear_result_values()

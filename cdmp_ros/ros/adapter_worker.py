@@ -25,6 +25,7 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_ban
                                                promp_message, run_request)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError
+from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.ros.latest_worker import LatestWorker
 
 
@@ -39,8 +40,9 @@ class Job:
     trigger_stamp_ns: int         # header stamp of that message (0 if none)
     received: float               # time.monotonic() of the triggering callback
     primitive_id: int = 0         # which received primitive the request adapts
-    source_sha1: str = ''         # SHA-1 of that primitive's JSON text
+    source_sha1: str = ''         # SHA-1 of that primitive's JSON text (its primitive_id)
     id: int = 0
+    generation: int = 0           # adapter ROS time [ns] at the request (issue 13)
 
 
 @dataclass
@@ -59,6 +61,13 @@ class JobResult:
     stale: bool = False
     finished: float = 0.0
     solve_cpu: float = 0.0                # [s], CPU time of the solver thread (time.thread_time)
+
+
+def job_provenance(job: Job) -> Provenance:
+    """What the streamer needs to pick the newest adaptation of its current primitive
+    (:mod:`cdmp_ros.core.streaming.selection`)."""
+    return Provenance(job.source_sha1, int(job.generation), job.trigger,
+                      int(job.trigger_stamp_ns))
 
 
 def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None) -> JobResult:
@@ -82,10 +91,10 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None)
     report = res.report.as_dict()
     adapted.metadata['adaptation'] = report
     adapted.metadata['adapter'] = {
-        'request_id': job.id, 'trigger': job.trigger, 'source_sha1': job.source_sha1,
-        'trigger_stamp_ns': int(job.trigger_stamp_ns), 'outcome': res.outcome,
+        'request_id': job.id, 'source_sha1': job.source_sha1, 'outcome': res.outcome,
         'obstacles_used': res.problem.obstacles_used,
-        'obstacles_ignored': res.problem.obstacles_ignored, 'notes': res.problem.notes}
+        'obstacles_ignored': res.problem.obstacles_ignored, 'notes': res.problem.notes,
+        **job_provenance(job).as_dict()}
     text = promp_message(adapted)
     nc = job.node_config
     path = ee_path(chain, adapted.mean(np.linspace(0.0, 1.0, nc.path_points)))

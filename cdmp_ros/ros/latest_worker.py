@@ -10,6 +10,11 @@ finished while a newer request already waits is *stale* (:meth:`LatestWorker._fi
 receives the flag). ``work`` may raise anything: ``fail(request, exc)`` turns the exception
 into a result and the thread goes on.
 
+With ``key`` (a function of the request), requests of different keys wait in separate slots
+and the latest wins per key: the streamer prepares ``primitive`` and ``adapted_primitive`` this
+way, because a restarted streamer receives both latched messages at once and needs both
+(:mod:`cdmp_ros.core.streaming.selection`). Slots are served oldest first.
+
 Results are collected with :meth:`LatestWorker.take` (from the executor or the tick thread);
 ``notify()`` (e.g. a ROS guard condition's ``trigger``) is called after each result so the
 executor does not poll. No ROS call is made from the worker thread.
@@ -20,7 +25,7 @@ streamer's primitive parsing (``StreamerNode.worker``). The learner's ``~/improv
 long run per service call, refused (not replaced) while another runs, and reports progress.
 """
 import threading
-from typing import Callable, Dict, Generic, List, Optional, TypeVar
+from typing import Callable, Dict, Generic, Hashable, List, Optional, TypeVar
 
 Request = TypeVar('Request')
 Result = TypeVar('Result')
@@ -40,6 +45,9 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
     notify : callable, optional
         Called (from this thread) after each result is queued; an exception it raises (a
         guard condition destroyed at shutdown) ends the thread.
+    key : callable, optional
+        ``key(request)``: requests of different keys do not replace each other (default: one
+        slot for all).
 
     Attributes
     ----------
@@ -51,13 +59,15 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
 
     def __init__(self, work: Callable[[Request], Result],
                  fail: Callable[[Request, Exception], Result], name: str,
-                 notify: Optional[Callable[[], None]] = None):
+                 notify: Optional[Callable[[], None]] = None,
+                 key: Optional[Callable[[Request], Hashable]] = None):
         super().__init__(name=name, daemon=True)
+        self._key = key if key is not None else (lambda request: None)
         self._work = work
         self._fail = fail
         self._notify = notify
         self._cv = threading.Condition()
-        self._pending: Optional[Request] = None
+        self._pending: Dict[Hashable, Request] = {}  # key -> the newest waiting request
         self._results: List[Result] = []
         self._stop_event = threading.Event()  # read without the lock by running work
         self.busy = False
@@ -69,7 +79,9 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
         with self._cv:
             self.counts['received'] += 1
             self._accepted(request, self.counts['received'])
-            replaced, self._pending = self._pending, request
+            k = self._key(request)
+            replaced = self._pending.pop(k, None)
+            self._pending[k] = request  # at the end: slots are served oldest first
             if replaced is not None:
                 self.counts['superseded'] += 1
             self._cv.notify()
@@ -98,11 +110,12 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
         stopping = self._stop_event.is_set
         while True:
             with self._cv:
-                while self._pending is None and not stopping():
+                while not self._pending and not stopping():
                     self._cv.wait()
                 if stopping():
                     return
-                request, self._pending = self._pending, None
+                k = next(iter(self._pending))
+                request = self._pending.pop(k)
                 self.busy = True
             try:
                 result = self._work(request)
@@ -112,7 +125,7 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
                 self.busy = False
                 if stopping():  # the node is shutting down: nobody takes results
                     return
-                stale = self._pending is not None
+                stale = k in self._pending
                 self.counts['done'] += 1
                 self.counts['stale'] += stale
                 self._results.append(self._finished(request, result, stale))

@@ -12,7 +12,12 @@ switches the prepared stepper in. Every input passes
 :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time size checks before
 deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint count), then the
 per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
-``diagnostics``.
+``diagnostics``. Which prepared primitive is switched in is decided by
+:class:`cdmp_ros.core.streaming.selection.AdaptationSelector` (issue 13: only the newest
+adaptation of the current ``primitive``, in any arrival order; counters ``adapted_ignored_*``,
+``adapted_held``); per switched-in adaptation the node reports the latency from its trigger
+stamp to the stamp of the first reference computed from it (``adaptation_latency_ms_*``,
+``adapted_reference_stamp_ns``).
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
 deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
@@ -49,7 +54,9 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.streaming.latency import LatencyRing
 from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
@@ -126,11 +133,20 @@ class StreamerNode(Node):
                             size=marker_count(lambda: cfg_now().max_obstacles))
 
         # primitive messages are parsed and prepared off the executor and tick threads
-        self.worker = LatestWorker(self._prepare, _prepare_failed, name='primitive-worker')
+        # primitive and adapted_primitive in separate slots: a restarted streamer receives both
+        # latched messages at once and needs both (core/streaming/selection.py)
+        self.worker = LatestWorker(self._prepare, _prepare_failed, name='primitive-worker',
+                                   key=lambda request: request[0])
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
                        'coupled': 0}
         self.active_text = None
+        # which primitive is streamed (issue 13: deterministic restart) and the latency from
+        # an adaptation's trigger stamp to the first reference computed from it
+        self.selection = AdaptationSelector()
+        self._adapt_latency = LatencyRing('adaptation_latency')
+        self._adapt_pending = None  # the switched-in adaptation awaiting its first reference
+        self._adapt_first = {}
         # obstacle message stamp -> publication of the first reference computed with it
         self._latency_ms = np.zeros(LATENCY_SAMPLES)
         self._latency_n = 0
@@ -285,8 +301,11 @@ class StreamerNode(Node):
         state); returns ``(topic, prepared, None)``."""
         topic, text = request
         chain = self.chain
-        return topic, prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
-                                        chain.upper, chain.velocity_limits, source=topic), None
+        prepared = prepare_primitive(text, self.streamer.joint_names, self._dt, chain.lower,
+                                     chain.upper, chain.velocity_limits, source=topic)
+        if topic != 'primitive':
+            prepared.provenance = read_provenance(prepared.metadata)
+        return topic, prepared, None
 
     # -- the tick ----------------------------------------------------------------------------
     def _tick_loop(self) -> None:
@@ -340,10 +359,7 @@ class StreamerNode(Node):
             if prepared is None:
                 self.gate.reject(topic, error)
             else:
-                text = self.streamer.activate(prepared, now)
-                log = (self.get_logger().warning if prepared.limit_mismatches
-                       else self.get_logger().info)
-                log(text + ('; ' + '; '.join(prepared.notes) if prepared.notes else ''))
+                self._switch_in(topic, prepared, now)
         first, steps = self.schedule.advance(now, self.config.max_catch_up)
         st = self.streamer
         if st.state is not StreamState.WAITING:
@@ -363,9 +379,52 @@ class StreamerNode(Node):
                 c['coupled'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
+    def _switch_in(self, topic: str, prepared, now: float) -> None:
+        """Tick thread: switch in what :class:`AdaptationSelector` selects (issue 13)."""
+        dec = self.selection.offer(topic, prepared)
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        for counter, message in dec.ignored:
+            if counter == 'adapted_held':
+                self.get_logger().info(message)
+            else:
+                self.get_logger().warning(message)
+        chosen = dec.activate
+        if chosen is None:
+            return
+        text = self.streamer.activate(chosen, now)
+        if dec.provenance is not None:
+            text += f' (generation {dec.provenance.generation}, {dec.provenance.trigger_topic})'
+        text += '; ' + '; '.join(chosen.notes) if chosen.notes else ''
+        if chosen.limit_mismatches:
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
+        prov = dec.provenance
+        # timed only when triggered while this streamer runs (not a latched adaptation from
+        # before a restart)
+        started = self.schedule.stamp0_ns
+        self._adapt_pending = ((chosen, prov) if prov and prov.trigger_stamp_ns > started
+                               else None)
+
+    def _note_adapted_reference(self, stamp: int) -> None:
+        """The first reference computed from a switched-in adaptation: trigger -> stamp."""
+        prepared, prov = self._adapt_pending
+        if self.streamer.active is not prepared:
+            self._adapt_pending = None  # replaced before it produced a reference
+            return
+        if self.streamer.state is not StreamState.RUNNING:
+            return  # stored while the inputs are stale: its first reference comes later
+        self._adapt_pending = None
+        self._adapt_latency.add((stamp - prov.trigger_stamp_ns) * 1e-6)
+        self._adapt_first = {'adapted_reference_stamp_ns': stamp,
+                             'adapted_trigger_stamp_ns': prov.trigger_stamp_ns,
+                             'adapted_reference_generation': prov.generation}
+
     def _publish_step(self, i: int) -> None:
         st = self.streamer
         stamp = self.schedule.stamp_ns(self._pub_slot0 + i)
+        if self._adapt_pending is not None:
+            self._note_adapted_reference(stamp)
         self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
         if self.controller_pub is not None:  # the same reference, the controller's order
             self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
@@ -393,6 +452,8 @@ class StreamerNode(Node):
             counts = dict(self.counts, **self.schedule.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
+            adaptation = dict(self.selection.values(), **self._adapt_latency.values(),
+                              **self._adapt_first)
         level = OK if state is StreamState.RUNNING else WARN
         # the active primitive's limits against the robot's (the tighter ones are used)
         mismatches = active.limit_mismatches if active is not None else ()
@@ -413,7 +474,8 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
-                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **extra,
+                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **adaptation,
+                **extra,
                 **extra_limits,
                 **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())

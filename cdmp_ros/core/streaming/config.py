@@ -37,6 +37,11 @@ class StreamerConfig:
         'holds. 0 disables the check (open loop: the reference starts at the primitive start).',
         0.0, 60.0)
     stop_time: float = _param(0.5, 'Duration of the smooth stop [s].', 0.01, 10.0)
+    switch_blend_time: float = _param(
+        0.05, 'A primitive switched in while streaming starts with the acceleration of the '
+        'reference; the difference fades out over this time [s] (quintic weight, as a coupling '
+        'term: limits kept). 0: position and velocity continuous, the acceleration jumps.',
+        0.0, 1.0)
     max_catch_up: int = _param(
         10, 'Integration steps made at most in one tick after a late timer callback.', 1, 1000)
     limit_margin: float = _param(

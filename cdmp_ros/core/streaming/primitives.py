@@ -19,6 +19,7 @@ from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import LimitMismatch, describe_mismatches, merge_limits
 from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
 from cdmp_ros.core.dmp.stepper import DmpStepper
+from cdmp_ros.core.streaming.selection import primitive_id
 from cdmp_ros.core.validation import check_limits
 
 #: Samples per second of the ProMP mean used to fit the streaming CDMP (at least 100).
@@ -44,6 +45,14 @@ class PreparedPrimitive:
         Non-fatal remarks (reordered joints, ProMP converted, limits differing, ...).
     limit_mismatches : list of LimitMismatch
         Where the primitive's limits differ from the robot's (the tighter ones are used).
+    content_id : str
+        :func:`~cdmp_ros.core.streaming.selection.primitive_id` of the received JSON text
+        ('' when prepared from a dict).
+    metadata : dict
+        The received ``metadata`` (provenance; the adapter's ``metadata.adapter``).
+    provenance : Provenance or None
+        Of an adapted primitive (set by the streamer from ``metadata``; see
+        :mod:`cdmp_ros.core.streaming.selection`).
     """
 
     prim: Any
@@ -52,6 +61,9 @@ class PreparedPrimitive:
     source: str
     notes: List[str]
     limit_mismatches: List[LimitMismatch] = field(default_factory=list)
+    content_id: str = ''
+    metadata: Dict[str, Any] = field(default_factory=dict)
+    provenance: Any = None
 
     @property
     def goal_y(self) -> NDArray[np.float64]:
@@ -197,4 +209,7 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
         raise
     except (ValueError, TypeError, KeyError, np.linalg.LinAlgError) as exc:
         raise PrimitiveFileError(f'{source}: cannot be streamed: {exc}') from None
-    return PreparedPrimitive(prim, stepper, d['kind'], source, notes, mismatches)
+    meta = d.get('metadata')
+    return PreparedPrimitive(prim, stepper, d['kind'], source, notes, mismatches,
+                             '' if isinstance(payload, dict) else primitive_id(payload),
+                             meta if isinstance(meta, dict) else {})

@@ -7,7 +7,15 @@ exogenous space, Eq. 21), and guarantees what the node promises:
 
 - *No jump on a switch*: a new primitive, and a resumption after a stop, restart the stepper
   from the current reference position **and velocity**; a new goal only moves the goal target
-  ``g_0``, which the goal state follows smoothly (Eq. 14/22).
+  ``g_0``, which the goal state follows smoothly (Eq. 14/22). The acceleration of the new
+  stepper at its restart differs from the reference's (another forcing term at phase 0), so a
+  primitive switched in while streaming gets, over ``switch_blend_time``, an extra joint
+  acceleration that starts at exactly that difference and fades out with a quintic weight
+  (:class:`SwitchBlend`): the acceleration is continuous and changes by at most about
+  ``1.9 |difference| dt / switch_blend_time`` per step. It is added to the obstacle
+  coupling's joint acceleration and enters the stepper like it (mapped into the exogenous
+  space by ``DmpStepper.set_joint_coupling``, Eq. 21), so the limit guarantee holds during
+  the blend.
 - *Smooth stop on stale inputs*: without fresh ``joint_states`` (``joint_states_timeout``)
   or without a primitive, the reference decelerates to rest along the closed-form profile of
   :class:`SmoothStop` (velocity continuous, zero acceleration at both ends), in the exogenous
@@ -130,6 +138,31 @@ class SmoothStop:
         return s >= 1.0
 
 
+class SwitchBlend:
+    """The fade-out of the acceleration difference at a switch, over ``n_steps`` steps.
+
+    ``corr`` is the joint-space difference (reference acceleration before the switch minus the
+    new stepper's at its restart, without the obstacle coupling). Step ``i`` adds
+    ``corr * (1 - w(i / n_steps))`` to the coupling's joint acceleration, with
+    ``w(s) = 10 s^3 - 15 s^4 + 6 s^5`` (``w' = w'' = 0`` at both ends): the first acceleration
+    equals the old one and the correction vanishes smoothly.
+    """
+
+    def __init__(self, corr: List[float], n_steps: int):
+        self.corr = corr
+        self.n_steps = int(n_steps)
+        self.i = 0
+
+    def next_weight(self) -> Tuple[float, bool]:
+        """The weight ``1 - w`` of the next step's correction, and whether the blend is over
+        (the weight is then 0)."""
+        self.i += 1
+        s = self.i / self.n_steps
+        if s >= 1.0:
+            return 0.0, True
+        return 1.0 - s * s * s * (10.0 - 15.0 * s + 6.0 * s * s), False
+
+
 class ReferenceStreamer:
     """The streamer's reference generator (see the module docstring).
 
@@ -177,6 +210,10 @@ class ReferenceStreamer:
         self._stop: Optional[SmoothStop] = None
         self._calls = 0
         self._coupling_flags = 0
+        self._blend: Optional[SwitchBlend] = None
+        self._last: Optional[PreparedPrimitive] = None   # the primitive last started
+        self._coupling_joint = [0.0] * n   # the obstacle coupling's joint acceleration
+        self._blended = [0.0] * n          # that plus the switch correction
 
     # -- configuration ------------------------------------------------------------------------
     def set_config(self, config: StreamerConfig) -> None:
@@ -232,7 +269,10 @@ class ReferenceStreamer:
         if self.state is StreamState.WAITING:
             return f'{prepared.source}: stored; waiting for joint_states to start'
         if self._fresh(now):
+            blend = self.state is StreamState.RUNNING and self._last is not prepared
             jump = self._start_stepper()
+            if blend:
+                self._begin_blend()
             return (f'{prepared.source}: switched in at the current reference'
                     + (f' (start clipped by {jump:.3g} rad to the primitive limits)'
                        if jump > 0 else ''))
@@ -309,11 +349,29 @@ class ReferenceStreamer:
         y = np.asarray(self.y)
         prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
         self._calls = self.config.coupling_decimation  # evaluate at the first step
+        self._blend = None
+        self._last = prep
+        # P = 0 until the coupling is evaluated (at the first step); _coupling_joint keeps
+        # the last evaluation, which the blend of a switch compares against
+        prep.stepper.set_joint_coupling(None)
         self.state = StreamState.RUNNING
         self.reason = f'streaming the {prep.kind} from {prep.source}'
         return float(np.max(np.abs(np.asarray(prep.stepper.output.y) - y)))
 
+    def _begin_blend(self) -> None:
+        """After a switch while running: fade the acceleration difference out."""
+        n = round(self.config.switch_blend_time / self.config.dt)
+        if n < 1:
+            return
+        stepper = self.active.stepper
+        # the new stepper's first step adds the obstacle coupling again: compare without it
+        corr = [self.ydd[d] - stepper.output.ydd[d] - self._coupling_joint[d]
+                for d in range(self.n_dims)]
+        if all(math.isfinite(v) for v in corr):
+            self._blend = SwitchBlend(corr, n)
+
     def _begin_stop(self, now: float) -> None:
+        self._blend = None
         self.reason = 'stopping: ' + self._stale_reason(now)
         self._stop = SmoothStop(self.transform, self.y, self.yd, self.config.stop_time)
         self.state = StreamState.STOPPING
@@ -327,6 +385,15 @@ class ReferenceStreamer:
 
     def _step_primitive(self) -> int:
         stepper = self.active.stepper
+        blend = self._blend
+        if blend is not None:
+            f, done = blend.next_weight()
+            b, cj, corr = self._blended, self._coupling_joint, blend.corr
+            for d in range(self.n_dims):
+                b[d] = cj[d] + f * corr[d]
+            stepper.set_joint_coupling(b)
+            if done:
+                self._blend = None
         out, status = stepper.update(stepper.input)
         self.y[:] = out.y
         self.yd[:] = out.yd
@@ -337,9 +404,11 @@ class ReferenceStreamer:
         """The coupling at the reference for the current obstacles, handed to the stepper
         (which maps it into its exogenous space, capped near saturation); never raises."""
         obstacles = self.obstacles
+        cj = self._coupling_joint
         if not obstacles:
             self.min_distance = math.inf
             stepper.set_joint_coupling(None)
+            cj[:] = [0.0] * self.n_dims
             return 0
         coupling = self.coupling
         try:
@@ -348,6 +417,10 @@ class ReferenceStreamer:
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
             a = ()
         result = stepper.set_joint_coupling(a)
+        if result is CouplingResult.APPLIED:
+            cj[:] = [float(v) for v in a]
+        else:
+            cj[:] = [0.0] * self.n_dims
         if result is CouplingResult.REJECTED:
             return int(StreamFlags.COUPLING_REJECTED)
         return int(StreamFlags.COUPLED) if result is CouplingResult.APPLIED else 0

@@ -1,0 +1,270 @@
+"""Obstacle message -> first joint_reference computed from the adapted ProMP, across processes.
+
+Issue 13 item 1. Starts the adapter (``config/adapter.yaml``) and the streamer
+(``config/streamer.yaml``) as two processes; this process is the user and the robot: it
+publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_states`` at 100 Hz
+echoing the last ``joint_reference`` (a perfect robot), then ``--n`` obstacle events, one at a
+time: a MarkerArray of ``--spheres`` spheres (default 3, radius 5-10 cm; near the prior mean
+end-effector path, the last near the elbow path, as panda_problem), each event placing every
+sphere N(0, 2 cm) around its place, so the adapter re-solves the problem with limits and the
+spheres on the end effector and panda_link4.
+
+For each event it records the latency from the obstacle stamp (= publish time, same host
+clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
+After the change of issue 13 the streamer reports that stamp on ``diagnostics``
+(``adapted_reference_stamp_ns`` with ``adapted_trigger_stamp_ns`` = the obstacle stamp); the
+benchmark checks it received a ``joint_reference`` with that stamp and also gives the time at
+which it received it. ``--before`` measures code without those keys (``--code DIR``: a tree
+of an older commit): the switch is then read from the streamer's log line
+``adapted_primitive: switched in`` (its ROS-time log stamp; the first reference of the new
+primitive is computed in the same tick). The adapter's ``solve_time_ms`` / ``solve_cpu_ms``
+(CPU time of its solver thread: the solve on an idle core) and the load average are printed
+beside every event.
+
+Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
+Bounded: start-up + n * (at most --timeout) seconds.
+
+    .venv/bin/python benchmarks/bench_adaptation_latency.py [--n 25] [--seed 0] [--domain 133]
+        [--code DIR --before] [--param adaptation.n_steps:=30 ...]
+"""
+import argparse
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+sys.path.insert(0, os.path.join(REPO, 'benchmarks'))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+import numpy as np  # noqa: E402
+
+from bench_adapter import User, child_env, panda_prior  # noqa: E402
+
+SWITCH_LINE = re.compile(r'\[INFO\] \[(\d+)\.(\d+)\] \[streamer\]: adapted_primitive: switched in')
+
+
+class Robot(User):
+    """bench_adapter's user plus a joint_reference listener that echoes it as joint_states."""
+
+    def __init__(self, domain):
+        super().__init__(domain)
+        from sensor_msgs.msg import JointState
+        from cdmp_ros.ros import qos
+        self.refs = {}  # stamp ns -> receive time.monotonic()
+        self.node.create_subscription(JointState, 'joint_reference', self._on_ref,
+                                      qos.REFERENCE)
+
+    def _on_ref(self, msg):
+        t = time.monotonic()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        with self.lock:
+            self.refs[stamp] = t
+            self.q = np.array(msg.position)
+
+    def streamer_state(self, since):
+        with self.lock:
+            return [kv for t, kv in self.states if t >= since and 'adapted_generation' in kv]
+
+    def sphere_markers(self, centres, radii, stamp):
+        from visualization_msgs.msg import MarkerArray
+        ms = []
+        for i, (c, r) in enumerate(zip(centres, radii)):
+            m = self.sphere(c, r, stamp).markers[0]
+            m.id = i + 1
+            ms.append(m)
+        return MarkerArray(markers=ms)
+
+
+def start(code, module, params_file, params, domain, log):
+    cmd = [sys.executable, '-m', module, '--ros-args', '--params-file',
+           os.path.join(code, 'config', params_file)]
+    for p in params:
+        cmd += ['-p', p]
+    env = child_env(domain)
+    env['PYTHONPATH'] = code
+    return subprocess.Popen(cmd, env=env, cwd=code, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def stop(proc):
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+
+
+def log_switches(path):
+    """ROS-time stamps [ns] of the streamer's 'adapted_primitive: switched in' log lines."""
+    try:
+        text = open(path).read()
+    except OSError:
+        return []
+    return [int(a) * 1_000_000_000 + int(b.ljust(9, '0')[:9])
+            for a, b in SWITCH_LINE.findall(text)]
+
+
+def run(args):
+    from std_msgs.msg import String
+    from cdmp_ros.core.adaptation.requests import ee_path
+    from cdmp_ros.core.kinematics import PointOfInterest
+    from cdmp_ros.core.primitive_io import dumps_primitive
+    rng = np.random.default_rng(args.seed)
+    prior, chain = panda_prior(rng)
+    code = os.path.abspath(args.code)
+    logdir = args.logdir or '/tmp'
+    alog_path = os.path.join(logdir, f'bench_adaptlat_adapter_{os.getpid()}.log')
+    slog_path = os.path.join(logdir, f'bench_adaptlat_streamer_{os.getpid()}.log')
+    alog, slog = open(alog_path, 'w'), open(slog_path, 'w')
+    procs = [start(code, 'cdmp_ros.nodes.adapter', 'adapter.yaml', args.param, args.domain,
+                   alog),
+             start(code, 'cdmp_ros.nodes.streamer', 'streamer.yaml',
+                   ['diagnostics_period:=0.1'] + args.streamer_param, args.domain, slog)]
+    user = Robot(args.domain)
+    rows = []
+    try:
+        user.q = prior.mean([0.0])[0]
+        user.pub_prim.publish(String(data=dumps_primitive(prior)))
+
+        def first_solve():  # of this run's primitive (not a latched one of an earlier run)
+            with user.lock:
+                return (any(m.get('trigger') == 'primitive' for _, m in user.adapted)
+                        or any(kv.get('trigger') == 'primitive' and 'solve_cpu_ms' in kv
+                               for _, kv in user.states))
+        if not user.wait(first_solve, 90.0):
+            raise SystemExit(f'no adaptation of the primitive within 90 s; see {alog_path}')
+        if not user.wait(lambda: user.refs, 60.0):
+            raise SystemExit(f'no joint_reference within 60 s; see {slog_path}')
+        # three spheres: two near the end-effector path, one near the elbow path
+        elbow = PointOfInterest('panda_link4')
+        centres, radii = [], []
+        for k in range(args.spheres):
+            s = rng.uniform(0.3, 0.7)
+            q = prior.mean([s])
+            x = (ee_path(chain, q)[0] if k < args.spheres - 1 or args.spheres == 1
+                 else chain.forward(q, [elbow])[0, 0])
+            centres.append(x + rng.normal(0.0, 0.04, 3))
+            radii.append(rng.uniform(0.05, 0.1))
+        base = np.array(centres)
+        for k in range(args.n):
+            centres = base + rng.normal(0.0, 0.02, base.shape)  # moved around its place
+            with user.lock:
+                n_a, n_s = len(user.adapted), len(user.states)
+            n_sw = len(log_switches(slog_path))
+            load = os.getloadavg()[0]
+            stamp = user.node.get_clock().now()
+            stamp_ns = stamp.nanoseconds
+            t0 = time.monotonic()
+            user.pub_obs.publish(user.sphere_markers(centres, radii, stamp.to_msg()))
+
+            def adapted():
+                with user.lock:
+                    for t, meta in user.adapted[n_a:]:
+                        if meta.get('trigger_stamp_ns') == stamp_ns:
+                            return meta
+                    for t, kv in user.states[n_s:]:
+                        if kv.get('outcome') in ('infeasible', 'unconverged', 'rejected') \
+                                and kv.get('trigger') == 'obstacles' and 'adapted_generation' \
+                                not in kv:
+                            return {'outcome': kv['outcome']}
+                return None
+            meta = user.wait(adapted, args.timeout)
+            outcome = (meta or {}).get('outcome', 'timeout')
+            row = {'k': k + 1, 'outcome': outcome, 'load': load}
+            if meta and outcome == 'converged':
+                if args.before:
+                    sw = user.wait(lambda: log_switches(slog_path)[n_sw:], args.timeout)
+                    if sw:
+                        row['latency_ms'] = (sw[0] - stamp_ns) * 1e-6
+                else:
+                    def first_ref():
+                        with user.lock:
+                            for t, kv in user.states[n_s:]:
+                                if kv.get('adapted_trigger_stamp_ns') == str(stamp_ns):
+                                    ref = int(kv['adapted_reference_stamp_ns'])
+                                    if ref in user.refs:
+                                        return ref, user.refs[ref]
+                                    if time.monotonic() - t > 2.0:  # reported, not received
+                                        return ref, None
+                        return None
+                    got = user.wait(first_ref, args.timeout)
+                    if got and got[1] is None:
+                        row['outcome'] = 'reference not received'
+                        row['unverified_ms'] = (got[0] - stamp_ns) * 1e-6
+                    elif got:
+                        row['latency_ms'] = (got[0] - stamp_ns) * 1e-6
+                        row['received_ms'] = (got[1] - t0) * 1e3
+
+                def solve():  # the adapter's diagnostics of the request that was published
+                    with user.lock:
+                        for _, kv in user.states[n_s:]:
+                            if kv.get('request_id') == str(meta.get('request_id')) \
+                                    and 'solve_cpu_ms' in kv:
+                                return float(kv['solve_time_ms']), float(kv['solve_cpu_ms'])
+                    return None
+                row['solve_ms'], row['solve_cpu_ms'] = user.wait(solve, 5.0) or (None, None)
+            rows.append(row)
+            print(f'event {k + 1}: {row["outcome"]}, latency '
+                  f'{row.get("latency_ms", float("nan")):.0f} ms (received '
+                  f'{row.get("received_ms", float("nan")):.0f} ms), solve '
+                  f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms), load '
+                  f'{load:.1f}', file=sys.stderr, flush=True)
+            time.sleep(args.gap)
+    finally:
+        user.close()
+        for p in procs:
+            stop(p)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--n', type=int, default=25, help='obstacle events (one at a time)')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--domain', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 133)))
+    ap.add_argument('--timeout', type=float, default=15.0, help='s to wait per event')
+    ap.add_argument('--spheres', type=int, default=3,
+                    help='spheres per event (the last near the elbow path when > 1)')
+    ap.add_argument('--gap', type=float, default=0.5, help='s between events')
+    ap.add_argument('--code', default=REPO, help='tree the nodes run from (default: this one)')
+    ap.add_argument('--before', action='store_true',
+                    help='code without the adaptation diagnostics: read the streamer log')
+    ap.add_argument('--param', action='append', default=[],
+                    help='adapter parameter name:=value (repeatable)')
+    ap.add_argument('--streamer-param', action='append', default=[],
+                    help='streamer parameter name:=value (repeatable)')
+    ap.add_argument('--logdir', default='', help='directory of the node logs (default /tmp)')
+    args = ap.parse_args()
+    print(f'machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}; code '
+          f'{args.code}{" (before)" if args.before else ""}; adapter: config/adapter.yaml '
+          f'{" ".join(args.param)}')
+    rows = run(args)
+    lat = np.array([r['latency_ms'] for r in rows if 'latency_ms' in r])
+    cpu = np.array([r['solve_cpu_ms'] for r in rows if r.get('solve_cpu_ms') is not None])
+    wall = np.array([r['solve_ms'] for r in rows if r.get('solve_ms') is not None])
+    over = np.array([r['latency_ms'] - r['solve_ms'] for r in rows
+                     if 'latency_ms' in r and r.get('solve_ms') is not None])
+    loads = [r['load'] for r in rows]
+
+    def pct(a, q):
+        return f'{np.percentile(a, q):.0f}' if a.size else '-'
+    print()
+    print('| events | adapted and streamed | latency p50 / p95 / max [ms] | <= 100 ms | '
+          'solve wall p50 [ms] | solve CPU p50 / p95 [ms] | latency - solve wall p50 / p95 '
+          '[ms] | load average |')
+    print('|---|---|---|---|---|---|---|---|')
+    within = f'{np.mean(lat <= 100.0) * 100:.0f} %' if lat.size else '-'
+    print(f'| {len(rows)} | {lat.size} | {pct(lat, 50)} / {pct(lat, 95)} / {pct(lat, 100)} | '
+          f'{within} | {pct(wall, 50)} | {pct(cpu, 50)} / {pct(cpu, 95)} | '
+          f'{pct(over, 50)} / {pct(over, 95)} | {min(loads):.1f}-{max(loads):.1f} |')
+
+
+if __name__ == '__main__':
+    main()

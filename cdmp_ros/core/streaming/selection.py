@@ -1,0 +1,211 @@
+"""Which received primitive the streamer streams: the deterministic-restart rule (issue 13).
+
+The streamer receives two latched topics, ``primitive`` (from the learner) and
+``adapted_primitive`` (from the adapter), in any order, for example both at once after a
+restart. Every adapted primitive names, in ``metadata.adapter``, the primitive it adapts
+(``source_id``: :func:`primitive_id` of the ``primitive`` message it was computed from, so the
+adapter and the streamer compute the same id without the learner's help), a ``generation``
+that increases with every adaptation and across adapter restarts (the adapter's ROS time in ns
+at the request), and its ``trigger`` (the topic of the message that caused it) with
+``trigger_stamp_ns`` (that message's header stamp, 0 if it had none). The keys are flat, so the
+``trigger`` / ``trigger_stamp_ns`` the adapter wrote before keep their meaning.
+
+:class:`AdaptationSelector` decides, without ROS:
+
+- a ``primitive`` becomes the current one and is streamed, unless it is the current one
+  again while an adaptation of it is streamed (a re-publication does not undo the adaptation);
+- an adapted primitive of the current primitive is streamed if its generation is newer than
+  the streamed adaptation's, else ignored (``adapted_ignored_old``);
+- an adapted primitive of a primitive received before the current one is dropped
+  (``adapted_ignored_stale``);
+- an adapted primitive of a primitive not received yet is held (the newest generation only)
+  and streamed when its source arrives; a primitive other than its source drops it as stale;
+- an adapted primitive without provenance (``metadata.adapter.source_id``; not from the
+  adapter) is streamed as it comes, as before (``adapted_unversioned``).
+"""
+import hashlib
+from dataclasses import dataclass, field
+from typing import Any, Generic, List, Mapping, Optional, Tuple, TypeVar, Union
+
+from cdmp_ros.core.errors import PrimitiveFileError
+
+#: Ids of earlier primitives remembered to recognise an adaptation of an older primitive.
+MAX_KNOWN_IDS = 64
+
+Item = TypeVar('Item')
+
+
+def primitive_id(text: Union[str, bytes]) -> str:
+    """The id of a primitive message: SHA-1 (hex) of its JSON text (``std_msgs/String.data``),
+    UTF-8 encoded. The adapter stamps it as ``metadata.adapter.source_id``."""
+    if isinstance(text, str):
+        text = text.encode('utf-8', 'surrogatepass')
+    return hashlib.sha1(text).hexdigest()
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """What an adapted primitive says about its origin (``metadata.adapter``).
+
+    Attributes
+    ----------
+    source_id : str
+        :func:`primitive_id` of the adapted ``primitive`` message.
+    generation : int
+        Increases with every adaptation, also across adapter restarts [ns of the adapter's
+        ROS clock at the request].
+    trigger_topic : str
+        Topic whose message caused the adaptation (``obstacles``, ``goal``, ...).
+    trigger_stamp_ns : int
+        Header stamp of that message [ns]; 0 when it had none (a new primitive, constraints).
+    """
+
+    source_id: str
+    generation: int
+    trigger_topic: str = ''
+    trigger_stamp_ns: int = 0
+
+    def as_dict(self) -> dict:
+        """The ``metadata.adapter`` entries (``source_id``, ``generation``, ``trigger``,
+        ``trigger_stamp_ns``)."""
+        return {'source_id': self.source_id, 'generation': int(self.generation),
+                'trigger': self.trigger_topic, 'trigger_stamp_ns': int(self.trigger_stamp_ns)}
+
+
+def read_provenance(metadata: Optional[Mapping[str, Any]]) -> Optional[Provenance]:
+    """The :class:`Provenance` in ``metadata.adapter``; None if it has no ``source_id``.
+
+    Raises
+    ------
+    PrimitiveFileError
+        When ``source_id``, ``generation``, ``trigger`` or ``trigger_stamp_ns`` are present
+        but malformed.
+    """
+    adapter = (metadata or {}).get('adapter') if isinstance(metadata, Mapping) else None
+    if not isinstance(adapter, Mapping) or 'source_id' not in adapter:
+        return None
+    sid, gen = adapter['source_id'], adapter.get('generation')
+    if not isinstance(sid, str) or not sid:
+        raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.source_id: expected a '
+                                 f'non-empty string, got {sid!r}')
+    if isinstance(gen, bool) or not isinstance(gen, int) or gen < 0:
+        raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.generation: expected a '
+                                 f'non-negative integer, got {gen!r}')
+    topic, stamp = adapter.get('trigger', ''), adapter.get('trigger_stamp_ns', 0)
+    if not isinstance(topic, str):
+        raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.trigger: expected a '
+                                 f'topic name, got {topic!r}')
+    if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0:
+        raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.trigger_stamp_ns: '
+                                 f'expected a non-negative integer, got {stamp!r}')
+    return Provenance(sid, gen, topic, stamp)
+
+
+@dataclass
+class Decision(Generic[Item]):
+    """Outcome of an offer: the item to switch in (or None) and what was ignored.
+
+    Attributes
+    ----------
+    activate : Item or None
+        Switch this one in now.
+    provenance : Provenance or None
+        Provenance of ``activate`` when it is an adaptation.
+    ignored : list of (str, str)
+        ``(counter, message)`` of every item dropped or held by this offer, for diagnostics.
+    """
+
+    activate: Optional[Item] = None
+    provenance: Optional[Provenance] = None
+    ignored: List[Tuple[str, str]] = field(default_factory=list)
+
+
+class AdaptationSelector(Generic[Item]):
+    """The deterministic-restart rule of the module docstring (no ROS, no clock).
+
+    Items are opaque (the streamer passes prepared primitives); the selector only reads the
+    ids given with them. Counters: ``adapted_ignored_stale``, ``adapted_ignored_old``,
+    ``adapted_held``, ``adapted_unversioned``, ``primitive_unchanged``.
+    """
+
+    def __init__(self):
+        self.current_id: Optional[str] = None
+        self.streamed: Optional[Provenance] = None  # the adaptation streamed now (if any)
+        self._held: Optional[Tuple[Provenance, Item]] = None
+        self._known: List[str] = []
+        self.counts = {'adapted_ignored_stale': 0, 'adapted_ignored_old': 0, 'adapted_held': 0,
+                       'adapted_unversioned': 0, 'primitive_unchanged': 0}
+
+    @property
+    def held(self) -> Optional[Provenance]:
+        """Provenance of the adaptation waiting for its source, if any."""
+        return self._held[0] if self._held is not None else None
+
+    def offer_primitive(self, pid: str, item: Item) -> Decision:
+        """A prepared ``primitive`` with id ``pid`` (:func:`primitive_id`)."""
+        if pid == self.current_id and self.streamed is not None:
+            self.counts['primitive_unchanged'] += 1
+            return Decision(ignored=[('primitive_unchanged',
+                                      f'primitive: unchanged (id {pid[:12]}); the adaptation '
+                                      f'of generation {self.streamed.generation} stays')])
+        self.current_id, self.streamed = pid, None
+        if pid in self._known:
+            self._known.remove(pid)
+        self._known.append(pid)
+        del self._known[:-MAX_KNOWN_IDS]
+        dec = Decision(activate=item)
+        if self._held is not None:
+            prov, held_item = self._held
+            self._held = None
+            if prov.source_id == pid:
+                self.streamed = prov
+                return Decision(activate=held_item, provenance=prov)
+            dec.ignored.append(self._stale(prov))
+        return dec
+
+    def offer_adapted(self, prov: Optional[Provenance], item: Item) -> Decision:
+        """A prepared ``adapted_primitive`` with its provenance (None: unversioned)."""
+        if prov is None:
+            self.counts['adapted_unversioned'] += 1
+            self.streamed = None
+            return Decision(activate=item)
+        if prov.source_id == self.current_id:
+            if self.streamed is not None and prov.generation <= self.streamed.generation:
+                self.counts['adapted_ignored_old'] += 1
+                return Decision(ignored=[(
+                    'adapted_ignored_old',
+                    f'adapted_primitive: generation {prov.generation} is not newer than the '
+                    f'streamed {self.streamed.generation}; ignored')])
+            self.streamed = prov
+            return Decision(activate=item, provenance=prov)
+        if prov.source_id in self._known:
+            return Decision(ignored=[self._stale(prov)])
+        # its source has not arrived yet: hold the newest such adaptation
+        if self._held is not None and self._held[0].generation >= prov.generation:
+            self.counts['adapted_ignored_old'] += 1
+            return Decision(ignored=[(
+                'adapted_ignored_old', f'adapted_primitive: generation {prov.generation} is '
+                f'older than the held {self._held[0].generation}; ignored')])
+        self._held = (prov, item)
+        self.counts['adapted_held'] += 1
+        return Decision(ignored=[('adapted_held', f'adapted_primitive: held until its source '
+                                  f'primitive (id {prov.source_id[:12]}) arrives')])
+
+    def offer(self, topic: str, item) -> Decision:
+        """Dispatch a prepared primitive by topic: ``primitive`` uses ``item.content_id``,
+        any other topic (``adapted_primitive``) ``item.provenance``."""
+        if topic == 'primitive':
+            return self.offer_primitive(item.content_id, item)
+        return self.offer_adapted(item.provenance, item)
+
+    def values(self) -> dict:
+        """Diagnostics key/values: the counters, the current primitive id and the streamed
+        adaptation's generation."""
+        return dict(self.counts, primitive_id=(self.current_id or 'none')[:12],
+                    adapted_generation=(self.streamed.generation if self.streamed else 'none'))
+
+    def _stale(self, prov: Provenance) -> Tuple[str, str]:
+        self.counts['adapted_ignored_stale'] += 1
+        return ('adapted_ignored_stale',
+                f'adapted_primitive: adapts primitive {prov.source_id[:12]}, not the current '
+                f'{(self.current_id or "none")[:12]}; dropped (generation {prov.generation})')
