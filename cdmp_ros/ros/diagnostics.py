@@ -19,25 +19,11 @@ import math
 import time
 from typing import Dict, List, Optional, Tuple
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
 ERROR = DiagnosticStatus.ERROR
-#: Obstacle-to-reference latencies kept for the streamer's diagnostics percentiles (a ring).
-LATENCY_SAMPLES = 4096
-
-
-def latency_values(n_total: int, lat) -> dict:
-    """Obstacle message stamp -> first joint_reference published with it, over the last
-    :data:`LATENCY_SAMPLES` obstacle messages (ms), as diagnostics key/values."""
-    if n_total == 0:
-        return {'obstacle_latency_n': 0}
-    p50, p99, top = np.percentile(lat, [50.0, 99.0, 100.0])
-    return {'obstacle_latency_n': n_total,
-            'obstacle_latency_ms_p50': f'{p50:.3f}', 'obstacle_latency_ms_p99': f'{p99:.3f}',
-            'obstacle_latency_ms_max': f'{top:.3f}'}
 
 
 class _Timing:

@@ -64,8 +64,7 @@ from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig,
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
-from cdmp_ros.ros.diagnostics import (LATENCY_SAMPLES, OK, WARN, DiagnosticsReporter,
-                                      latency_values)
+from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
 from cdmp_ros.ros.latest_worker import LatestWorker
@@ -148,8 +147,7 @@ class StreamerNode(Node):
         self._adapt_pending = None  # the switched-in adaptation awaiting its first reference
         self._adapt_first = {}
         # obstacle message stamp -> publication of the first reference computed with it
-        self._latency_ms = np.zeros(LATENCY_SAMPLES)
-        self._latency_n = 0
+        self._obstacle_latency = LatencyRing('obstacle_latency', 4096, (50, 99))
         self._latency_pending_ns = 0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._dt = cfg.dt
@@ -432,8 +430,7 @@ class StreamerNode(Node):
         if self._latency_pending_ns:
             lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
             self._latency_pending_ns = 0
-            self._latency_ms[self._latency_n % LATENCY_SAMPLES] = lat
-            self._latency_n += 1
+            self._obstacle_latency.add(lat)
 
     def _clock_offset_ns(self) -> int:
         """ROS clock - steady clock [ns]."""
@@ -447,8 +444,7 @@ class StreamerNode(Node):
         with self._lock:
             self.obstacles.expire(time.monotonic())
             self.streamer.obstacles = self.obstacles.snapshot.items
-            n_lat = self._latency_n
-            lat = self._latency_ms[:min(n_lat, LATENCY_SAMPLES)].copy()
+            latency = self._obstacle_latency.values()
             counts = dict(self.counts, **self.schedule.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
@@ -474,7 +470,7 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
-                rate_hz=f'{self.config.rate:g}', **latency_values(n_lat, lat), **adaptation,
+                rate_hz=f'{self.config.rate:g}', **latency, **adaptation,
                 **extra,
                 **extra_limits,
                 **counts, **self.gate.values())

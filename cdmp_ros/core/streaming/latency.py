@@ -1,7 +1,9 @@
 """Latency samples kept in a ring, summarised as diagnostics key/values (no ROS)."""
-from typing import Dict
+from typing import Dict, Sequence
 
 import numpy as np
+
+from cdmp_ros.core.errors import ValidationError
 
 
 class LatencyRing:
@@ -13,12 +15,15 @@ class LatencyRing:
         Key prefix of :meth:`values` (``<prefix>_n``, ``<prefix>_ms_last``, ...).
     size : int
         Samples kept for the percentiles.
+    percentiles : sequence of float
+        Reported as ``<prefix>_ms_p<q>`` (besides ``_ms_last`` and ``_ms_max``).
     """
 
-    def __init__(self, prefix: str, size: int = 1024):
+    def __init__(self, prefix: str, size: int = 1024, percentiles: Sequence[float] = (50, 95)):
         if size < 1:
-            raise ValueError(f'size: expected >= 1, got {size}')
+            raise ValidationError(f'size: expected >= 1, got {size}')
         self.prefix = prefix
+        self.percentiles = tuple(percentiles)
         self._ms = np.zeros(size)
         self.n = 0
         self.last = float('nan')
@@ -30,13 +35,14 @@ class LatencyRing:
         self.last = ms
 
     def values(self) -> Dict[str, object]:
-        """``<prefix>_n`` and, once there is a sample, ``_ms_last``, ``_ms_p50``, ``_ms_p95``
-        and ``_ms_max`` over the kept samples."""
+        """``<prefix>_n`` and, once there is a sample, ``_ms_last``, ``_ms_p<q>`` for each
+        percentile and ``_ms_max`` over the kept samples."""
         p = self.prefix
         if self.n == 0:
             return {f'{p}_n': 0}
         lat = self._ms[:min(self.n, self._ms.size)]
-        p50, p95, top = np.percentile(lat, [50.0, 95.0, 100.0])
-        return {f'{p}_n': self.n, f'{p}_ms_last': f'{self.last:.3f}',
-                f'{p}_ms_p50': f'{p50:.3f}', f'{p}_ms_p95': f'{p95:.3f}',
-                f'{p}_ms_max': f'{top:.3f}'}
+        *qs, top = np.percentile(lat, [*self.percentiles, 100.0])
+        out = {f'{p}_n': self.n, f'{p}_ms_last': f'{self.last:.3f}'}
+        out.update({f'{p}_ms_p{q:g}': f'{v:.3f}' for q, v in zip(self.percentiles, qs)})
+        out[f'{p}_ms_max'] = f'{top:.3f}'
+        return out
