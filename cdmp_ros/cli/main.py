@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest='command', metavar='<command>')
     sub.required = True
     for module in _subcommand_modules():
-        p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(module.NAME, help=module.HELP,
+                           description=getattr(module, 'DESCRIPTION', module.HELP))
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

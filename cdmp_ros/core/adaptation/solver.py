@@ -15,16 +15,61 @@ from scipy.optimize import minimize
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport)
 from cdmp_ros.core.adaptation.problem import Problem
 from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
+from cdmp_ros.core.adaptation.verification import sample_points
 from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
-           'sample_points', 'monte_carlo_satisfaction']
+           'sample_points', 'monte_carlo_satisfaction', 'solve_levels']
 
 
 def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
-          should_stop: Optional[Callable[[], bool]] = None) -> Tuple[ProMP, AdaptationReport]:
-    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003).
+          should_stop: Optional[Callable[[], bool]] = None,
+          rng: Optional[np.random.Generator] = None) -> Tuple[ProMP, AdaptationReport]:
+    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003) and verify the result.
+
+    With ``config.guarantee == 'per_step'`` (the paper's semantics) one solve of
+    :func:`solve_levels`; with ``'trajectory'`` the per-step levels are tightened until the
+    sampled trajectory-level violation's upper bound is <= 1 - alpha
+    (:func:`cdmp_ros.core.adaptation.guarantee.adapt_trajectory`). Either way the report
+    carries the sampled :class:`~cdmp_ros.core.adaptation.verification.Verification` of the
+    adapted distribution (``config.verification_samples`` trajectories).
+
+    Parameters
+    ----------
+    prior : ProMP
+    constraints : sequence of constraints
+    config : AdaptationConfig, optional
+    should_stop : callable, optional
+        See :func:`solve_levels`.
+    rng : numpy.random.Generator, optional
+        Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
+        reports).
+
+    Returns
+    -------
+    adapted : ProMP
+    report : AdaptationReport
+        ``converged`` is True only if every constraint holds at its confidence under the
+        approximation and the sampled verification confirms the claimed level (per step or
+        per trajectory; rules in :mod:`cdmp_ros.core.adaptation.verification`).
+    """
+    from cdmp_ros.core.adaptation.guarantee import adapt_trajectory, attach_verification
+    config = config or AdaptationConfig()
+    rng = np.random.default_rng(0) if rng is None else rng
+    if config.guarantee == 'trajectory':
+        return adapt_trajectory(prior, constraints, config, should_stop, rng)
+    t_start = time.perf_counter()
+    adapted, report = solve_levels(prior, constraints, config, should_stop)
+    attach_verification(report, adapted, constraints, config, rng, t_start)
+    return adapted, report
+
+
+def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
+                 should_stop: Optional[Callable[[], bool]] = None
+                 ) -> Tuple[ProMP, AdaptationReport]:
+    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003), each time step of each
+    constraint at its confidence under the approximation; no sampled verification.
 
     Parameters
     ----------
@@ -121,19 +166,6 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports)
     return adapted, report
-
-
-def sample_points(promp: ProMP, c, n_samples: int, rng: np.random.Generator,
-                  grid: NDArray, W: Optional[NDArray] = None) -> NDArray:
-    """Sampled x_t of constraint ``c`` at its times: (n_samples, n, k)."""
-    times = c.times(grid)
-    if W is None:
-        W = promp.sample_weights(n_samples, rng)
-    phi = promp.basis.features(times)
-    dofs = list(c.point.dofs)
-    W3 = W.reshape(-1, promp.n_dims, promp.n_basis)[:, dofs, :]
-    Z = (W3.reshape(-1, promp.n_basis) @ phi.T).reshape(W.shape[0], len(dofs), -1)
-    return c.point.forward(np.ascontiguousarray(Z.transpose(0, 2, 1)))
 
 
 def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int,
