@@ -320,6 +320,15 @@ class AdaptRequestConfig:
     max_outer: int = _param(10, 'Multiplier (outer) updates of the optimiser at most.', 1, 100)
     max_inner: int = _param(300, 'L-BFGS iterations per inner loop at most.', 1, 10000)
     lambda0: float = _param(20.0, 'Initial Lagrange multiplier.', 1e-6, 1e6)
+    guarantee: str = _param(
+        'per_step', 'What alpha guarantees: per_step (paper 003: each time step holds with '
+        'probability alpha) or trajectory (the whole trajectory satisfies every constraint '
+        'with probability alpha; per-step levels are tightened until a sampled check '
+        'confirms it). A constraint set\'s "guarantee" overrides it.', choices=GUARANTEES)
+    verification_samples: int = _param(
+        0, 'Sampled trajectories of the verification of every solve (0: the default by the '
+        'kinematics cost, at most 100,000 forward-kinematics evaluations, 1,000 to 10,000).',
+        0, MAX_VERIFICATION_SAMPLES)
 
     def __post_init__(self):
         check_fields(self)

@@ -98,7 +98,7 @@ def _with_level(c, scale: float):
     if scale == 1.0:
         return c
     t = copy.copy(c)
-    t.alpha = 1.0 - scale * (1.0 - c.alpha)
+    t.alpha = float(1.0 - scale * (1.0 - c.alpha))
     return t
 
 
