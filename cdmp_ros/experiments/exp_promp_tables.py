@@ -119,6 +119,8 @@ def summarise(table, K, records):
             paper[1], '%'),
         row(f'{name}.violation_std_pct', float(viol[ok].std() * 100.0) if ok.any() else None,
             None, '%'),
+        row(f'{name}.violation_max_pct', float(viol[ok].max() * 100.0) if ok.any() else None,
+            None, '%'),
         row(f'{name}.kl', float(kl[ok].mean()) if ok.any() else None, paper[2],
             'nats / basis function'),
         row(f'{name}.kl_std', float(kl[ok].std()) if ok.any() else None, None,

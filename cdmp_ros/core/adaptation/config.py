@@ -29,10 +29,6 @@ if TYPE_CHECKING:  # pragma: no cover
 RANGES = {'n_steps': (2, 1000), 'max_outer': (1, 100), 'max_inner': (1, 10000),
           'lambda0': (1e-6, 1e6), 'eta': (1e-6, 100.0), 'kappa': (0.0, 1e6)}
 _INTEGERS = ('n_steps', 'max_outer', 'max_inner')
-#: Meanings of alpha (constraint-set field ``guarantee``, parameter adaptation.guarantee).
-GUARANTEES = ('per_step', 'trajectory')
-#: Largest sampled verification a file or a parameter may ask for.
-MAX_VERIFICATION_SAMPLES = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -175,6 +171,12 @@ class AdaptationConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or \
                     not float(v).is_integer() or not lo <= v <= hi:
                 raise ValidationError(f'{name}: expected an integer in [{lo}, {hi}], got {v!r}')
+
+
+#: Meanings of alpha (constraint-set field ``guarantee``, parameter adaptation.guarantee).
+GUARANTEES = ('per_step', 'trajectory')
+#: Largest sampled verification a file or a parameter may ask for.
+MAX_VERIFICATION_SAMPLES = 1_000_000
 
 
 @dataclass
