@@ -14,8 +14,7 @@ from scipy.optimize import minimize
 
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport)
 from cdmp_ros.core.adaptation.problem import Problem
-from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
-from cdmp_ros.core.adaptation.verification import sample_points
+from cdmp_ros.core.adaptation.verification import sample_points, verify
 from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.promp.promp import ProMP
 
@@ -171,7 +170,8 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
 def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int,
                              rng: np.random.Generator, n_steps: int = 101
                              ) -> Tuple[NDArray, NDArray, float]:
-    """Monte-Carlo check of the constraints on trajectories sampled from ``promp``.
+    """Monte-Carlo check of the constraints on trajectories sampled from ``promp`` (the
+    satisfaction frequencies of :func:`cdmp_ros.core.adaptation.verification.verify`).
 
     Returns
     -------
@@ -183,23 +183,7 @@ def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int
     all_ok : float
         Frequency of trajectories satisfying every constraint (1 - violation rate).
     """
-    grid = np.linspace(0.0, 1.0, int(n_steps))
-    W = promp.sample_weights(n_samples, rng)
-    per_time, whole = [], []
-    ok_all = np.ones(n_samples, bool)
-    for c in constraints:
-        if isinstance(c, WeightConstraint):
-            ok = c.satisfied_w(W)
-            per_time.append(ok.mean())
-        else:
-            X = sample_points(promp, c, n_samples, rng, grid, W)
-            sat = c.satisfied(X, c.times(grid))
-            if sat.ndim == 2:
-                per_time.append(sat.mean(axis=0).min())
-                ok = sat.all(axis=1)
-            else:
-                per_time.append(sat.mean())
-                ok = sat
-        whole.append(ok.mean())
-        ok_all &= ok
-    return np.array(per_time), np.array(whole), float(ok_all.mean())
+    ver = verify(promp, constraints, n_samples, rng, n_steps)
+    per_time = np.array([1.0 - c.per_step_max for c in ver.constraints])
+    whole = np.array([1.0 - c.trajectory for c in ver.constraints])
+    return per_time, whole, 1.0 - ver.trajectory_violation
