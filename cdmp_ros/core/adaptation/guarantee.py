@@ -14,6 +14,9 @@
   respect to the level (d log v / d log s, estimated from the previous solves; 1 at first).
   The union of the constraints is accounted for by aiming at the sum of their violations
   (union-aware: each constraint gets a share of the budget proportional to its violation).
+  When a tightening overshoots (sampled violation below LOOSEN_BELOW (1 - alpha)), the levels
+  are bisected (log scale) between the passing and the last failing ones to give back KL;
+  the passing solution with the smallest KL is returned.
 """
 import copy
 import math
@@ -38,6 +41,12 @@ TARGET = 0.5
 #: approximation's tail is not meaningful below it in double precision).
 MIN_FACTOR = 0.02
 MIN_LEVEL = 1e-9
+#: A passing solution whose sampled violation is below LOOSEN_BELOW (1 - alpha) (the
+#: tightening overshot) is followed by bisections (in log scale) between it and the last
+#: failing levels, while refinements remain and the levels differ by more than a factor
+#: exp(BISECTION_TOL); the passing solution with the smallest KL is returned.
+LOOSEN_BELOW = 0.25
+BISECTION_TOL = 0.35
 
 #: Default sampled trajectories: at most SAMPLES_MAX (problems whose points of interest are
 #: linear in the ProMP dimensions: cheap), and at most FK_BUDGET forward-kinematics
@@ -114,31 +123,57 @@ def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConf
     eps = 1.0 - min((c.alpha for c in constraints), default=1.0 - 1e-3)
     scales = np.ones(len(constraints))
     alphas = np.array([c.alpha for c in constraints])
-    history: List[Tuple[np.ndarray, np.ndarray]] = []     # (scales, violations) per solve
-    n_outer = n_inner = n_evals = 0
+    history: List[Tuple[np.ndarray, np.ndarray]] = []     # (scales, violations), failed checks
+    best = None            # (kl, adapted, report, verification, scales) of the best passing
+    failing = None         # scales of the last failing check once a passing one is known
+    n_outer = n_inner = n_evals = n_solves = 0
     for r in range(int(config.max_refinements) + 1):
         tight = [_with_level(c, s) for c, s in zip(constraints, scales)]
         adapted, report = solve_levels(prior, tight, config, should_stop)
+        n_solves += 1
         n_outer += report.n_outer
         n_inner += report.n_inner
         n_evals += report.n_evaluations
         ver = verify(adapted, constraints, n, rng, config.n_steps, 'trajectory')
-        if ver.holds or not report.converged or r == int(config.max_refinements):
+        last = (report.kl, adapted, report, ver, scales)
+        if ver.holds and report.converged:
+            if best is None or report.kl < best[0]:
+                best = last
+            if failing is None and ver.trajectory_violation >= LOOSEN_BELOW * eps:
+                break
+            # far below the level (the tightening overshot): try looser levels between
+            lo, hi = scales, (failing if failing is not None else history[-1][0]
+                              if history else None)
+            if hi is None:
+                break
+        elif not report.converged:
+            break          # the approximation is infeasible at these levels
+        elif best is not None:
+            failing = scales
+            lo, hi = best[4], scales
+        else:
+            v = np.array([cv.trajectory for cv in ver.constraints])
+            history.append((scales.copy(), v))
+            total = max(float(v.sum()), ver.trajectory_violation, 1.0 / n)
+            g = _elasticity(history)
+            factor = float(np.clip((TARGET * eps / total) ** (1.0 / g), MIN_FACTOR, 0.8))
+            new = np.where(v > 0, np.maximum(scales * factor, MIN_LEVEL / (1.0 - alphas)),
+                           scales)
+            if np.array_equal(new, scales):
+                break         # every violated constraint is at the smallest level already
+            scales = new
+            continue
+        # bisection in log scale between a passing (lo) and a failing (hi) set of levels
+        new = np.sqrt(lo * hi)
+        if np.all(np.abs(np.log(new) - np.log(lo)) < BISECTION_TOL):
             break
-        v = np.array([cv.trajectory for cv in ver.constraints])
-        history.append((scales.copy(), v))
-        total = max(float(v.sum()), ver.trajectory_violation, 1.0 / n)
-        g = _elasticity(history)
-        factor = float(np.clip((TARGET * eps / total) ** (1.0 / g), MIN_FACTOR, 0.8))
-        new = np.where(v > 0, np.maximum(scales * factor, MIN_LEVEL / (1.0 - alphas)), scales)
-        if np.array_equal(new, scales):
-            break             # every violated constraint is at the smallest level already
         scales = new
+    kl, adapted, report, ver, scales = best if best is not None else last
     for cr, c in zip(report.constraints, constraints):
         cr.alpha = c.alpha
     report.levels = [float(s * (1.0 - c.alpha)) for s, c in zip(scales, constraints)]
     report.n_outer, report.n_inner, report.n_evaluations = n_outer, n_inner, n_evals
-    report.n_solves = len(history) + 1
+    report.n_solves = n_solves
     report.verification = ver
     report.guarantee = 'trajectory'
     if report.converged and not ver.holds:
