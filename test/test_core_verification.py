@@ -205,3 +205,22 @@ def test_default_sample_count_follows_the_kinematics_cost():
     kin = [Repeller(ee, [0, 0], 1.0), Repeller(elbow, [0, 0], 1.0)]
     assert default_samples(kin, 100) == 1000
     assert default_samples(kin, 20) == 5000
+
+
+def test_experiment_rows_report_the_verification():
+    from cdmp_ros.experiments import exp_promp_tables
+    from cdmp_ros.experiments.results import verification_rows
+    rng = np.random.default_rng(0)
+    recs = exp_promp_tables.solve_row('table2', 1, 2, rng, n_samples=2000, relative_step=True,
+                                      guarantee='per_step')
+    rows = {r['name']: r['ours'] for r in exp_promp_tables.summarise('table2', 1, recs)}
+    for key in ('verified_per_step_max_pct_median', 'verified_trajectory_pct',
+                'verified_trajectory_upper95_pct', 'verified_pct', 'verification_s_median'):
+        assert rows[f'table2.obstacles_1.{key}'] is not None, key
+    assert 0.0 <= rows['table2.obstacles_1.verified_trajectory_pct'] <= \
+        rows['table2.obstacles_1.verified_trajectory_upper95_pct'] <= 100.0
+    rep = recs[0]
+    _, report = adapt(rep['problem'].prior, rep['problem'].constraints, rep['problem'].config)
+    names = [r['name'] for r in verification_rows('x', report)]
+    assert names == ['x.verified_per_step_max_pct', 'x.verified_trajectory_pct',
+                     'x.verified_trajectory_upper95_pct', 'x.verified']
