@@ -111,6 +111,7 @@ def test_cmd_adapt_writes_adapted_primitive_and_report(tmp_path, capsys):
     assert cmd_adapt.run(args) == 0
     out = capsys.readouterr().out
     assert 'ball [repeller]' in out and 'converged' in out
+    assert 'sampled verification' in out and 'ball: per-step max' in out
     q = load_primitive(tmp_path / 'a.json')
     assert q.metadata['adaptation']['converged'] is True
     assert not np.allclose(q.mean_w, p.mean_w)
@@ -127,3 +128,45 @@ def test_cmd_adapt_writes_adapted_primitive_and_report(tmp_path, capsys):
                    'optimizer': {'max_outer': 2, 'max_inner': 30}}, f)
     args.constraints = str(tmp_path / 'inf.json')
     assert cmd_adapt.run(args) == 2
+
+
+def test_guarantee_field_is_parsed_and_a_bad_value_is_named():
+    p = _cart_promp()
+    doc = {'constraints': [{'type': 'repeller', 'point': XY, 'center': [0, 0], 'radius': 0.5}]}
+    assert 'guarantee' not in parse_constraint_set(doc, p)[1]     # default: per_step
+    for mode in ('per_step', 'trajectory'):
+        _, opt = parse_constraint_set(dict(doc, guarantee=mode), p)
+        assert opt['guarantee'] == mode
+    _, opt = parse_constraint_set(dict(doc, optimizer={'verification_samples': 500,
+                                                       'max_refinements': 2}), p)
+    assert opt == {'verification_samples': 500, 'max_refinements': 2}
+    for bad, field in (({'guarantee': 'always'}, 'constraint_set.guarantee'),
+                       ({'guarantee': 1}, 'constraint_set.guarantee'),
+                       ({'optimizer': {'verification_samples': 0}},
+                        'constraint_set.optimizer.verification_samples')):
+        with pytest.raises(ConstraintSetError) as exc:
+            parse_constraint_set(dict(doc, **bad), p)
+        assert field in str(exc.value), str(exc.value)
+
+
+def test_cmd_adapt_json_report_carries_the_verification(tmp_path, capsys):
+    p = _cart_promp()
+    save_primitive(p, tmp_path / 'p.json')
+    with open(tmp_path / 'c.json', 'w') as f:
+        json.dump({'constraints': [{'type': 'hyperplane', 'name': 'wall', 'point': XY,
+                                    'normal': [0, 1], 'offset': [0, 0.5]}],
+                   'guarantee': 'trajectory', 'optimizer': {'n_steps': 31}}, f)
+    args = argparse.Namespace(primitive=str(tmp_path / 'p.json'),
+                              constraints=str(tmp_path / 'c.json'), robot='none',
+                              out=str(tmp_path / 'a.json'), json=True, seed=3)
+    status = cmd_adapt.run(args)
+    rep = json.loads(capsys.readouterr().out)
+    assert status == (0 if rep['converged'] else 2)
+    ver = rep['verification']
+    assert ver['guarantee'] == 'trajectory' and ver['n_samples'] >= 20000
+    assert 0.0 <= ver['trajectory_violation'] <= ver['trajectory_violation_upper95'] <= 1.0
+    assert [c['name'] for c in ver['constraints']] == ['wall']
+    assert set(ver['constraints'][0]) >= {'name', 'per_step_max', 'trajectory', 'upper95'}
+    assert rep['converged'] == (ver['holds'] and rep['status'] == 'converged')
+    q = load_primitive(tmp_path / 'a.json')
+    assert q.metadata['adaptation']['verification'] == ver

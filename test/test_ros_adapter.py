@@ -195,6 +195,15 @@ def test_user_constraint_set_is_applied(graph, prims):
     assert abs(promp_of(d).mean([0.5])[0][0] - via) < 0.03
     m, level, kv = converged_state(h, t0, 'constraints')
     assert float(kv['p.via'].split()[0]) >= 0.95 - 1e-3
+    # the sampled verification of the solve (issue 12): the figures of cdmp adapt --json
+    assert kv['verification.guarantee'] == 'per_step' and kv['verification.holds'] == 'True'
+    n = int(kv['verification.n_samples'])
+    traj = float(kv['verification.trajectory_violation'])
+    assert n >= 1000 and 0.0 <= traj <= float(kv['verification.trajectory_violation_upper95'])
+    via = kv['v.via'].split()
+    assert via[0::2] == ['per_step_max', 'trajectory', 'upper95']
+    assert float(via[1]) <= 0.05 + 5 * (0.05 * 0.95 / n) ** 0.5
+    assert d['metadata']['adaptation']['verification']['n_samples'] == n
     n0 = h.n_adapted()
     h.publish('constraints', String(data=json.dumps({'constraints': []})))
     assert h.wait_adapted(n0, trigger='constraints') is not None
@@ -545,6 +554,13 @@ def test_runtime_parameter_changes_are_validated(graph):
         assert r.successful, r.reason
         r = set_('adaptation.obstacle_margin', 0.02)
         assert r.successful, r.reason
+        r = set_('adaptation.guarantee', 'sometimes')
+        assert not r.successful and 'guarantee' in r.reason
+        for mode in ('trajectory', 'per_step'):
+            r = set_('adaptation.guarantee', mode)
+            assert r.successful, r.reason
+        r = set_('adaptation.verification_samples', -1)
+        assert not r.successful and 'verification_samples' in r.reason
     finally:
         h.node.destroy_client(client)
     alive(h, proc)

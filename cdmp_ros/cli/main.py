@@ -16,12 +16,14 @@ from cdmp_ros.core.errors import CdmpError
 
 def add_subcommands(sub, package, prefix: str, dest: str) -> None:
     """One sub-parser per discovered module ``<package>/<prefix><name>.py`` (sorted by module
-    name), each defining ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args)``; the
+    name), each defining ``NAME``, ``HELP`` (and optionally a longer ``DESCRIPTION``),
+    ``add_arguments(parser)`` and ``run(args)``; the
     module's ``run`` is stored as ``args.<dest>``. Used by ``cdmp`` and ``cdmp reproduce``."""
     for info in sorted(pkgutil.iter_modules(package.__path__), key=lambda i: i.name):
         if info.name.startswith(prefix):
             module = importlib.import_module(f'{package.__name__}.{info.name}')
-            p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
+            p = sub.add_parser(module.NAME, help=module.HELP,
+                               description=getattr(module, 'DESCRIPTION', module.HELP))
             module.add_arguments(p)
             p.set_defaults(**{dest: module.run})
 

@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from cdmp_ros.experiments.results import row, write_results
+from cdmp_ros.experiments.results import row, verification_rows, write_results
 
 NAME = 'planar'
 HELP = 'paper 003 III-A: planar 4-link arm (waypoint, repeller, corner, wall, mutual avoidance)'
@@ -130,6 +130,7 @@ def solve_all(seed=0, n_samples=10000, n_steps=50):
                      row(f'{tag}.kl', rep.kl, None, 'nats'),
                      row(f'{tag}.converged', rep.converged, None, ''),
                      row(f'{tag}.solve_s', rep.time_s, None, 's')]
+            rows += verification_rows(tag, rep)
             art['fig3'][(name, smooth)] = (prior, q, cons)
     rows_m, art['mutual'] = mutual(chain, rng, n_samples, n_steps)
     return rows + rows_m, art
@@ -189,6 +190,7 @@ def mutual(chain, rng, n_samples, n_steps):
                  row(f'mutual.{objective}.kl', rep.kl, None, 'nats'),
                  row(f'mutual.{objective}.mean_abs_cross_correlation', cross, None, ''),
                  row(f'mutual.{objective}.converged', rep.converged, None, '')]
+        rows += verification_rows(f'mutual.{objective}', rep)
         art['adapted'][objective] = (q, R)
     return rows, art
 

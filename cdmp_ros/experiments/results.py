@@ -14,6 +14,23 @@ def row(name: str, ours, paper=None, unit: str = '') -> dict:
     return {'name': name, 'ours': ours, 'paper': paper, 'unit': unit}
 
 
+def verification_rows(prefix: str, report) -> List[dict]:
+    """Rows of an adaptation report's sampled verification (issue 12): the largest per-step
+    violation over the constraints, the trajectory-level violation (any constraint) with its
+    95 % upper bound, and whether the claimed level holds by the check."""
+    ver = report.verification
+    if ver is None:
+        return []
+    step = max((c.per_step_max for c in ver.constraints), default=0.0)
+    return [row(f'{prefix}.verified_per_step_max_pct', step * 100.0, None, '%'),
+            row(f'{prefix}.verified_trajectory_pct', ver.trajectory_violation * 100.0, None,
+                '%'),
+            row(f'{prefix}.verified_trajectory_upper95_pct',
+                ver.trajectory_violation_upper95 * 100.0, None, '%'),
+            row(f'{prefix}.verified', bool(ver.holds), None,
+                f'{ver.guarantee} level, {ver.n_samples} samples')]
+
+
 def _fmt(value) -> str:
     if value is None:
         return '—'

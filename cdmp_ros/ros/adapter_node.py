@@ -400,9 +400,10 @@ class AdapterNode(Node):
 
     # -- diagnostics -------------------------------------------------------------------------
     def _clear_result_values(self) -> None:
-        """Forget the key/values of the previous result (p.*, kl, ...)."""
+        """Forget the key/values of the previous result (p.*, v.*, verification.*, kl, ...)."""
         self.reporter.values = {k: v for k, v in self.reporter.values.items()
-                                if not (k.startswith('p.') or k in RESULT_KEYS)}
+                                if not (k.startswith(('p.', 'v.', 'verification.'))
+                                        or k in RESULT_KEYS)}
 
     def _publish_now(self) -> None:
         self.reporter.set_state(self.reporter.level, self.reporter.message,

@@ -160,12 +160,40 @@ def result_values(res: JobResult) -> Dict[str, Any]:
               obstacles_ignored=res.result.problem.obstacles_ignored)
     for c in rep.constraints:
         kv[f'p.{c.name}'] = f'{c.probability:.6f} (alpha {c.alpha:g})'
+    kv.update(verification_values(rep))
+    return kv
+
+
+def verification_values(rep) -> Dict[str, Any]:
+    """Diagnostics key/values of a report's sampled verification (the figures of ``cdmp adapt
+    --json``'s ``verification``): ``verification.n_samples``, ``.guarantee``, ``.holds``,
+    ``.trajectory_violation`` and ``.trajectory_violation_upper95``, and per constraint
+    ``v.<name>`` = ``per_step_max <f> trajectory <f> upper95 <f>``."""
+    ver = rep.verification
+    if ver is None:
+        return {}
+    kv: Dict[str, Any] = {
+        'verification.n_samples': ver.n_samples, 'verification.guarantee': ver.guarantee,
+        'verification.holds': ver.holds,
+        'verification.trajectory_violation': f'{ver.trajectory_violation:.6g}',
+        'verification.trajectory_violation_upper95': f'{ver.trajectory_violation_upper95:.6g}',
+        'verification.time_ms': f'{ver.time_s * 1e3:.1f}'}
+    for c in ver.constraints:
+        kv[f'v.{c.name}'] = (f'per_step_max {c.per_step_max:.6g} trajectory '
+                             f'{c.trajectory:.6g} upper95 {c.upper95:.6g}')
     return kv
 
 
 def violated(res: JobResult) -> List[str]:
-    """``name P=... < alpha`` of every violated constraint of a solved job."""
+    """``name P=... < alpha`` of every violated constraint of a solved job, then
+    ``name sampled ...`` of every constraint its sampled verification does not confirm."""
     if res.result is None:
         return []
-    return [f'{c.name} P={c.probability:.4f} < {c.alpha:g}'
-            for c in res.result.report.constraints if not c.satisfied]
+    rep = res.result.report
+    out = [f'{c.name} P={c.probability:.4f} < {c.alpha:g}'
+           for c in rep.constraints if not c.satisfied]
+    if rep.verification is not None:
+        out += [f'{c.name} sampled per-step max {c.per_step_max:.4g} (limit '
+                f'{c.per_step_limit:.4g}), trajectory {c.trajectory:.4g} (upper95 '
+                f'{c.upper95:.4g})' for c in rep.verification.constraints if not c.holds]
+    return out

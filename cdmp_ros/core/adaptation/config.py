@@ -9,7 +9,7 @@ state become a constrained ProMP adaptation problem, paper 003; parameters ``ada
 Ranges and descriptions live in the field metadata (used for the parameter descriptors).
 """
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from typing import TYPE_CHECKING, List, Optional, Tuple
 
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
                                          max_json_bytes_param, max_obstacles_param,
@@ -19,6 +19,9 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, c
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 from cdmp_ros.core.validation import check_positive
+
+if TYPE_CHECKING:  # pragma: no cover
+    from cdmp_ros.core.adaptation.verification import Verification
 
 
 #: Ranges of the settings a constraint set may override (its schema's "optimizer", the
@@ -95,6 +98,20 @@ class AdaptationConfig:
         diag(L) = diag(L0) exp(gamma~), so this is the paper's parameterisation up to a fixed
         linear map; the KL becomes 0.5 (|L~|_F^2 + |nu|^2 - n) - 1^T gamma~, perfectly
         conditioned, which cuts the L-BFGS iterations.
+    guarantee : {'per_step', 'trajectory'}
+        What each constraint's alpha claims: ``per_step`` (paper 003: every time step of its
+        support holds with probability alpha) or ``trajectory`` (the whole trajectory
+        satisfies every constraint at every step with probability min(alpha)); with
+        ``trajectory`` the per-step levels are tightened until the sampled check confirms it
+        (:mod:`cdmp_ros.core.adaptation.guarantee`).
+    verification_samples : int, optional
+        Trajectories of the sampled verification in every report
+        (:mod:`cdmp_ros.core.adaptation.verification`); None: the default by the cost of the
+        points of interest (:func:`cdmp_ros.core.adaptation.guarantee.default_samples`:
+        10,000 without kinematics). With ``trajectory`` at least 20 / (1 - alpha) are drawn,
+        so that the bound can reach the level.
+    max_refinements : int
+        ``trajectory``: tightenings of the per-step levels (re-solves) at most.
     """
     n_steps: int = 101
     lambda0: float = 20.0
@@ -117,6 +134,9 @@ class AdaptationConfig:
     relative_step: bool = True
     max_log_step: float = 3.0
     whiten: bool = True
+    guarantee: str = 'per_step'
+    verification_samples: Optional[int] = None
+    max_refinements: int = 6
 
     def __post_init__(self):
         for name, (lo, hi) in RANGES.items():
@@ -140,6 +160,23 @@ class AdaptationConfig:
         if not 0.0 < float(self.violation_target) <= 1.0:
             raise ValidationError(f'violation_target: expected a value in (0, 1], '
                                   f'got {self.violation_target!r}')
+        if self.guarantee not in GUARANTEES:
+            raise ValidationError(f'guarantee: expected one of {list(GUARANTEES)}, got '
+                                  f'{self.guarantee!r}')
+        for name, lo, hi in (('verification_samples', 1, MAX_VERIFICATION_SAMPLES),
+                             ('max_refinements', 0, 20)):
+            v = getattr(self, name)
+            if v is None and name == 'verification_samples':
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or \
+                    not float(v).is_integer() or not lo <= v <= hi:
+                raise ValidationError(f'{name}: expected an integer in [{lo}, {hi}], got {v!r}')
+
+
+#: Meanings of alpha (constraint-set field ``guarantee``, parameter adaptation.guarantee).
+GUARANTEES = ('per_step', 'trajectory')
+#: Largest sampled verification a file or a parameter may ask for.
+MAX_VERIFICATION_SAMPLES = 1_000_000
 
 
 @dataclass
@@ -164,10 +201,20 @@ class AdaptationReport:
     n_evaluations: int
     time_s: float
     constraints: List[ConstraintReport] = field(default_factory=list)
+    guarantee: str = 'per_step'
+    #: sampled check of the adapted distribution (cdmp_ros.core.adaptation.verification)
+    verification: Optional['Verification'] = None
+    #: per constraint (order of ``constraints``), the per-step violation level 1 - alpha'
+    #: the optimiser enforced (guarantee ``trajectory``: tightened below 1 - alpha)
+    levels: List[float] = field(default_factory=list)
+    #: solves of the optimiser (guarantee ``trajectory``: 1 + refinements of the levels)
+    n_solves: int = 1
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d['constraints'] = [dict(c.__dict__) for c in self.constraints]
+        d['verification'] = None if self.verification is None else self.verification.as_dict()
+        d['levels'] = list(self.levels)
         return d
 
     def to_text(self) -> str:
@@ -178,6 +225,12 @@ class AdaptationReport:
         for c in self.constraints:
             lines.append(f'  {c.name} [{c.kind}]: P = {c.probability:.6f} '
                          f'(alpha = {c.alpha}) {"ok" if c.satisfied else "VIOLATED"}')
+        if self.guarantee != 'per_step':
+            lines.append(f'guarantee: {self.guarantee} ({self.n_solves} solves); per-step '
+                         'violation levels enforced: ' + ', '.join(
+                             f'{c.name} {v:.3g}' for c, v in zip(self.constraints, self.levels)))
+        if self.verification is not None:
+            lines.append(self.verification.to_text())
         return '\n'.join(lines)
 
 
@@ -270,6 +323,15 @@ class AdaptRequestConfig:
     max_outer: int = _param(10, 'Multiplier (outer) updates of the optimiser at most.', 1, 100)
     max_inner: int = _param(300, 'L-BFGS iterations per inner loop at most.', 1, 10000)
     lambda0: float = _param(20.0, 'Initial Lagrange multiplier.', 1e-6, 1e6)
+    guarantee: str = _param(
+        'per_step', 'What alpha guarantees: per_step (paper 003: each time step holds with '
+        'probability alpha) or trajectory (the whole trajectory satisfies every constraint '
+        'with probability alpha; per-step levels are tightened until a sampled check '
+        'confirms it). A constraint set\'s "guarantee" overrides it.', choices=GUARANTEES)
+    verification_samples: int = _param(
+        0, 'Sampled trajectories of the verification of every solve (0: the default by the '
+        'kinematics cost, at most 100,000 forward-kinematics evaluations, 1,000 to 10,000).',
+        0, MAX_VERIFICATION_SAMPLES)
 
     def __post_init__(self):
         check_fields(self)

@@ -311,7 +311,9 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         user, overrides = parse_constraint_set(req.constraint_doc, prior, ctx)
         constraints += user
     opt = dict(n_steps=int(cfg.n_steps), max_outer=int(cfg.max_outer),
-               max_inner=int(cfg.max_inner), lambda0=float(cfg.lambda0))
+               max_inner=int(cfg.max_inner), lambda0=float(cfg.lambda0),
+               guarantee=cfg.guarantee,
+               verification_samples=int(cfg.verification_samples) or None)
     opt.update(overrides)
     return BuiltProblem(prior, constraints, AdaptationConfig(**opt), notes, used, ignored,
                         infeasible)

@@ -14,17 +14,61 @@ from scipy.optimize import minimize
 
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport)
 from cdmp_ros.core.adaptation.problem import Problem
-from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
+from cdmp_ros.core.adaptation.verification import sample_points, verify
 from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
-           'sample_points', 'monte_carlo_satisfaction']
+           'sample_points', 'monte_carlo_satisfaction', 'solve_levels']
 
 
 def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
-          should_stop: Optional[Callable[[], bool]] = None) -> Tuple[ProMP, AdaptationReport]:
-    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003).
+          should_stop: Optional[Callable[[], bool]] = None,
+          rng: Optional[np.random.Generator] = None) -> Tuple[ProMP, AdaptationReport]:
+    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003) and verify the result.
+
+    With ``config.guarantee == 'per_step'`` (the paper's semantics) one solve of
+    :func:`solve_levels`; with ``'trajectory'`` the per-step levels are tightened until the
+    sampled trajectory-level violation's upper bound is <= 1 - alpha
+    (:func:`cdmp_ros.core.adaptation.guarantee.adapt_trajectory`). Either way the report
+    carries the sampled :class:`~cdmp_ros.core.adaptation.verification.Verification` of the
+    adapted distribution (``config.verification_samples`` trajectories).
+
+    Parameters
+    ----------
+    prior : ProMP
+    constraints : sequence of constraints
+    config : AdaptationConfig, optional
+    should_stop : callable, optional
+        See :func:`solve_levels`.
+    rng : numpy.random.Generator, optional
+        Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
+        reports).
+
+    Returns
+    -------
+    adapted : ProMP
+    report : AdaptationReport
+        ``converged`` is True only if every constraint holds at its confidence under the
+        approximation and the sampled verification confirms the claimed level (per step or
+        per trajectory; rules in :mod:`cdmp_ros.core.adaptation.verification`).
+    """
+    from cdmp_ros.core.adaptation.guarantee import adapt_trajectory, attach_verification
+    config = config or AdaptationConfig()
+    rng = np.random.default_rng(0) if rng is None else rng
+    if config.guarantee == 'trajectory':
+        return adapt_trajectory(prior, constraints, config, should_stop, rng)
+    t_start = time.perf_counter()
+    adapted, report = solve_levels(prior, constraints, config, should_stop)
+    attach_verification(report, adapted, constraints, config, rng, t_start)
+    return adapted, report
+
+
+def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
+                 should_stop: Optional[Callable[[], bool]] = None
+                 ) -> Tuple[ProMP, AdaptationReport]:
+    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003), each time step of each
+    constraint at its confidence under the approximation; no sampled verification.
 
     Parameters
     ----------
@@ -123,23 +167,11 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     return adapted, report
 
 
-def sample_points(promp: ProMP, c, n_samples: int, rng: np.random.Generator,
-                  grid: NDArray, W: Optional[NDArray] = None) -> NDArray:
-    """Sampled x_t of constraint ``c`` at its times: (n_samples, n, k)."""
-    times = c.times(grid)
-    if W is None:
-        W = promp.sample_weights(n_samples, rng)
-    phi = promp.basis.features(times)
-    dofs = list(c.point.dofs)
-    W3 = W.reshape(-1, promp.n_dims, promp.n_basis)[:, dofs, :]
-    Z = (W3.reshape(-1, promp.n_basis) @ phi.T).reshape(W.shape[0], len(dofs), -1)
-    return c.point.forward(np.ascontiguousarray(Z.transpose(0, 2, 1)))
-
-
 def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int,
                              rng: np.random.Generator, n_steps: int = 101
                              ) -> Tuple[NDArray, NDArray, float]:
-    """Monte-Carlo check of the constraints on trajectories sampled from ``promp``.
+    """Monte-Carlo check of the constraints on trajectories sampled from ``promp`` (the
+    satisfaction frequencies of :func:`cdmp_ros.core.adaptation.verification.verify`).
 
     Returns
     -------
@@ -151,23 +183,7 @@ def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int
     all_ok : float
         Frequency of trajectories satisfying every constraint (1 - violation rate).
     """
-    grid = np.linspace(0.0, 1.0, int(n_steps))
-    W = promp.sample_weights(n_samples, rng)
-    per_time, whole = [], []
-    ok_all = np.ones(n_samples, bool)
-    for c in constraints:
-        if isinstance(c, WeightConstraint):
-            ok = c.satisfied_w(W)
-            per_time.append(ok.mean())
-        else:
-            X = sample_points(promp, c, n_samples, rng, grid, W)
-            sat = c.satisfied(X, c.times(grid))
-            if sat.ndim == 2:
-                per_time.append(sat.mean(axis=0).min())
-                ok = sat.all(axis=1)
-            else:
-                per_time.append(sat.mean())
-                ok = sat
-        whole.append(ok.mean())
-        ok_all &= ok
-    return np.array(per_time), np.array(whole), float(ok_all.mean())
+    ver = verify(promp, constraints, n_samples, rng, n_steps)
+    per_time = np.array([1.0 - c.per_step_max for c in ver.constraints])
+    whole = np.array([1.0 - c.trajectory for c in ver.constraints])
+    return per_time, whole, 1.0 - ver.trajectory_violation

@@ -171,7 +171,8 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
     -------
     constraints : list
     optimizer : dict
-        Keyword overrides for :class:`cdmp_ros.core.adaptation.solver.AdaptationConfig`.
+        Keyword overrides for :class:`cdmp_ros.core.adaptation.solver.AdaptationConfig`
+        (the set's ``optimizer`` settings and its ``guarantee``).
     """
     if isinstance(doc, (str, bytes)):
         try:
@@ -239,6 +240,8 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
         except ValidationError as exc:
             raise ConstraintSetError(f'{where}{tag}: {exc}') from None
     opt = dict(doc.get('optimizer', {}))
+    if 'guarantee' in doc:            # per_step (default) or trajectory: AdaptationConfig
+        opt['guarantee'] = doc['guarantee']
     objective = opt.pop('objective', 'joint_kl')
     if 'smoothness_weights' in opt:
         if len(opt['smoothness_weights']) != promp.n_dims:

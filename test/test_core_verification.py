@@ -1,0 +1,226 @@
+"""Sampled verification of adapted ProMPs and the trajectory-level guarantee (issue 12 items 3
+and 4): verify() against closed forms and independent Monte Carlo computations, the decision
+rules, the report and ``converged``, and trajectory mode against per-step mode."""
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from cdmp_ros.core.adaptation.config import AdaptationConfig, AdaptRequestConfig
+from cdmp_ros.core.adaptation.constraints import (ChainPoint, DofPoint, Hyperplane, JointLimit,
+                                                  Repeller, UnboundWaypoint)
+from cdmp_ros.core.adaptation.guarantee import default_samples
+from cdmp_ros.core.adaptation.solver import adapt
+from cdmp_ros.core.adaptation.verification import clopper_pearson_upper, critical_count, verify
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
+from cdmp_ros.core.promp.promp import ProMP, RbfBasis
+
+
+def _promp_1d(M=8, var=0.5):
+    return ProMP(1, RbfBasis.uniform(M), np.zeros(M), var * np.eye(M))
+
+
+def _binomial_tol(p, n, k=5.0):
+    return k * np.sqrt(max(p * (1 - p), 1e-6) / n)
+
+
+def test_clopper_pearson_and_critical_count_closed_forms():
+    n = 1000
+    # k = 0: the upper bound solves (1 - p)^n = 0.05
+    assert clopper_pearson_upper([0], n)[0] == pytest.approx(1 - 0.05 ** (1 / n), rel=1e-9)
+    # k = n - 1: P(Bin(n, p) <= n - 1) = 1 - p^n = 0.05
+    assert clopper_pearson_upper([n - 1], n)[0] == pytest.approx(0.95 ** (1 / n), rel=1e-9)
+    assert clopper_pearson_upper([n], n)[0] == 1.0
+    # critical count: the smallest c with P(Bin > c) <= level, checked by summing the pmf
+    from scipy.stats import binom
+    c = critical_count(20000, 1e-3, 1e-4)
+    assert binom.sf(c, 20000, 1e-3) <= 1e-4 < binom.sf(c - 1, 20000, 1e-3)
+
+
+def test_single_step_matches_the_gaussian_closed_form():
+    """1-D, one time step: the violation probability is 1 - Phi((b - m) / s)."""
+    p = _promp_1d()
+    t, b = 0.4, 0.9
+    m, s = p.mean([t])[0, 0], np.sqrt(p.cov([t])[0, 0, 0])
+    exact = 1.0 - norm.cdf((b - m) / s)
+    n = 40000
+    c = JointLimit(0, upper=b, support=(t, t), alpha=0.9, name='upper')
+    v = verify(p, [c], n, np.random.default_rng(1), n_steps=11)
+    cv = v.constraints[0]
+    assert cv.steps == 1
+    assert cv.per_step_max == cv.trajectory == v.trajectory_violation
+    assert abs(cv.trajectory - exact) < _binomial_tol(exact, n), (cv.trajectory, exact)
+    assert cv.upper95 >= cv.trajectory
+    assert v.holds == (exact <= 0.1)
+
+
+def test_trajectory_level_matches_an_independent_monte_carlo():
+    """Whole support, several constraints: per-step maxima, per-constraint and union
+    trajectory-level violations against a direct computation on sampled trajectories."""
+    p = _promp_1d()
+    grid = np.linspace(0.0, 1.0, 21)
+    cons = [JointLimit(0, upper=1.2, alpha=0.99, name='up'),
+            JointLimit(0, lower=-1.0, support=(0.3, 0.7), alpha=0.99, name='low')]
+    n = 30000
+    v = verify(p, cons, n, np.random.default_rng(2), n_steps=21)
+    Y = p.sample_trajectories(grid, 200000, np.random.default_rng(3))[..., 0]
+    up = Y > 1.2
+    sel = (grid >= 0.3 - 1e-9) & (grid <= 0.7 + 1e-9)
+    low = Y[:, sel] <= -1.0
+    refs = [(up.mean(0).max(), up.any(1).mean()), (low.mean(0).max(), low.any(1).mean())]
+    for cv, (step_ref, traj_ref) in zip(v.constraints, refs):
+        assert abs(cv.trajectory - traj_ref) < _binomial_tol(traj_ref, n)
+        assert abs(cv.per_step_max - step_ref) < _binomial_tol(step_ref, n)
+    union = (up.any(1) | low.any(1)).mean()
+    assert abs(v.trajectory_violation - union) < _binomial_tol(union, n)
+    assert v.trajectory_violation >= max(cv.trajectory for cv in v.constraints)
+    assert v.constraints[1].steps == int(sel.sum())
+
+
+def test_known_violations_link_points_and_unbound_waypoints():
+    """A nearly deterministic planar arm whose end effector passes through one sphere and far
+    from another; an unbound waypoint on its path and one far away."""
+    chain = planar_chain([1.0] * 2)
+    M = 6
+    mean = np.r_[np.linspace(0.0, 1.0, M), np.zeros(M)]
+    p = ProMP(2, RbfBasis.uniform(M), mean, 1e-10 * np.eye(2 * M))
+    ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
+    x_mid = ee.forward(p.mean([0.5]))[0]
+    cons = [Repeller(ee, x_mid, 0.05, alpha=0.99, name='hit'),
+            Repeller(ee, [10.0, 10.0], 0.5, alpha=0.99, name='far'),
+            UnboundWaypoint(ee, x_mid, 0.05, alpha=0.99, name='via'),
+            UnboundWaypoint(ee, [10.0, 10.0], 0.5, alpha=0.99, name='never'),
+            Hyperplane(DofPoint([1]), [1.0], [0.5], alpha=0.99, name='wall')]
+    v = verify(p, cons, 500, np.random.default_rng(4), n_steps=41)
+    got = {c.name: (c.per_step_max, c.trajectory) for c in v.constraints}
+    assert got['hit'] == (1.0, 1.0) and got['far'] == (0.0, 0.0)
+    assert got['via'] == (0.0, 0.0) and got['never'] == (1.0, 1.0)
+    assert got['wall'] == (0.0, 0.0)
+    assert v.trajectory_violation == 1.0 and not v.holds
+    assert [c.holds for c in v.constraints] == [False, True, True, False, True]
+
+
+def test_per_step_rule_passes_a_calibrated_solution_and_fails_twice_the_level():
+    """One step at exactly its level passes; at twice the level it fails (20,000 samples)."""
+    p = _promp_1d()
+    t = 0.5
+    m, s = p.mean([t])[0, 0], np.sqrt(p.cov([t])[0, 0, 0])
+    eps = 0.002
+    at_level = JointLimit(0, upper=m + s * norm.isf(eps), support=(t, t), alpha=1 - eps)
+    twice = JointLimit(0, upper=m + s * norm.isf(2 * eps), support=(t, t), alpha=1 - eps)
+    passed = [verify(p, [at_level], 20000, np.random.default_rng(k), 11).holds
+              for k in range(20)]
+    assert sum(passed) >= 19, passed      # the rule's family-wise level is 1 %
+    failed = [not verify(p, [twice], 20000, np.random.default_rng(k), 11).holds
+              for k in range(20)]
+    assert sum(failed) >= 19, failed
+
+
+class _OptimisticLimit(JointLimit):
+    """The optimiser sees a bound 1 higher than the samples are checked against."""
+
+    def rows(self, times):
+        r = super().rows(times)
+        r['b'] = r['b'] + 1.0
+        return r
+
+
+def test_report_carries_the_verification_and_converged_requires_it():
+    p = _promp_1d()
+    ok = JointLimit(0, upper=0.8, alpha=0.99, name='honest')
+    adapted, rep = adapt(p, [ok], AdaptationConfig(n_steps=21))
+    assert rep.converged and rep.status == 'converged'
+    d = rep.as_dict()['verification']
+    assert d['n_samples'] == default_samples([ok], 21) == 10000
+    assert set(d) >= {'n_samples', 'trajectory_violation', 'trajectory_violation_upper95',
+                      'constraints'}
+    assert set(d['constraints'][0]) >= {'name', 'per_step_max', 'trajectory', 'upper95'}
+    assert d['constraints'][0]['name'] == 'honest'
+    assert 'sampled verification' in rep.to_text()
+    # the approximation is satisfied, the samples are not
+    bad = _OptimisticLimit(0, upper=0.3, alpha=0.99, name='optimistic')
+    adapted, rep = adapt(p, [bad], AdaptationConfig(n_steps=21))
+    assert all(c.satisfied for c in rep.constraints)
+    assert not rep.converged and rep.status == 'verification_failed'
+    assert not rep.verification.constraints[0].holds
+    # reproducible by default, another rng gives another sample
+    _, r1 = adapt(p, [ok], AdaptationConfig(n_steps=21))
+    _, r2 = adapt(p, [ok], AdaptationConfig(n_steps=21))
+    assert r1.verification.as_dict()['constraints'] == r2.verification.as_dict()['constraints']
+
+
+def test_trajectory_guarantee_meets_the_bound_where_per_step_does_not():
+    """A 1-D ProMP under an upper limit over the whole movement (exact Gaussian CDFs): per-step
+    mode holds each step at alpha but a trajectory crosses the limit at some step more often
+    than 1 - alpha; trajectory mode brings the whole-trajectory violation below 1 - alpha, by
+    an independent Monte Carlo check, at a larger KL."""
+    p = _promp_1d()
+    c = JointLimit(0, upper=0.5, alpha=0.99, name='upper')
+    base = AdaptationConfig(n_steps=51, lambda0=0.01, max_outer=30)
+    grid = np.linspace(0.0, 1.0, 51)
+    results = {}
+    for mode in ('per_step', 'trajectory'):
+        q, rep = adapt(p, [c], dataclasses.replace(base, guarantee=mode))
+        Y = q.sample_trajectories(grid, 200000, np.random.default_rng(11))[..., 0]
+        results[mode] = (rep, float((Y > 0.5).any(axis=1).mean()), float((Y > 0.5).mean(0).max()))
+    rep_s, traj_s, step_s = results['per_step']
+    rep_t, traj_t, step_t = results['trajectory']
+    assert rep_s.converged and rep_t.converged, (rep_s.to_text(), rep_t.to_text())
+    assert step_s <= 0.01 and traj_s > 0.01, (step_s, traj_s)
+    assert traj_t <= 0.01, traj_t
+    assert rep_t.verification.guarantee == 'trajectory' and rep_t.verification.holds
+    assert rep_t.verification.trajectory_violation_upper95 <= 0.01
+    assert rep_t.n_solves >= 2 and rep_t.levels[0] < 0.01
+    assert rep_t.constraints[0].alpha == 0.99          # the user's level is reported
+    assert rep_t.kl > rep_s.kl
+
+
+def test_guarantee_and_sample_settings_are_validated():
+    with pytest.raises(ValidationError, match='guarantee'):
+        AdaptationConfig(guarantee='always')
+    with pytest.raises(ValidationError, match='verification_samples'):
+        AdaptationConfig(verification_samples=0)
+    with pytest.raises(ValidationError, match='max_refinements'):
+        AdaptationConfig(max_refinements=-1)
+    with pytest.raises(ValidationError, match='guarantee'):
+        AdaptRequestConfig(guarantee='whole')
+    assert AdaptRequestConfig(guarantee='trajectory').guarantee == 'trajectory'
+    p = _promp_1d()
+    c = JointLimit(0, upper=1.0)
+    with pytest.raises(ValidationError, match='n_samples'):
+        verify(p, [c], 0, np.random.default_rng(0))
+    with pytest.raises(ValidationError, match='guarantee'):
+        verify(p, [c], 10, np.random.default_rng(0), guarantee='sometimes')
+
+
+def test_default_sample_count_follows_the_kinematics_cost():
+    chain = planar_chain([1.0] * 4)
+    ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
+    elbow = ChainPoint(chain, PointOfInterest('link2'), axes=(0, 1))
+    lin = [Repeller(DofPoint([0, 1]), [0, 0], 1.0)]
+    assert default_samples(lin, 101) == 10000
+    # two link points of one chain share the forward kinematics: 100 FK evaluations / sample
+    kin = [Repeller(ee, [0, 0], 1.0), Repeller(elbow, [0, 0], 1.0)]
+    assert default_samples(kin, 100) == 1000
+    assert default_samples(kin, 20) == 5000
+
+
+def test_experiment_rows_report_the_verification():
+    from cdmp_ros.experiments import exp_promp_tables
+    from cdmp_ros.experiments.results import verification_rows
+    rng = np.random.default_rng(0)
+    recs = exp_promp_tables.solve_row('table2', 1, 2, rng, n_samples=2000, relative_step=True,
+                                      guarantee='per_step')
+    rows = {r['name']: r['ours'] for r in exp_promp_tables.summarise('table2', 1, recs)}
+    for key in ('verified_per_step_max_pct_median', 'verified_trajectory_pct',
+                'verified_trajectory_upper95_pct', 'verified_pct', 'verification_s_median'):
+        assert rows[f'table2.obstacles_1.{key}'] is not None, key
+    assert 0.0 <= rows['table2.obstacles_1.verified_trajectory_pct'] <= \
+        rows['table2.obstacles_1.verified_trajectory_upper95_pct'] <= 100.0
+    rep = recs[0]
+    _, report = adapt(rep['problem'].prior, rep['problem'].constraints, rep['problem'].config)
+    names = [r['name'] for r in verification_rows('x', report)]
+    assert names == ['x.verified_per_step_max_pct', 'x.verified_trajectory_pct',
+                     'x.verified_trajectory_upper95_pct', 'x.verified']
