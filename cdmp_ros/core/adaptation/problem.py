@@ -231,6 +231,10 @@ class Problem:
                 offsets.append((n, n + size))
                 n += size
             params = {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
+            # the tail approximation of quadratic forms, and a scratch space kept between
+            # evaluations (warm starts of the saddle points)
+            params['tail'] = self.config.tail
+            params['state'] = {}
             fn = type(self.constraints[members[0]]).probability_rows
             self.batches.append((fn, members, offsets, params))
 
@@ -325,7 +329,7 @@ class Problem:
             if b is None:
                 if Sigma is None:
                     Sigma = L @ L.T
-                Fw, dmu, dS = c.probability_w(mu, Sigma)
+                Fw, dmu, dS = c.probability_w(mu, Sigma, tail=self.config.tail)
                 F[sl] = Fw
                 parts[i] = (dmu, dS)
         for i in self.single:
