@@ -44,6 +44,13 @@ from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 # constraint asks for; continuous across the switch up to O(_W_CENTER)).
 _W_CENTER = 2e-4
 _MAX_ITER = 200
+_FAR = 9.0
+
+
+def _rowsum(a: NDArray) -> NDArray:
+    """Sum over the last axis of a (n, k) array (a matrix-vector product: np.sum(axis=1) costs
+    several times more on these short rows)."""
+    return a @ np.ones(a.shape[-1])
 
 
 def _cgf(s, lam, d2):
@@ -51,10 +58,12 @@ def _cgf(s, lam, d2):
     b = 1.0 / (1.0 - 2.0 * s[:, None] * lam)
     lb = lam * b
     d2b = d2 * b
-    K = np.sum(-0.5 * np.log1p(-2.0 * s[:, None] * lam) + s[:, None] * d2b, axis=1)
-    K1 = np.sum(lb + d2b * b, axis=1)
-    K2 = np.sum(2.0 * lb * lb + 4.0 * lb * d2b * b, axis=1)
-    K3 = np.sum(8.0 * lb * lb * lb + 24.0 * lb * lb * d2b * b, axis=1)
+    t = d2b * b
+    lb2 = lb * lb
+    K = _rowsum(-0.5 * np.log1p(-2.0 * s[:, None] * lam) + s[:, None] * d2b)
+    K1 = _rowsum(lb + t)
+    K2 = _rowsum(2.0 * lb2 + 4.0 * lb * t)
+    K3 = _rowsum(8.0 * lb2 * lb + 24.0 * lb2 * t)
     return b, K, K1, K2, K3
 
 
@@ -76,13 +85,15 @@ def _w2(s, lam, d2, b):
     precision for s -> 0 (near the mean of Q); x = K'(s_hat) there, so w depends on s_hat
     alone and the root's last-digit error does not reach P."""
     t = 2.0 * s[:, None] * lam
-    return np.sum(t * t * b + _log1p_plus(t) + 2.0 * t * s[:, None] * d2 * b * b, axis=1)
+    return _rowsum(t * t * b + _log1p_plus(t) + 2.0 * t * s[:, None] * d2 * b * b)
 
 
-def _k1(s, lam, d2):
-    b = 1.0 / (1.0 - 2.0 * s[:, None] * lam)
-    return np.sum(lam * b + d2 * b * b, axis=1), np.sum(
-        2.0 * (lam * b) ** 2 + 4.0 * lam * d2 * b ** 3, axis=1)
+def _k1(s, lam2, lam, d2, ones):
+    """K'(s) and K''(s) (lam2 = 2 lam; row sums as a matrix-vector product)."""
+    b = 1.0 / (1.0 - s[:, None] * lam2)
+    lb = lam * b
+    t = d2 * b * b
+    return (lb + t) @ ones, (lb * (lb + t + t)) @ (ones + ones)
 
 
 def saddle_point(lam: NDArray, d2: NDArray, x: NDArray, s0: Optional[NDArray] = None
@@ -107,19 +118,21 @@ def saddle_point(lam: NDArray, d2: NDArray, x: NDArray, s0: Optional[NDArray] = 
     """
     n, k = lam.shape
     lam_max = np.max(lam, axis=1)
-    E = np.sum(lam + d2, axis=1)
+    E = _rowsum(lam + d2)
     upper = x > E
     # bracket: (0, pole) above the mean; below it, K'(s) <= k / (2|s|) + sum d2/lam^2 / (4 s^2)
     pole = 0.5 / lam_max
     lo = np.where(upper, 0.0,
-                  -(k / x + np.sqrt(np.sum(d2 / (lam * lam), axis=1) / x)))
+                  -(k / x + np.sqrt(_rowsum(d2 / (lam * lam)) / x)))
     hi = np.where(upper, pole, 0.0)
     s = np.where(upper, 0.5 * pole, 0.0)
     if s0 is not None:
         s = np.where((s0 > lo) & (s0 < hi), s0, s)
     log_x = np.log(x)
+    lam2 = 2.0 * lam
+    ones = np.ones(k)
     for _ in range(_MAX_ITER):
-        K1, K2 = _k1(s, lam, d2)
+        K1, K2 = _k1(s, lam2, lam, d2, ones)
         f = np.log(K1) - log_x
         if np.all(np.abs(f) < 1e-13):
             break
@@ -132,10 +145,17 @@ def saddle_point(lam: NDArray, d2: NDArray, x: NDArray, s0: Optional[NDArray] = 
 
 
 def _eigh(S: NDArray) -> Tuple[NDArray, NDArray]:
-    """Eigenvalues (ascending) and eigenvectors of symmetric (n, k, k) matrices; closed form
-    for k = 2 (LAPACK's per-matrix overhead dominates such small batches)."""
-    if S.shape[-1] != 2:
-        return np.linalg.eigh(S)
+    """Eigenvalues (ascending) and eigenvectors of symmetric (n, k, k) matrices; closed forms
+    for k = 2 and 3 (LAPACK's per-matrix overhead dominates such small batches)."""
+    k = S.shape[-1]
+    if k == 2:
+        return _eigh2(S)
+    if k == 3:
+        return _eigh3(S)
+    return np.linalg.eigh(S)
+
+
+def _eigh2(S):
     a, b, c = S[:, 0, 0], 0.5 * (S[:, 0, 1] + S[:, 1, 0]), S[:, 1, 1]
     half = 0.5 * (a + c)
     r = np.hypot(0.5 * (a - c), b)
@@ -148,6 +168,60 @@ def _eigh(S: NDArray) -> Tuple[NDArray, NDArray]:
     U[:, 0, 0], U[:, 1, 0] = -sn, cs
     U[:, 0, 1], U[:, 1, 1] = cs, sn
     return np.stack([small, big], axis=1), U
+
+
+# relative eigenvalue gap below which a 3 x 3 matrix goes to LAPACK (eigenvectors from cross
+# products lose accuracy as gap -> 0)
+_GAP3 = 1e-5
+
+
+def _eigh3(S):
+    """Trigonometric eigenvalues (Smith 1961) and cross-product eigenvectors of the extreme
+    eigenvalues, element-wise over the rows; rows with nearly repeated eigenvalues are handed
+    to np.linalg.eigh."""
+    a = S[:, 0, 0]
+    b = S[:, 1, 1]
+    c = S[:, 2, 2]
+    d = 0.5 * (S[:, 0, 1] + S[:, 1, 0])
+    e = 0.5 * (S[:, 1, 2] + S[:, 2, 1])
+    f = 0.5 * (S[:, 0, 2] + S[:, 2, 0])
+    q = (a + b + c) / 3.0
+    aq, bq, cq = a - q, b - q, c - q
+    p = np.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * (d * d + e * e + f * f)) / 6.0)
+    bad = ~(p > 0.0)
+    ps = np.where(bad, 1.0, p)
+    det = aq * (bq * cq - e * e) - d * (d * cq - e * f) + f * (d * e - bq * f)
+    r = np.clip(0.5 * det / (ps * ps * ps), -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    big = q + 2.0 * p * np.cos(phi)
+    small = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    mid = 3.0 * q - big - small
+    bad |= np.minimum(big - mid, mid - small) < _GAP3 * ps
+
+    def vector(lam):
+        # rows of S - lam I: (a', d, f), (d, b', e), (f, e, c'); the largest of their
+        # pairwise cross products spans the null space
+        a_, b_, c_ = a - lam, b - lam, c - lam
+        c01 = np.stack([d * e - f * b_, f * d - a_ * e, a_ * b_ - d * d], axis=1)
+        c02 = np.stack([d * c_ - f * e, f * f - a_ * c_, a_ * e - d * f], axis=1)
+        c12 = np.stack([b_ * c_ - e * e, e * f - d * c_, d * e - b_ * f], axis=1)
+        n01, n02, n12 = (_rowsum(v * v) for v in (c01, c02, c12))
+        v = np.where((n01 >= n02)[:, None], c01, c02)
+        nv = np.maximum(n01, n02)
+        v = np.where((n12 > nv)[:, None], c12, v)
+        nv = np.maximum(nv, n12)
+        return v / np.sqrt(np.maximum(nv, 1e-300))[:, None]
+    v_big = vector(big)
+    v_small = vector(small)
+    bad |= np.abs(_rowsum(v_big * v_small)) > 1e-9
+    v_mid = np.stack([v_big[:, 1] * v_small[:, 2] - v_big[:, 2] * v_small[:, 1],
+                      v_big[:, 2] * v_small[:, 0] - v_big[:, 0] * v_small[:, 2],
+                      v_big[:, 0] * v_small[:, 1] - v_big[:, 1] * v_small[:, 0]], axis=1)
+    U = np.stack([v_small, v_mid, v_big], axis=2)
+    lam = np.stack([small, mid, big], axis=1)
+    if np.any(bad):
+        lam[bad], U[bad] = np.linalg.eigh(S[bad])
+    return lam, U
 
 
 def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
@@ -181,20 +255,53 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
     S = np.asarray(S, float)
     n, k = m.shape
     x = np.broadcast_to(np.asarray(x, float), (n,))
+    center = np.broadcast_to(np.asarray(center, float), (n, k))
+    s0 = None if state is None else state.get('s')
+    if s0 is not None and s0.shape != (n,):
+        s0 = None
+    act = None
+    if k <= 3:
+        # Rows whose ball lies beyond the half-space u.(y - m) >= dist - r, u = (c - m) / dist,
+        # more than _FAR standard deviations of u.x away (P <= Phi(-_FAR) < 1e-18), or that
+        # contain the _FAR sqrt(tr S) neighbourhood of the mean (1 - P <= P(chi2_3 > _FAR^2)
+        # < 1e-17): P is 0 or 1 with zero gradient. Most steps of a path constraint are such.
+        d = m - center
+        dist2 = _rowsum(d * d)
+        dist = np.sqrt(dist2)
+        r = np.sqrt(x)
+        var_u = np.matmul(np.matmul(d[:, None, :], S), d[:, :, None])[:, 0, 0]
+        gap = dist - r
+        far = (gap > 0.0) & (gap * gap * dist2 > _FAR * _FAR * var_u)
+        spread = _FAR * np.sqrt(np.maximum(np.trace(S, axis1=1, axis2=2), 0.0))
+        inside = dist + spread < r
+        skip = far | inside
+        if np.any(skip):
+            act = ~skip
+    if act is None:
+        P, dP_dm, dP_dS, s = _saddle_cdf(m, S, center, x, s0)
+    else:
+        P = inside.astype(float)
+        dP_dm = np.zeros((n, k))
+        dP_dS = np.zeros((n, k, k))
+        s = np.zeros(n) if s0 is None else s0.copy()
+        if np.any(act):
+            P[act], dP_dm[act], dP_dS[act], s[act] = _saddle_cdf(
+                m[act], S[act], center[act], x[act], None if s0 is None else s0[act])
+    if state is not None:
+        state['s'] = s
+    return P, dP_dm, dP_dS
+
+
+def _saddle_cdf(m, S, center, x, s0):
+    """quadratic_form_cdf on rows that need it; also returns the saddle points."""
+    n, k = m.shape
     d = m - center
     lam, U = _eigh(S)
-    scale = np.trace(S, axis1=1, axis2=2) + np.sum(d * d, axis=1) + x
+    scale = np.trace(S, axis1=1, axis2=2) + _rowsum(d * d) + x
     lam = np.maximum(lam, 1e-12 * scale[:, None])
     delta = np.matmul(d[:, None, :], U)[:, 0, :]
     d2 = delta * delta
-    s0 = None
-    if state is not None:
-        s0 = state.get('s')
-        if s0 is not None and s0.shape != (n,):
-            s0 = None
     s = saddle_point(lam, d2, x, s0)
-    if state is not None:
-        state['s'] = s
     b, K, K1, K2, K3 = _cgf(s, lam, d2)
     w2 = np.maximum(_w2(s, lam, d2, b), 0.0)
     w = np.sign(s) * np.sqrt(w2)
@@ -232,7 +339,7 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
     dP_dm = np.matmul(U, (c * delta)[:, :, None])[:, :, 0]
     if np.any(center_rows):
         P, dP_dm, dP_dS = _center_edgeworth(m, S, center, x, center_rows, P, dP_dm, dP_dS)
-    return np.clip(P, 0.0, 1.0), dP_dm, dP_dS
+    return np.clip(P, 0.0, 1.0), dP_dm, dP_dS, s
 
 
 def _center_edgeworth(m, S, center, x, rows, P, dP_dm, dP_dS):
