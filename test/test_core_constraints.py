@@ -316,10 +316,14 @@ def test_tail_option_is_validated_and_parsed():
     prior = ProMP(2, RbfBasis.uniform(4), np.zeros(8), np.eye(8))
     doc = {'constraints': [{'type': 'repeller', 'point': {'dims': [0, 1]},
                             'center': [0.0, 0.0], 'radius': 0.1}],
-           'optimizer': {'tail': 'gamma'}}
+           'optimizer': {'tail': 'gamma', 'confidence_margin': 0.5}}
     _, opt = parse_constraint_set(doc, prior)
     assert AdaptationConfig(**opt).tail == 'gamma'
+    assert AdaptationConfig(**opt).confidence_margin == 0.5
     assert AdaptationConfig().tail == 'saddlepoint'
     doc['optimizer']['tail'] = 'normal'
     with pytest.raises(ConstraintSetError, match='tail'):
+        parse_constraint_set(doc, prior)
+    doc['optimizer'] = {'confidence_margin': 0.0}
+    with pytest.raises(ConstraintSetError, match='confidence_margin'):
         parse_constraint_set(doc, prior)
