@@ -44,7 +44,8 @@ from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 # constraint asks for; continuous across the switch up to O(_W_CENTER)).
 _W_CENTER = 2e-4
 _MAX_ITER = 200
-_FAR = 9.0
+_FAR = 9.0          # chi2_3 tail: P(chi2_3 > 81) < 1e-17
+_FAR_DIR = 7.5      # normal tail: Phi(-7.5) < 4e-14
 
 
 def _rowsum(a: NDArray) -> NDArray:
@@ -262,16 +263,16 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
     act = None
     if k <= 3:
         # Rows whose ball lies beyond the half-space u.(y - m) >= dist - r, u = (c - m) / dist,
-        # more than _FAR standard deviations of u.x away (P <= Phi(-_FAR) < 1e-18), or that
+        # more than _FAR_DIR standard deviations of u.x away (P <= Phi(-7.5) < 4e-14), or that
         # contain the _FAR sqrt(tr S) neighbourhood of the mean (1 - P <= P(chi2_3 > _FAR^2)
         # < 1e-17): P is 0 or 1 with zero gradient. Most steps of a path constraint are such.
         d = m - center
         dist2 = _rowsum(d * d)
         dist = np.sqrt(dist2)
         r = np.sqrt(x)
-        var_u = np.matmul(np.matmul(d[:, None, :], S), d[:, :, None])[:, 0, 0]
+        var_u = _rowsum(d * np.matmul(S, d[:, :, None])[:, :, 0])
         gap = dist - r
-        far = (gap > 0.0) & (gap * gap * dist2 > _FAR * _FAR * var_u)
+        far = (gap > 0.0) & (gap * gap * dist2 > _FAR_DIR * _FAR_DIR * var_u)
         spread = _FAR * np.sqrt(np.maximum(np.trace(S, axis1=1, axis2=2), 0.0))
         inside = dist + spread < r
         skip = far | inside
@@ -332,11 +333,11 @@ def _saddle_cdf(m, S, center, x, s0):
     alpha = (sc * sc * a_K) * p + (2.0 * sc * a_1) * q + 2.0 * a_2 * r \
         + (4.0 * sc * a_2) * (lam * r)
     beta = (4.0 * sc * a_2) * q
-    UX = np.matmul(U, np.stack([p, v], axis=2))            # (n, k, 2)
-    UA = np.matmul(U, np.stack([alpha, beta], axis=2))     # (n, k, 2)
-    Y = np.matmul(UX, np.swapaxes(UA, 1, 2))
+    # back to the original basis with one batched product: U [p v alpha beta c*delta]
+    V = np.matmul(U, np.stack([p, v, alpha, beta, c * delta], axis=2))     # (n, k, 5)
+    Y = V[:, :, 0, None] * V[:, None, :, 2] + V[:, :, 1, None] * V[:, None, :, 3]
     dP_dS = Y + np.swapaxes(Y, 1, 2) + np.matmul(U * g[:, None, :], np.swapaxes(U, 1, 2))
-    dP_dm = np.matmul(U, (c * delta)[:, :, None])[:, :, 0]
+    dP_dm = V[:, :, 4]
     if np.any(center_rows):
         P, dP_dm, dP_dS = _center_edgeworth(m, S, center, x, center_rows, P, dP_dm, dP_dS)
     return np.clip(P, 0.0, 1.0), dP_dm, dP_dS, s
