@@ -199,21 +199,22 @@ def _eigh3(S):
     mid = 3.0 * q - big - small
     bad |= np.minimum(big - mid, mid - small) < _GAP3 * ps
 
-    def vector(lam):
-        # rows of S - lam I: (a', d, f), (d, b', e), (f, e, c'); the largest of their
-        # pairwise cross products spans the null space
-        a_, b_, c_ = a - lam, b - lam, c - lam
-        c01 = np.stack([d * e - f * b_, f * d - a_ * e, a_ * b_ - d * d], axis=1)
-        c02 = np.stack([d * c_ - f * e, f * f - a_ * c_, a_ * e - d * f], axis=1)
-        c12 = np.stack([b_ * c_ - e * e, e * f - d * c_, d * e - b_ * f], axis=1)
-        n01, n02, n12 = (_rowsum(v * v) for v in (c01, c02, c12))
-        v = np.where((n01 >= n02)[:, None], c01, c02)
-        nv = np.maximum(n01, n02)
-        v = np.where((n12 > nv)[:, None], c12, v)
-        nv = np.maximum(nv, n12)
-        return v / np.sqrt(np.maximum(nv, 1e-300))[:, None]
-    v_big = vector(big)
-    v_small = vector(small)
+    # eigenvectors of the largest and the smallest eigenvalue together (leading axis 2): rows
+    # of S - lam I are (a', d, f), (d, b', e), (f, e, c'); the largest of their pairwise cross
+    # products spans the null space
+    lam2 = np.stack([big, small])
+    a_, b_, c_ = a - lam2, b - lam2, c - lam2
+    de, fd, ff, dd, ee, ef, df = d * e, f * d, f * f, d * d, e * e, e * f, d * f
+    c01 = np.stack([de - f * b_, fd - a_ * e, a_ * b_ - dd], axis=2)
+    c02 = np.stack([d * c_ - ef, ff - a_ * c_, a_ * e - df], axis=2)
+    c12 = np.stack([b_ * c_ - ee, ef - d * c_, de - b_ * f], axis=2)
+    n01, n02, n12 = (_rowsum(v * v) for v in (c01, c02, c12))
+    v = np.where((n01 >= n02)[:, :, None], c01, c02)
+    nv = np.maximum(n01, n02)
+    v = np.where((n12 > nv)[:, :, None], c12, v)
+    nv = np.maximum(nv, n12)
+    v /= np.sqrt(np.maximum(nv, 1e-300))[:, :, None]
+    v_big, v_small = v[0], v[1]
     bad |= np.abs(_rowsum(v_big * v_small)) > 1e-9
     v_mid = np.stack([v_big[:, 1] * v_small[:, 2] - v_big[:, 2] * v_small[:, 1],
                       v_big[:, 2] * v_small[:, 0] - v_big[:, 0] * v_small[:, 2],
