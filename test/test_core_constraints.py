@@ -289,7 +289,7 @@ def test_smoothness_constraint_gradient_matches_finite_differences(tail, rng):
             assert np.isclose(dS[0, i, j] * (1 if i == j else 2), fd[0], rtol=1e-5, atol=1e-9)
 
 
-@pytest.mark.parametrize('tail', ['saddlepoint', 'gamma'])
+@pytest.mark.parametrize('tail', ['auto', 'saddlepoint', 'gamma'])
 def test_lagrangian_gradient_with_either_tail(tail, rng):
     """Lagrangian-level check (as test_core_adaptation) of every quadratic-form constraint,
     linear and unscented points, with AdaptationConfig.tail."""
@@ -320,7 +320,10 @@ def test_tail_option_is_validated_and_parsed():
     _, opt = parse_constraint_set(doc, prior)
     assert AdaptationConfig(**opt).tail == 'gamma'
     assert AdaptationConfig(**opt).confidence_margin == 0.5
-    assert AdaptationConfig().tail == 'saddlepoint'
+    assert AdaptationConfig().tail == 'auto'
+    assert AdaptationConfig().resolved_tail(linear=True) == 'saddlepoint'
+    assert AdaptationConfig().resolved_tail(linear=False) == 'gamma'
+    assert AdaptationConfig(tail='saddlepoint').resolved_tail(linear=False) == 'saddlepoint'
     doc['optimizer']['tail'] = 'normal'
     with pytest.raises(ConstraintSetError, match='tail'):
         parse_constraint_set(doc, prior)

@@ -57,10 +57,10 @@ def add_arguments(parser):
                              'or table=value pairs (others 1.0), e.g. "table2=0.2"; 1.0 (the '
                              "default) is the paper's stopping rule: the per-step levels are "
                              'calibrated without a margin')
-    parser.add_argument('--tail', choices=['saddlepoint', 'gamma'], default='saddlepoint',
+    parser.add_argument('--tail', choices=['auto', 'saddlepoint', 'gamma'], default='auto',
                         help='AdaptationConfig.tail: law of the quadratic forms (repellers, '
-                             "waypoints): the saddle point (default) or the paper's Gamma "
-                             'moment match')
+                             'waypoints): auto (default; the saddle point on these linear '
+                             "points), saddlepoint, or the paper's Gamma moment match")
     parser.add_argument('--no-plot', action='store_true', help='skip the PNG figures')
     parser.add_argument('--no-progress', action='store_true', help='hide the progress bar')
 
@@ -87,7 +87,7 @@ def parse_margins(text):
 
 
 def solve_row(table, K, n, rng, prior='scripts', n_samples=10000, progress=None,
-              relative_step=False, confidence_margin=1.0, tail='saddlepoint'):
+              relative_step=False, confidence_margin=1.0, tail='auto'):
     """Generate and solve ``n`` problems; returns per-problem records."""
     import dataclasses
     from cdmp_ros.core.adaptation.solver import adapt
