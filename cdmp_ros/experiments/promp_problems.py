@@ -136,7 +136,8 @@ def sampled_violations(promp: ProMP, problem: TableProblem, rng: np.random.Gener
             times = c.times(grid)
             X = sample_points(promp, c, n, rng, grid, W)
             if c.reduce == 'max':
-                sat_t = c._dist2(X, times) <= c.radius ** 2      # inside at each step
+                D = X - c.centers(times)[None]
+                sat_t = np.einsum('...i,...i->...', D, D) <= c.radius ** 2   # inside, per step
                 ok = sat_t.any(axis=1)
             else:
                 sat_t = c.satisfied(X, times)
