@@ -10,9 +10,13 @@ Table II, 1,000 for the Panda at 100 steps, the defaults); its cost alone is the
 "verification" columns. A third Table II row solves with the trajectory-level guarantee.
 
 Run: .venv/bin/python benchmarks/bench_promp.py [--n-table2 50] [--n-panda 5] [--seed 0]
+[--compare-tails] (the same problems again with tail 'saddlepoint' and 'gamma'; the default
+'auto' is the saddle point on Table II's linear points and the Gamma match on the Panda's
+link points, see AdaptationConfig.tail)
 (single-threaded BLAS: OPENBLAS_NUM_THREADS=1 is set below, before numpy is imported).
 """
 import argparse
+import dataclasses
 import os
 import platform
 import time
@@ -49,25 +53,24 @@ class _Runs:
         self.samples.append(rep.verification.n_samples)
 
 
-def bench_table2(n, rng, confidence_margin=1.0, guarantee='per_step'):
-    import dataclasses
+def bench_table2(n, rng, tail='auto', guarantee='per_step'):
     runs = _Runs()
-    problems = [make_problem('table2', 1, rng, relative_step=True,
-                             confidence_margin=confidence_margin) for _ in range(n)]
-    adapt(problems[0].prior, problems[0].constraints, problems[0].config)   # warm-up
-    for p in problems:
-        runs.solve(p.prior, p.constraints, dataclasses.replace(p.config, guarantee=guarantee))
+    problems = [make_problem('table2', 1, rng, relative_step=True) for _ in range(n)]
+    configs = [dataclasses.replace(p.config, tail=tail, guarantee=guarantee) for p in problems]
+    adapt(problems[0].prior, problems[0].constraints, configs[0])   # warm-up
+    for p, cfg in zip(problems, configs):
+        runs.solve(p.prior, p.constraints, cfg)
     return runs
 
 
-def bench_panda(n, rng):
+def bench_panda(n, rng, tail='auto'):
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.sim.robot_specs import panda_urdf_path
     chain = panda_chain(panda_urdf_path())
     runs = _Runs()
     for _ in range(n):
         prior, cons, cfg = panda_problem(chain, rng)
-        runs.solve(prior, cons, cfg)
+        runs.solve(prior, cons, dataclasses.replace(cfg, tail=tail))
     return runs
 
 
@@ -76,8 +79,10 @@ def main():
     ap.add_argument('--n-table2', type=int, default=50)
     ap.add_argument('--n-panda', type=int, default=5)
     ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--compare-tails', action='store_true',
+                    help="also run every case with tail='saddlepoint' and tail='gamma' (the "
+                         "paper's moment match) on the same problems, for comparison")
     args = ap.parse_args()
-    rng = np.random.default_rng(args.seed)
     print(f'machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, '
           f'load average {os.getloadavg()[0]:.1f} at the start')
     print()
@@ -85,16 +90,22 @@ def main():
           '| median L-BFGS its / evaluations | converged | target |')
     print('|---|---|---|---|---|---|---|---|---|---|')
     rows = []
+    tails = ('auto', 'saddlepoint', 'gamma') if args.compare_tails else ('auto',)
+    for tail in tails:
+        # the same problems for every tail
+        if args.n_table2:
+            rows.append((f'Table II, 1 obstacle (2-D, 10 basis/dim, 101 steps), tail {tail}',
+                         bench_table2(args.n_table2, np.random.default_rng(args.seed), tail),
+                         'median <= 50 ms' if tail == 'auto' else '-'))
+        if args.n_panda:
+            rows.append(('Panda 7-DoF, 10 basis/joint, 100 steps, limits + 3 spheres x (ee, '
+                         f'elbow), tail {tail}',
+                         bench_panda(args.n_panda, np.random.default_rng(args.seed + 1), tail),
+                         'median <= 200 ms, p95 <= 1 s' if tail == 'auto' else '-'))
     if args.n_table2:
-        rows.append(('Table II, 1 obstacle (2-D, 10 basis/dim, 101 steps)',
-                     bench_table2(args.n_table2, rng), 'median <= 50 ms'))
-        rows.append(("Table II, 1 obstacle, confidence margin 0.2 (the tables' setting)",
-                     bench_table2(args.n_table2, rng, 0.2), '-'))
         rows.append(('Table II, 1 obstacle, guarantee trajectory',
-                     bench_table2(args.n_table2, rng, guarantee='trajectory'), '-'))
-    if args.n_panda:
-        rows.append(('Panda 7-DoF, 10 basis/joint, 100 steps, limits + 3 spheres x (ee, elbow)',
-                     bench_panda(args.n_panda, rng), 'median <= 200 ms, p95 <= 1 s'))
+                     bench_table2(args.n_table2, np.random.default_rng(args.seed),
+                                  guarantee='trajectory'), '-'))
     for name, r, target in rows:
         med, p90, p95, mx = _stats(r.wall)
         cmed, _, cp95, _ = _stats(r.cpu)

@@ -106,6 +106,53 @@ def violation_rate(promp: ProMP, problem: TableProblem, rng: np.random.Generator
     return float(1.0 - ok.mean())
 
 
+def sampled_violations(promp: ProMP, problem: TableProblem, rng: np.random.Generator,
+                       n_samples: int = 200_000, chunk: int = 20_000):
+    """Per-constraint sampled violation frequencies of ``promp`` on the problem's grid.
+
+    Returns
+    -------
+    per_step : ndarray, shape (n_constraints,)
+        For constraints imposed at every step, the largest violation frequency over the steps
+        (what the constraint's confidence alpha bounds); for temporally unbound waypoints
+        (Eq. 19, one multiplier at the best step), the violation frequency at the best step.
+    trajectory : ndarray, shape (n_constraints,)
+        Frequency of trajectories violating the constraint at some step (never inside the
+        ball, for an unbound waypoint).
+    any_violation : float
+        Frequency of trajectories violating at least one constraint.
+    """
+    grid = np.linspace(0.0, 1.0, problem.config.n_steps)
+    nc = len(problem.constraints)
+    ok_steps = [None] * nc
+    bad_traj = np.zeros(nc)
+    bad_any = 0
+    done = 0
+    while done < n_samples:
+        n = min(chunk, n_samples - done)
+        W = promp.sample_weights(n, rng)
+        ok_all = np.ones(n, bool)
+        for i, c in enumerate(problem.constraints):
+            times = c.times(grid)
+            X = sample_points(promp, c, n, rng, grid, W)
+            if c.reduce == 'max':
+                D = X - c.centers(times)[None]
+                sat_t = np.einsum('...i,...i->...', D, D) <= c.radius ** 2   # inside, per step
+                ok = sat_t.any(axis=1)
+            else:
+                sat_t = c.satisfied(X, times)
+                ok = sat_t.all(axis=1)
+            cnt = sat_t.sum(axis=0)
+            ok_steps[i] = cnt if ok_steps[i] is None else ok_steps[i] + cnt
+            bad_traj[i] += n - ok.sum()
+            ok_all &= ok
+        bad_any += n - ok_all.sum()
+        done += n
+    per_step = np.array([1.0 - (cnt.max() if c.reduce == 'max' else cnt.min()) / n_samples
+                         for c, cnt in zip(problem.constraints, ok_steps)])
+    return per_step, bad_traj / n_samples, bad_any / n_samples
+
+
 def panda_problem(chain, rng: np.random.Generator, n_basis: int = 10, n_steps: int = 100,
                   n_spheres: int = 3, n_demos: int = 8):
     """The 7-DoF benchmark of issue 3: a joint-space Panda ProMP (``n_basis`` per joint) learned

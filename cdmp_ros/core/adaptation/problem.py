@@ -220,9 +220,11 @@ class Problem:
                 self.single.append(i)
                 continue
             k = c.point.n_out
-            batches.setdefault((kind, k), []).append(i)
+            # linear and unscented points apart: AdaptationConfig.tail = 'auto' treats them
+            # differently
+            batches.setdefault((kind, k, bool(self.bound[i][0].linear)), []).append(i)
         self.batches = []
-        for members in batches.values():
+        for (_, _, linear), members in batches.items():
             rows, offsets, n = [], [], 0
             for i in members:
                 r = self.constraints[i].rows(self.bound[i][0].group.times)
@@ -231,6 +233,10 @@ class Problem:
                 offsets.append((n, n + size))
                 n += size
             params = {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
+            # the tail approximation of quadratic forms, and a scratch space kept between
+            # evaluations (warm starts of the saddle points)
+            params['tail'] = self.config.resolved_tail(linear)
+            params['state'] = {}
             fn = type(self.constraints[members[0]]).probability_rows
             self.batches.append((fn, members, offsets, params))
 
@@ -325,7 +331,7 @@ class Problem:
             if b is None:
                 if Sigma is None:
                     Sigma = L @ L.T
-                Fw, dmu, dS = c.probability_w(mu, Sigma)
+                Fw, dmu, dS = c.probability_w(mu, Sigma, tail=self.config.resolved_tail(True))
                 F[sl] = Fw
                 parts[i] = (dmu, dS)
         for i in self.single:

@@ -31,18 +31,27 @@ Gradients: with theta any entry of (m, S), the envelope theorem gives dw/dtheta 
 K, K' and K'' at fixed s are closed-form matrix functions of S (written here in the eigenbasis of
 S, where they need no divided differences, so repeated eigenvalues are harmless).
 """
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 
-# Below this |w| the saddle point is at the mean of Q and Lugannani-Rice is 0/0: the normal
-# approximation with the exact mean and variance of Q is used there (P ~ 0.5, far from any
-# confidence level a constraint asks for).
-_W_CENTER = 1e-4
+# Below this |w| the saddle point is at the mean of Q and Lugannani-Rice is 0/0 in floating
+# point: the one-term Edgeworth expansion with the exact mean, variance and skewness of Q, which
+# has the same limit at the mean, is used there (P ~ 0.5, far from any confidence level a
+# constraint asks for; continuous across the switch up to O(_W_CENTER)).
+_W_CENTER = 2e-4
 _MAX_ITER = 200
+_FAR = 9.0          # chi2_3 tail: P(chi2_3 > 81) < 1e-17
+_FAR_DIR = 7.5      # normal tail: Phi(-7.5) < 4e-14
+
+
+def _rowsum(a: NDArray) -> NDArray:
+    """Sum over the last axis of a (n, k) array (a matrix-vector product: np.sum(axis=1) costs
+    several times more on these short rows)."""
+    return a @ np.ones(a.shape[-1])
 
 
 def _cgf(s, lam, d2):
@@ -50,20 +59,46 @@ def _cgf(s, lam, d2):
     b = 1.0 / (1.0 - 2.0 * s[:, None] * lam)
     lb = lam * b
     d2b = d2 * b
-    K = np.sum(-0.5 * np.log1p(-2.0 * s[:, None] * lam) + s[:, None] * d2b, axis=1)
-    K1 = np.sum(lb + d2b * b, axis=1)
-    K2 = np.sum(2.0 * lb * lb + 4.0 * lb * d2b * b, axis=1)
-    K3 = np.sum(8.0 * lb * lb * lb + 24.0 * lb * lb * d2b * b, axis=1)
+    t = d2b * b
+    lb2 = lb * lb
+    K = _rowsum(-0.5 * np.log1p(-2.0 * s[:, None] * lam) + s[:, None] * d2b)
+    K1 = _rowsum(lb + t)
+    K2 = _rowsum(2.0 * lb2 + 4.0 * lb * t)
+    K3 = _rowsum(8.0 * lb2 * lb + 24.0 * lb2 * t)
     return b, K, K1, K2, K3
 
 
-def _k1(s, lam, d2):
-    b = 1.0 / (1.0 - 2.0 * s[:, None] * lam)
-    return np.sum(lam * b + d2 * b * b, axis=1), np.sum(
-        2.0 * (lam * b) ** 2 + 4.0 * lam * d2 * b ** 3, axis=1)
+def _log1p_plus(t):
+    """log(1 - t) + t without cancellation (a series for |t| < 0.1)."""
+    out = np.log1p(-t) + t
+    small = np.abs(t) < 0.1
+    if np.any(small):
+        ts = t[small]
+        acc = np.full(ts.shape, 1.0 / 18.0)
+        for j in range(17, 1, -1):       # -(t^2/2 + t^3/3 + ... + t^18/18), |t|^17 < 1e-16
+            acc = 1.0 / j + ts * acc
+        out[small] = -ts * ts * acc
+    return out
 
 
-def saddle_point(lam: NDArray, d2: NDArray, x: NDArray) -> NDArray:
+def _w2(s, lam, d2, b):
+    """w^2 = 2 (s K'(s) - K(s)) at the saddle point, written so that it keeps full relative
+    precision for s -> 0 (near the mean of Q); x = K'(s_hat) there, so w depends on s_hat
+    alone and the root's last-digit error does not reach P."""
+    t = 2.0 * s[:, None] * lam
+    return _rowsum(t * t * b + _log1p_plus(t) + 2.0 * t * s[:, None] * d2 * b * b)
+
+
+def _k1(s, lam2, lam, d2, ones):
+    """K'(s) and K''(s) (lam2 = 2 lam; row sums as a matrix-vector product)."""
+    b = 1.0 / (1.0 - s[:, None] * lam2)
+    lb = lam * b
+    t = d2 * b * b
+    return (lb + t) @ ones, (lb * (lb + t + t)) @ (ones + ones)
+
+
+def saddle_point(lam: NDArray, d2: NDArray, x: NDArray, s0: Optional[NDArray] = None
+                 ) -> NDArray:
     """Solve K'(s) = x for every row (safeguarded Newton on log K', bisection fallback).
 
     Parameters
@@ -74,6 +109,9 @@ def saddle_point(lam: NDArray, d2: NDArray, x: NDArray) -> NDArray:
         Squared mean offsets in the eigenbasis, delta_i^2.
     x : ndarray, shape (n,)
         Thresholds, > 0.
+    s0 : ndarray, shape (n,), optional
+        Initial guesses (a warm start, e.g. the roots of a nearby problem); rows whose guess
+        lies outside the bracket of the root start from the default guess instead.
 
     Returns
     -------
@@ -81,17 +119,21 @@ def saddle_point(lam: NDArray, d2: NDArray, x: NDArray) -> NDArray:
     """
     n, k = lam.shape
     lam_max = np.max(lam, axis=1)
-    E = np.sum(lam + d2, axis=1)
+    E = _rowsum(lam + d2)
     upper = x > E
     # bracket: (0, pole) above the mean; below it, K'(s) <= k / (2|s|) + sum d2/lam^2 / (4 s^2)
     pole = 0.5 / lam_max
     lo = np.where(upper, 0.0,
-                  -(k / x + np.sqrt(np.sum(d2 / (lam * lam), axis=1) / x)))
+                  -(k / x + np.sqrt(_rowsum(d2 / (lam * lam)) / x)))
     hi = np.where(upper, pole, 0.0)
     s = np.where(upper, 0.5 * pole, 0.0)
+    if s0 is not None:
+        s = np.where((s0 > lo) & (s0 < hi), s0, s)
     log_x = np.log(x)
+    lam2 = 2.0 * lam
+    ones = np.ones(k)
     for _ in range(_MAX_ITER):
-        K1, K2 = _k1(s, lam, d2)
+        K1, K2 = _k1(s, lam2, lam, d2, ones)
         f = np.log(K1) - log_x
         if np.all(np.abs(f) < 1e-13):
             break
@@ -103,8 +145,89 @@ def saddle_point(lam: NDArray, d2: NDArray, x: NDArray) -> NDArray:
     return s
 
 
-def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray
-                       ) -> Tuple[NDArray, NDArray, NDArray]:
+def _eigh(S: NDArray) -> Tuple[NDArray, NDArray]:
+    """Eigenvalues (ascending) and eigenvectors of symmetric (n, k, k) matrices; closed forms
+    for k = 2 and 3 (LAPACK's per-matrix overhead dominates such small batches)."""
+    k = S.shape[-1]
+    if k == 2:
+        return _eigh2(S)
+    if k == 3:
+        return _eigh3(S)
+    return np.linalg.eigh(S)
+
+
+def _eigh2(S):
+    a, b, c = S[:, 0, 0], 0.5 * (S[:, 0, 1] + S[:, 1, 0]), S[:, 1, 1]
+    half = 0.5 * (a + c)
+    r = np.hypot(0.5 * (a - c), b)
+    big = half + r
+    with np.errstate(divide='ignore', invalid='ignore'):
+        small = np.where(big > 0.0, (a * c - b * b) / big, half - r)   # no cancellation
+    theta = 0.5 * np.arctan2(2.0 * b, a - c)       # direction of the larger eigenvalue
+    cs, sn = np.cos(theta), np.sin(theta)
+    U = np.empty(S.shape)
+    U[:, 0, 0], U[:, 1, 0] = -sn, cs
+    U[:, 0, 1], U[:, 1, 1] = cs, sn
+    return np.stack([small, big], axis=1), U
+
+
+# relative eigenvalue gap below which a 3 x 3 matrix goes to LAPACK (eigenvectors from cross
+# products lose accuracy as gap -> 0)
+_GAP3 = 1e-5
+
+
+def _eigh3(S):
+    """Trigonometric eigenvalues (Smith 1961) and cross-product eigenvectors of the extreme
+    eigenvalues, element-wise over the rows; rows with nearly repeated eigenvalues are handed
+    to np.linalg.eigh."""
+    a = S[:, 0, 0]
+    b = S[:, 1, 1]
+    c = S[:, 2, 2]
+    d = 0.5 * (S[:, 0, 1] + S[:, 1, 0])
+    e = 0.5 * (S[:, 1, 2] + S[:, 2, 1])
+    f = 0.5 * (S[:, 0, 2] + S[:, 2, 0])
+    q = (a + b + c) / 3.0
+    aq, bq, cq = a - q, b - q, c - q
+    p = np.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * (d * d + e * e + f * f)) / 6.0)
+    bad = ~(p > 0.0)
+    ps = np.where(bad, 1.0, p)
+    det = aq * (bq * cq - e * e) - d * (d * cq - e * f) + f * (d * e - bq * f)
+    r = np.clip(0.5 * det / (ps * ps * ps), -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    big = q + 2.0 * p * np.cos(phi)
+    small = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    mid = 3.0 * q - big - small
+    bad |= np.minimum(big - mid, mid - small) < _GAP3 * ps
+
+    # eigenvectors of the largest and the smallest eigenvalue together (leading axis 2): rows
+    # of S - lam I are (a', d, f), (d, b', e), (f, e, c'); the largest of their pairwise cross
+    # products spans the null space
+    lam2 = np.stack([big, small])
+    a_, b_, c_ = a - lam2, b - lam2, c - lam2
+    de, fd, ff, dd, ee, ef, df = d * e, f * d, f * f, d * d, e * e, e * f, d * f
+    c01 = np.stack([de - f * b_, fd - a_ * e, a_ * b_ - dd], axis=2)
+    c02 = np.stack([d * c_ - ef, ff - a_ * c_, a_ * e - df], axis=2)
+    c12 = np.stack([b_ * c_ - ee, ef - d * c_, de - b_ * f], axis=2)
+    n01, n02, n12 = (_rowsum(v * v) for v in (c01, c02, c12))
+    v = np.where((n01 >= n02)[:, :, None], c01, c02)
+    nv = np.maximum(n01, n02)
+    v = np.where((n12 > nv)[:, :, None], c12, v)
+    nv = np.maximum(nv, n12)
+    v /= np.sqrt(np.maximum(nv, 1e-300))[:, :, None]
+    v_big, v_small = v[0], v[1]
+    bad |= np.abs(_rowsum(v_big * v_small)) > 1e-9
+    v_mid = np.stack([v_big[:, 1] * v_small[:, 2] - v_big[:, 2] * v_small[:, 1],
+                      v_big[:, 2] * v_small[:, 0] - v_big[:, 0] * v_small[:, 2],
+                      v_big[:, 0] * v_small[:, 1] - v_big[:, 1] * v_small[:, 0]], axis=1)
+    U = np.stack([v_small, v_mid, v_big], axis=2)
+    lam = np.stack([small, mid, big], axis=1)
+    if np.any(bad):
+        lam[bad], U[bad] = np.linalg.eigh(S[bad])
+    return lam, U
+
+
+def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
+                       state: Optional[dict] = None) -> Tuple[NDArray, NDArray, NDArray]:
     """P(|x - center|^2 <= x) for x ~ N(m, S), saddle-point approximation, with gradients.
 
     Parameters
@@ -117,6 +240,11 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray
     center : ndarray, shape (n, k) or (k,)
     x : ndarray, shape (n,) or scalar
         Thresholds (squared radii), > 0.
+    state : dict, optional
+        Warm start carried between calls on the same rows (an optimiser evaluating nearby
+        moments): the saddle points of the previous call start the root search of this one
+        (key ``'s'``), which cuts the Newton iterations from about 8 to 2-3. The result does
+        not depend on it (each root is solved to 1e-13 in log K').
 
     Returns
     -------
@@ -129,15 +257,55 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray
     S = np.asarray(S, float)
     n, k = m.shape
     x = np.broadcast_to(np.asarray(x, float), (n,))
+    center = np.broadcast_to(np.asarray(center, float), (n, k))
+    s0 = None if state is None else state.get('s')
+    if s0 is not None and s0.shape != (n,):
+        s0 = None
+    act = None
+    if k <= 3:
+        # Rows whose ball lies beyond the half-space u.(y - m) >= dist - r, u = (c - m) / dist,
+        # more than _FAR_DIR standard deviations of u.x away (P <= Phi(-7.5) < 4e-14), or that
+        # contain the _FAR sqrt(tr S) neighbourhood of the mean (1 - P <= P(chi2_3 > _FAR^2)
+        # < 1e-17): P is 0 or 1 with zero gradient. Most steps of a path constraint are such.
+        d = m - center
+        dist2 = _rowsum(d * d)
+        dist = np.sqrt(dist2)
+        r = np.sqrt(x)
+        var_u = _rowsum(d * np.matmul(S, d[:, :, None])[:, :, 0])
+        gap = dist - r
+        far = (gap > 0.0) & (gap * gap * dist2 > _FAR_DIR * _FAR_DIR * var_u)
+        spread = _FAR * np.sqrt(np.maximum(np.trace(S, axis1=1, axis2=2), 0.0))
+        inside = dist + spread < r
+        skip = far | inside
+        if np.any(skip):
+            act = ~skip
+    if act is None:
+        P, dP_dm, dP_dS, s = _saddle_cdf(m, S, center, x, s0)
+    else:
+        P = inside.astype(float)
+        dP_dm = np.zeros((n, k))
+        dP_dS = np.zeros((n, k, k))
+        s = np.zeros(n) if s0 is None else s0.copy()
+        if np.any(act):
+            P[act], dP_dm[act], dP_dS[act], s[act] = _saddle_cdf(
+                m[act], S[act], center[act], x[act], None if s0 is None else s0[act])
+    if state is not None:
+        state['s'] = s
+    return P, dP_dm, dP_dS
+
+
+def _saddle_cdf(m, S, center, x, s0):
+    """quadratic_form_cdf on rows that need it; also returns the saddle points."""
+    n, k = m.shape
     d = m - center
-    lam, U = np.linalg.eigh(S)
-    scale = np.trace(S, axis1=1, axis2=2) + np.sum(d * d, axis=1) + x
+    lam, U = _eigh(S)
+    scale = np.trace(S, axis1=1, axis2=2) + _rowsum(d * d) + x
     lam = np.maximum(lam, 1e-12 * scale[:, None])
-    delta = np.einsum('nij,ni->nj', U, d)
+    delta = np.matmul(d[:, None, :], U)[:, 0, :]
     d2 = delta * delta
-    s = saddle_point(lam, d2, x)
+    s = saddle_point(lam, d2, x, s0)
     b, K, K1, K2, K3 = _cgf(s, lam, d2)
-    w2 = np.maximum(2.0 * (s * x - K), 0.0)
+    w2 = np.maximum(_w2(s, lam, d2, b), 0.0)
     w = np.sign(s) * np.sqrt(w2)
     sqK2 = np.sqrt(K2)
     u = s * sqK2
@@ -151,48 +319,66 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray
         a_K = -P_w / w
         a_1 = -P_u * (sqK2 + s * K3 / (2.0 * sqK2)) / K2
         a_2 = P_u * s / (2.0 * sqK2)
-    a_K, a_1, a_2 = (np.where(center_rows, 0.0, a) for a in (a_K, a_1, a_2))
-    # eigenbasis gradient: dP/d delta = c * delta, dP/dS_eig = diag(g) + outer-product terms
-    lb = lam * b
+    a_K, a_1, a_2 = (np.where(center_rows, 0.0, a)[:, None] for a in (a_K, a_1, a_2))
+    # eigenbasis gradient: dP/d delta = c * delta; dP/dS_eig = G = X + X^T + diag(g) with
+    # X = p alpha^T + v beta^T (p = b delta, q = b p, r = b q, v = lam q, y = lam r)
     sc = s[:, None]
-    c = 2.0 * a_K[:, None] * sc * b + 2.0 * a_1[:, None] * b * b + 8.0 * a_2[:, None] * lb * b * b
-    g = a_K[:, None] * sc * b + a_1[:, None] * b * b + 4.0 * a_2[:, None] * lb * b * b
+    b2 = b * b
+    lb2 = lam * b2
     p = b * delta
     q = b * p
     r = b * q
     v = lam * q
-    y = lam * r
-
-    def sym_outer(a, bb):
-        return a[:, :, None] * bb[:, None, :] + bb[:, :, None] * a[:, None, :]
-
-    G = (2.0 * (s * s * a_K)[:, None, None] * p[:, :, None] * p[:, None, :]
-         + (2.0 * s * a_1)[:, None, None] * sym_outer(p, q)
-         + (2.0 * a_2)[:, None, None] * sym_outer(p, r)
-         + (4.0 * s * a_2)[:, None, None] * (sym_outer(v, q) + sym_outer(y, p)))
-    G[:, np.arange(k), np.arange(k)] += g
-    dP_dm = np.einsum('nij,nj->ni', U, c * delta)
-    dP_dS = np.matmul(np.matmul(U, G), np.swapaxes(U, 1, 2))
+    g = a_K * sc * b + a_1 * b2 + 4.0 * a_2 * lb2 * b
+    c = 2.0 * g
+    alpha = (sc * sc * a_K) * p + (2.0 * sc * a_1) * q + 2.0 * a_2 * r \
+        + (4.0 * sc * a_2) * (lam * r)
+    beta = (4.0 * sc * a_2) * q
+    # back to the original basis with one batched product: U [p v alpha beta c*delta]
+    V = np.matmul(U, np.stack([p, v, alpha, beta, c * delta], axis=2))     # (n, k, 5)
+    Y = V[:, :, 0, None] * V[:, None, :, 2] + V[:, :, 1, None] * V[:, None, :, 3]
+    dP_dS = Y + np.swapaxes(Y, 1, 2) + np.matmul(U * g[:, None, :], np.swapaxes(U, 1, 2))
+    dP_dm = V[:, :, 4]
     if np.any(center_rows):
-        P, dP_dm, dP_dS = _center_normal(m, S, center, x, center_rows, P, dP_dm, dP_dS)
-    return np.clip(P, 0.0, 1.0), dP_dm, dP_dS
+        P, dP_dm, dP_dS = _center_edgeworth(m, S, center, x, center_rows, P, dP_dm, dP_dS)
+    return np.clip(P, 0.0, 1.0), dP_dm, dP_dS, s
 
 
-def _center_normal(m, S, center, x, rows, P, dP_dm, dP_dS):
-    """Normal approximation with the exact mean and variance of Q on the given rows."""
+def _center_edgeworth(m, S, center, x, rows, P, dP_dm, dP_dS):
+    """One-term Edgeworth expansion P ~ Phi(z) - phi(z) lambda3 / 6 (z^2 - 1) on the given
+    rows (z = (x - E) / sqrt(V), lambda3 = kappa3 / V^1.5 the skewness of Q): at the mean of
+    Q it equals the limit of the Lugannani-Rice formula, so P stays continuous (to
+    O(_W_CENTER)) where that formula is 0/0.
+
+    kappa3 = 8 tr(S^3) + 24 d^T S^2 d, d = m - center.
+    """
     from cdmp_ros.core.promp.gaussian import quadratic_moments
-    c = np.broadcast_to(center, m.shape)[rows]
-    E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m[rows], S[rows], c)
+    m, S = m[rows], S[rows]
+    c = np.broadcast_to(center, P.shape + (m.shape[1],))[rows]
+    E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, c)
+    d = m - c
+    S2 = np.matmul(S, S)
+    Sd = np.matmul(S, d[:, :, None])[:, :, 0]
+    S2d = np.matmul(S, Sd[:, :, None])[:, :, 0]
+    k3 = 8.0 * np.trace(np.matmul(S2, S), axis1=1, axis2=2) + 24.0 * np.sum(d * S2d, axis=1)
+    dk3_dm = 48.0 * S2d
+    dk3_dS = 24.0 * (S2 + d[:, :, None] * Sd[:, None, :] + Sd[:, :, None] * d[:, None, :])
     sd = np.sqrt(V)
     z = (x[rows] - E) / sd
+    l3 = k3 / (V * sd)
     pz = normal_pdf(z)
-    dz_dE = -1.0 / sd
-    dz_dV = -0.5 * z / V
+    Pc = normal_cdf(z) - pz * l3 / 6.0 * (z * z - 1.0)
+    P_z = pz * (1.0 - l3 / 6.0 * (3.0 * z - z ** 3))
+    P_l3 = -pz * (z * z - 1.0) / 6.0
+    a_E = -P_z / sd
+    a_V = -P_z * z / (2.0 * V) - P_l3 * 1.5 * l3 / V
+    a_3 = P_l3 / (V * sd)
     P = P.copy()
-    P[rows] = normal_cdf(z)
     dP_dm = dP_dm.copy()
     dP_dS = dP_dS.copy()
-    dP_dm[rows] = pz[:, None] * (dz_dE[:, None] * dE_dm + dz_dV[:, None] * dV_dm)
-    G = pz[:, None, None] * (dz_dE[:, None, None] * dE_dS + dz_dV[:, None, None] * dV_dS)
+    P[rows] = Pc
+    dP_dm[rows] = a_E[:, None] * dE_dm + a_V[:, None] * dV_dm + a_3[:, None] * dk3_dm
+    G = (a_E[:, None, None] * dE_dS + a_V[:, None, None] * dV_dS
+         + a_3[:, None, None] * dk3_dS)
     dP_dS[rows] = 0.5 * (G + np.swapaxes(G, 1, 2))
     return P, dP_dm, dP_dS

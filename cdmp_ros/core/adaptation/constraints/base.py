@@ -124,9 +124,9 @@ class WeightConstraint:
         self.eta = None if eta is None else check_positive('eta', eta)
         self.name = name or self.kind
 
-    def probability_w(self, mu: NDArray, Sigma: NDArray
+    def probability_w(self, mu: NDArray, Sigma: NDArray, tail: str = 'saddlepoint'
                       ) -> Tuple[NDArray, NDArray, NDArray]:
-        """F (1,), dF/dmu (1, n), dF/dSigma (1, n, n)."""
+        """F (1,), dF/dmu (1, n), dF/dSigma (1, n, n); ``tail``: AdaptationConfig.tail."""
         raise NotImplementedError
 
     def satisfied_w(self, W: NDArray) -> NDArray:

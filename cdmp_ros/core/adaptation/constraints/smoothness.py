@@ -1,12 +1,18 @@
-"""Smoothness as a constraint P(R(w) <= d) >= alpha with the Gamma approximation of the
-generalised chi^2 variable R(w) = w^T Phi_R w (Eq. 14-15, paper 003). The regulariser
-kappa * E[R(w)] is an option of the optimiser (AdaptationConfig.kappa)."""
+"""Smoothness as a constraint P(R(w) <= d) >= alpha on the generalised chi^2 variable
+R(w) = w^T Phi_R w (Eq. 14-15, paper 003). With Phi_R = V diag(e) V^T, R(w) = |A w|^2 for
+A = diag(sqrt(e)) V^T, a quadratic form |y|^2 of the Gaussian y = A w: its CDF is the
+saddle-point approximation of the repellers' and waypoints' law
+(:func:`cdmp_ros.core.promp.quadratic_tail.quadratic_form_cdf`), or the paper's Gamma moment
+match (Eq. 15) with ``tail = 'gamma'``. The regulariser kappa * E[R(w)] is an option of the
+optimiser (AdaptationConfig.kappa)."""
 from typing import Optional
 
 import numpy as np
 
 from cdmp_ros.core.adaptation.constraints.base import WeightConstraint
 from cdmp_ros.core.promp.gaussian import gamma_cdf
+from cdmp_ros.core.promp.quadratic_tail import quadratic_form_cdf
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 
 
@@ -40,13 +46,25 @@ class SmoothnessConstraint(WeightConstraint):
         super().__init__(alpha, lambda0, eta, name)
         self.Phi = 0.5 * (np.asarray(Phi, float) + np.asarray(Phi, float).T)
         self.bound = check_positive('bound', bound)
+        e, V = np.linalg.eigh(self.Phi)
+        keep = e > 1e-12 * max(float(e[-1]), 0.0)
+        if not np.any(keep):
+            raise ValidationError('Phi: expected a positive semi-definite matrix with a '
+                                  'positive eigenvalue')
+        self.A = np.sqrt(e[keep])[:, None] * V[:, keep].T      # R(w) = |A w|^2
+        self._state = {}
 
-    def probability_w(self, mu, Sigma):
-        E, V, dE_dmu, dE_dS, dV_dmu, dV_dS = smoothness_moments(mu, Sigma, self.Phi)
-        G, dG_dE, dG_dV = gamma_cdf(np.array([E]), np.array([V]), self.bound)
-        dmu = dG_dE[0] * dE_dmu + dG_dV[0] * dV_dmu
-        dS = dG_dE[0] * dE_dS + dG_dV[0] * dV_dS
-        return G, dmu[None], dS[None]
+    def probability_w(self, mu, Sigma, tail='saddlepoint'):
+        if tail == 'gamma':
+            E, V, dE_dmu, dE_dS, dV_dmu, dV_dS = smoothness_moments(mu, Sigma, self.Phi)
+            G, dG_dE, dG_dV = gamma_cdf(np.array([E]), np.array([V]), self.bound)
+            dmu = dG_dE[0] * dE_dmu + dG_dV[0] * dV_dmu
+            dS = dG_dE[0] * dE_dS + dG_dV[0] * dV_dS
+            return G, dmu[None], dS[None]
+        A = self.A
+        G, dG_dm, dG_dS = quadratic_form_cdf((A @ mu)[None], (A @ Sigma @ A.T)[None],
+                                             np.zeros(A.shape[0]), self.bound, self._state)
+        return G, (dG_dm @ A), (A.T @ dG_dS[0] @ A)[None]
 
     def satisfied_w(self, W):
         return np.einsum('ki,ij,kj->k', W, self.Phi, W) <= self.bound

@@ -1,7 +1,10 @@
 """Waypoints and repellers (Eq. 17-18), temporally unbound waypoints (Eq. 19) and mutual
-avoidance (Eq. 22), paper 003: Gamma approximation of c_t = |x_t - x_bar|^2 with the mean and
-variance of c_t under the Gaussian approximation of x_t (unscented transform for non-linear
-points of interest, exact for linear ones)."""
+avoidance (Eq. 22), paper 003: the law of c_t = |x_t - x_bar|^2 under the Gaussian
+approximation of x_t (unscented transform for non-linear points of interest, exact for linear
+ones), evaluated by the saddle-point approximation of the generalised chi-square law
+(:func:`cdmp_ros.core.promp.quadratic_tail.quadratic_form_cdf`, accurate in the 1e-4 ... 1e-2
+tails a confidence alpha asks about) or, with ``tail = 'gamma'``, by the paper's Gamma moment
+match (Eq. 15), whose tail is too light (violations 1.4-2.5 times the requested level)."""
 from typing import Optional
 
 import numpy as np
@@ -9,6 +12,7 @@ import numpy as np
 from cdmp_ros.core.adaptation.constraints.base import Constraint
 from cdmp_ros.core.adaptation.constraints.points import DifferencePoint, Point
 from cdmp_ros.core.promp.gaussian import gamma_cdf, quadratic_moments
+from cdmp_ros.core.promp.quadratic_tail import quadratic_form_cdf
 from cdmp_ros.core.validation import as_array, check_positive
 
 
@@ -40,16 +44,28 @@ class _Sphere(Constraint):
 
     @staticmethod
     def probability_rows(m, S, params):
-        # Gamma approximation of |x - x_bar|^2 (Eq. 17-18 with Eq. 15's moment matching)
-        E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
-        G, dG_dE, dG_dV = gamma_cdf(E, V, params['r2'])
+        """P(|x - x_bar|^2 <= d^2) (waypoints) or its complement (repellers) per row.
+
+        ``params`` may carry ``'tail'`` ('saddlepoint', the default, or 'gamma') and
+        ``'state'``, a dict kept between calls on the same rows (the saddle points' warm
+        start), as the optimiser's batches do (:class:`AdaptationConfig.tail`)."""
         inside = params['inside']
+        if params.get('tail', 'saddlepoint') == 'gamma':
+            # Gamma approximation of |x - x_bar|^2 (Eq. 17-18 with Eq. 15's moment matching)
+            E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
+            G, dG_dE, dG_dV = gamma_cdf(E, V, params['r2'])
+            dG_dm = dG_dE[:, None] * dE_dm + dG_dV[:, None] * dV_dm
+            dG_dS = dG_dE[:, None, None] * dE_dS + dG_dV[:, None, None] * dV_dS
+        else:
+            G, dG_dm, dG_dS = quadratic_form_cdf(m, S, params['center'], params['r2'],
+                                                 params.get('state'))
+        if np.all(inside):
+            return G, dG_dm, dG_dS
+        if not np.any(inside):
+            return 1.0 - G, -dG_dm, -dG_dS
         sign = np.where(inside, 1.0, -1.0)
-        F = np.where(inside, G, 1.0 - G)
-        a, b = sign * dG_dE, sign * dG_dV
-        dF_dm = a[:, None] * dE_dm + b[:, None] * dV_dm
-        dF_dS = a[:, None, None] * dE_dS + b[:, None, None] * dV_dS
-        return F, dF_dm, dF_dS
+        return (np.where(inside, G, 1.0 - G), sign[:, None] * dG_dm,
+                sign[:, None, None] * dG_dS)
 
     def _dist2(self, X, times):
         d = X - self.centers(times)[None]
@@ -83,7 +99,7 @@ class Repeller(_Sphere):
 
 class UnboundWaypoint(_Sphere):
     """max_t P(|x_t - x_bar|^2 <= d^2) >= alpha over the support (Eq. 19): one multiplier,
-    gradient through t_max = argmax_t of the Gamma approximation."""
+    gradient through t_max = argmax_t of the approximate probability."""
     kind = 'unbound_waypoint'
     inside = True
     reduce = 'max'
