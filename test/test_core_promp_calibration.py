@@ -24,14 +24,20 @@ def _bound(n_steps: int) -> float:
     return stats.binom.isf(1e-3 / n_steps, N_SAMPLES, 1.1 * (1.0 - ALPHA)) / N_SAMPLES
 
 
-def _calibrated(table: str, K: int, seed: int, **config) -> bool:
+def _solve(table: str, K: int, seed: int, **config):
+    """(calibrated by an independent sample, the adaptation report)."""
     import dataclasses
     p = make_problem(table, K, np.random.default_rng(seed), relative_step=True)
     cfg = dataclasses.replace(p.config, **config)
     q, rep = adapt(p.prior, p.constraints, cfg)
-    assert rep.converged, rep.to_text()
     per_step, _, _ = sampled_violations(q, p, np.random.default_rng(seed + 1), N_SAMPLES)
-    return bool(np.all(per_step <= _bound(cfg.n_steps)))
+    return bool(np.all(per_step <= _bound(cfg.n_steps))), rep
+
+
+def _calibrated(table: str, K: int, seed: int, **config) -> bool:
+    good, rep = _solve(table, K, seed, **config)
+    assert rep.converged, rep.to_text()  # converged includes the report's own sampled check
+    return good
 
 
 def test_per_step_violation_is_calibrated_at_default_settings():
@@ -51,5 +57,9 @@ def test_calibrated_when_aiming_exactly_at_alpha_where_the_gamma_tail_is_not():
     cases = [('table2', 1 + i % 3, 100 + 7 * i) for i in range(4)]
     exact = dict(violation_target=1.0, lambda0=1.0)
     assert all(_calibrated(*case, **exact) for case in cases)
-    gamma = [_calibrated(*case, tail='gamma', **exact) for case in cases]
-    assert sum(not good for good in gamma) >= 2, gamma
+    gamma = [_solve(*case, tail='gamma', **exact) for case in cases]
+    assert sum(not good for good, _ in gamma) >= 2, [good for good, _ in gamma]
+    # the report does not claim what the sample refutes: a miscalibrated Gamma solution is
+    # reported as verification_failed by the report's own sampled check
+    for good, rep in gamma:
+        assert good or rep.status == 'verification_failed', rep.to_text()
