@@ -23,6 +23,10 @@ def add_arguments(parser):
                              'promp: the learner fits a ProMP; every obstacle message triggers a '
                              'constrained adaptation (paper 003) that the streamer follows; '
                              'exits non-zero if none happened')
+    parser.add_argument('--motion', choices=('drop', 'cross'), default='drop',
+                        help='drop (default): the sphere falls onto the path; cross: it moves '
+                             'horizontally across the path at 0.2 m/s, published at 30 Hz '
+                             '(the adapter keeps up: the latest obstacle wins)')
     parser.add_argument('--graph', default=None,
                         help='graph file to start instead of config/graphs/demo.yaml')
 
@@ -31,7 +35,8 @@ def run(args):
     import json
     import math
     from cdmp_ros.cli.demo_run import markdown, run_demo
-    s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph, kind=args.kind)
+    s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph, kind=args.kind,
+                 driver_args=['--motion', args.motion])
     print()
     print(markdown(s))
     print(f'wall time {s["wall_time_s"]:.1f} s; summary: {args.out}/summary.json, plots: '
@@ -45,6 +50,8 @@ def run(args):
         bad.append('the robot touched the obstacle (or the distance is unknown)')
     if args.kind == 'promp' and not s['promp']['adaptations']:
         bad.append('no constrained adaptation was published after the obstacle appeared')
+    if args.kind == 'promp' and s['promp'].get('adapter_current') is False:
+        bad.append("the adapter's last adaptation does not answer the last obstacle message")
     if bad:
         print('demo: FAILED: ' + '; '.join(bad))
         print(json.dumps({k: s[k] for k in ('min_obstacle_distance_m', 'max_limit_usage',

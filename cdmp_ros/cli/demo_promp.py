@@ -7,6 +7,9 @@ adapts it to every obstacle message (repellers on the end effector and on the li
 streamer follows the adapted mean. From the bag:
 
 - ``adaptations``: the ``adapted_primitive`` messages published after the drop started;
+  ``adapter_current``: whether the last of them answers the last obstacle message (its
+  ``metadata.adapter.trigger_stamp_ns``), ``adapter_requests`` and ``adapter_queued`` (requests
+  neither solved nor dropped at the end: the latest request wins, none waits in a queue);
 - ``adapted_violation``: for the last of them and for the prior, the fraction of 2,000
   trajectories sampled from the distribution (independently of the adapter's own check) in
   which the end effector or an avoided link origin comes within the sphere's radius plus the
@@ -117,7 +120,28 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
     links = list(ad.get('avoid_links', ['panda_link4']))
     radius = float(obs.get('radius', 0.0)) + float(ad.get('obstacle_margin', 0.02))
     out = {'adaptations': len(after), 'adaptation_latency_ms': adaptation_latencies(bag),
-           'violation_radius_m': radius, 'violation_points': ['ee'] + links}
+           'violation_radius_m': radius, 'violation_points': ['ee'] + links,
+           'obstacle_messages': int(driver.get('obstacle_messages', 0))}
+    # the adapter stays current: its last adaptation answers the last obstacle message
+    last_stamp = driver.get('events_ns', {}).get('last_obstacle_stamp')
+    if after:
+        trigger = (after[-1].get('metadata') or {}).get('adapter', {}).get('trigger_stamp_ns')
+        out['last_adaptation_trigger_stamp_ns'] = trigger
+        out['adapter_current'] = bool(trigger is not None and trigger == last_stamp)
+    # latest request wins, none queued: every request was solved or dropped unsolved, at most
+    # one in flight (the adapter's counters in its last diagnostics)
+    adapter = {}
+    for name, st in driver.get('diagnostics', {}).items():
+        if name.split(':')[0].strip().lstrip('/').startswith('adapter') and \
+                'requests_received' in st['values']:
+            adapter = st['values']
+    if adapter:
+        counts = {k: int(adapter[k]) for k in ('requests_received', 'requests_solved',
+                                               'requests_dropped') if k in adapter}
+        out['adapter_requests'] = counts
+        out['adapter_queued'] = (counts.get('requests_received', 0)
+                                 - counts.get('requests_solved', 0)
+                                 - counts.get('requests_dropped', 0))
     if prior and obs.get('center') is not None:
         out['prior_violation'] = sphere_violation(
             _promp(prior[0][1], chain), chain, links, obs['center'], radius, rng)

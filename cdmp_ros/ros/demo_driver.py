@@ -168,7 +168,10 @@ class DemoDriver(Node):
     def _publish_sphere(self, p, i):
         m = Marker(ns='demo', id=0, type=Marker.SPHERE, action=Marker.ADD)
         m.header.frame_id = self.args.frame
-        m.header.stamp = self.get_clock().now().to_msg()
+        now = self.get_clock().now()
+        m.header.stamp = now.to_msg()
+        self.events['last_obstacle_stamp'] = now.nanoseconds
+        self.n_obstacle_messages = getattr(self, 'n_obstacle_messages', 0) + 1
         m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in p)
         m.pose.orientation.w = 1.0
         m.scale.x = m.scale.y = m.scale.z = 2.0 * self.args.radius
@@ -270,6 +273,7 @@ class DemoDriver(Node):
                             'frame': self.args.frame},
                'planned_path': None if self.path is None else self.path[::5].tolist(),
                'crossing': getattr(self, 'crossed', []),
+               'obstacle_messages': getattr(self, 'n_obstacle_messages', 0),
                'snapshot': self.snapshot, 'diagnostics': self.diagnostics}
         with open(os.path.join(self.args.out, 'driver.json'), 'w') as f:
             json.dump(out, f, indent=1)
