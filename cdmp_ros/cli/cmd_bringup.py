@@ -114,13 +114,17 @@ class Graph:
     stop_timeout: float = 5.0
 
 
+def _known_keys(where: str, d: dict, allowed) -> None:
+    unknown = sorted(set(d) - allowed)
+    if unknown:
+        raise ValidationError(f'{where}: unknown keys {unknown}; allowed {sorted(allowed)}')
+
+
 def _node(i: int, d, base_dir: str) -> NodeSpec:
     where = f'nodes[{i}]'
     if not isinstance(d, dict):
         raise ValidationError(f'{where}: expected a mapping, got {type(d).__name__}')
-    unknown = sorted(set(d) - _NODE_KEYS)
-    if unknown:
-        raise ValidationError(f'{where}: unknown keys {unknown}; allowed {sorted(_NODE_KEYS)}')
+    _known_keys(where, d, _NODE_KEYS)
     exe = d.get('executable')
     if exe not in EXECUTABLES:
         raise ValidationError(f'{where}.executable: expected one of {list(EXECUTABLES)}, '
@@ -163,9 +167,7 @@ def parse_graph(data, base_dir: str = '.') -> Graph:
     """Validate a graph mapping (as loaded from YAML); raises ValidationError naming the key."""
     if not isinstance(data, dict):
         raise ValidationError(f'graph: expected a mapping, got {type(data).__name__}')
-    unknown = sorted(set(data) - _GRAPH_KEYS)
-    if unknown:
-        raise ValidationError(f'graph: unknown keys {unknown}; allowed {sorted(_GRAPH_KEYS)}')
+    _known_keys('graph', data, _GRAPH_KEYS)
     nodes = data.get('nodes')
     if not isinstance(nodes, list) or not nodes:
         raise ValidationError('graph.nodes: expected a non-empty list of nodes')

@@ -6,7 +6,7 @@ every parameter exactly and therefore every rollout bit for bit.
 import json
 import math
 import os
-from typing import Any, Dict, Optional, Union
+from typing import Any, Dict, Union
 
 import numpy as np
 
@@ -14,19 +14,14 @@ from cdmp_ros.core.dmp.basis import PhaseBasis
 from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError
 from cdmp_ros.core.file_checks import check_document, field_path
-from cdmp_ros.core.resources import schema_path
+from cdmp_ros.core.resources import load_schema
 
 FORMAT_VERSION = 1
-_SCHEMA: Optional[dict] = None
 
 
 def primitive_schema() -> dict:
     """The JSON Schema of primitive files (loaded once)."""
-    global _SCHEMA
-    if _SCHEMA is None:
-        with open(schema_path('primitive.schema.json')) as f:
-            _SCHEMA = json.load(f)
-    return _SCHEMA
+    return load_schema('primitive.schema.json')
 
 
 #: Largest number of ProMP weights n_dims * len(promp.basis.centers) (cov_w is its square).

@@ -4,6 +4,8 @@ Search order: the source tree beside the package (editable installs, tests), the
 ``<prefix>/share/cdmp_ros`` for the interpreter prefix and every ``AMENT_PREFIX_PATH`` entry
 (colcon and pip installs).
 """
+import functools
+import json
 import os
 import sys
 from typing import List
@@ -34,3 +36,11 @@ def data_path(*parts: str) -> str:
 def schema_path(name: str) -> str:
     """Absolute path of ``msg_schemas/<name>``."""
     return data_path('msg_schemas', name)
+
+
+@functools.lru_cache(maxsize=None)
+def load_schema(name: str) -> dict:
+    """The JSON Schema ``msg_schemas/<name>``, read once (the same dict on every call: the
+    validators are cached by its identity)."""
+    with open(schema_path(name)) as f:
+        return json.load(f)

@@ -25,27 +25,22 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSPro
 from cdmp_ros.bag.metadata import INFINITE
 
 
-REFERENCE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-SENSOR = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
-                    reliability=ReliabilityPolicy.BEST_EFFORT,
-                    durability=DurabilityPolicy.VOLATILE)
-COMMAND = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                     reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.VOLATILE)
-LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                     reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+def _keep_last(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliable
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
 
+
+REFERENCE = _keep_last(10)
+SENSOR = _keep_last(5, reliable=False)
+COMMAND = _keep_last(10)
+LATCHED = _keep_last(1, latched=True)
 #: The sim's ``joint_states`` and ``ee_pose``: reliable, volatile, keep last 50.
-SIM_STATE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
+SIM_STATE = _keep_last(50)
 #: ``/clock`` of the sim (``publish_clock``): reliable, volatile, keep last 1.
-CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                   reliability=ReliabilityPolicy.RELIABLE,
-                   durability=DurabilityPolicy.VOLATILE)
+CLOCK = _keep_last(1)
 
 #: Default depth of the recorder's subscription queues (messages per topic).
 RECORDER_DEPTH = 10000

@@ -36,11 +36,8 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
 
     Parameters
     ----------
-    prior : ProMP
-    constraints : sequence of constraints
-    config : AdaptationConfig, optional
-    should_stop : callable, optional
-        See :func:`solve_levels`.
+    prior, constraints, config, should_stop
+        As :func:`solve_levels`.
     rng : numpy.random.Generator, optional
         Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
         reports).

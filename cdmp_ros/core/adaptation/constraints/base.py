@@ -16,6 +16,16 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 
 
+def _set_common(c, alpha, lambda0, eta, name) -> None:
+    """The confidence, multiplier settings and name every constraint has, checked."""
+    c.alpha = float(alpha)
+    if not 0.0 < c.alpha < 1.0:
+        raise ValidationError(f'alpha: expected a probability in (0, 1), got {alpha}')
+    c.lambda0 = None if lambda0 is None else check_positive('lambda0', lambda0)
+    c.eta = None if eta is None else check_positive('eta', eta)
+    c.name = name or c.kind
+
+
 class Constraint:
     """Common parameters.
 
@@ -44,12 +54,7 @@ class Constraint:
         if not (0.0 <= t0 <= t1 <= 1.0):
             raise ValidationError(f'support: expected 0 <= t0 <= t1 <= 1, got {support}')
         self.support = (t0, t1)
-        self.alpha = float(alpha)
-        if not 0.0 < self.alpha < 1.0:
-            raise ValidationError(f'alpha: expected a probability in (0, 1), got {alpha}')
-        self.lambda0 = None if lambda0 is None else check_positive('lambda0', lambda0)
-        self.eta = None if eta is None else check_positive('eta', eta)
-        self.name = name or self.kind
+        _set_common(self, alpha, lambda0, eta, name)
 
     def times(self, grid: NDArray) -> NDArray:
         """Phases of the grid inside the support (the support's start if it is a point)."""
@@ -117,12 +122,7 @@ class WeightConstraint:
 
     def __init__(self, alpha: float = 0.999, lambda0: Optional[float] = None,
                  eta: Optional[float] = None, name: Optional[str] = None):
-        self.alpha = float(alpha)
-        if not 0.0 < self.alpha < 1.0:
-            raise ValidationError(f'alpha: expected a probability in (0, 1), got {alpha}')
-        self.lambda0 = None if lambda0 is None else check_positive('lambda0', lambda0)
-        self.eta = None if eta is None else check_positive('eta', eta)
-        self.name = name or self.kind
+        _set_common(self, alpha, lambda0, eta, name)
 
     def probability_w(self, mu: NDArray, Sigma: NDArray, tail: str = 'saddlepoint'
                       ) -> Tuple[NDArray, NDArray, NDArray]:

@@ -17,18 +17,12 @@ from cdmp_ros.core.adaptation.constraints.spheres import (MutualAvoidance, Repel
                                                           UnboundWaypoint, Waypoint)
 from cdmp_ros.core.errors import ConstraintSetError, ValidationError
 from cdmp_ros.core.file_checks import check_document
-from cdmp_ros.core.resources import schema_path
-
-_SCHEMA = None
+from cdmp_ros.core.resources import load_schema
 
 
 def constraints_schema() -> dict:
     """The JSON Schema of constraint sets (loaded once)."""
-    global _SCHEMA
-    if _SCHEMA is None:
-        with open(schema_path('constraints.schema.json')) as f:
-            _SCHEMA = json.load(f)
-    return _SCHEMA
+    return load_schema('constraints.schema.json')
 
 
 def _label(doc: dict, path: list) -> str:
