@@ -211,3 +211,65 @@ def test_infeasible_problem_is_reported_not_returned_as_success(rng):
     assert not rep.converged
     assert rep.status != 'converged'
     assert not rep.constraints[0].satisfied
+
+
+# -- a waypoint far from the prior (issue 13 item 4: a robust objective) ---------------------
+def _far_waypoint_problem(n_sd, kind=Waypoint):
+    M = 10
+    p = ProMP(2, RbfBasis.uniform(M), np.r_[np.linspace(-3, 3, M), np.zeros(M)],
+              0.8 ** 2 * np.eye(2 * M)).condition([0, 1], [[-3, 0.0], [3, 0.0]], var=1e-3)
+    s = np.array([0.5])
+    sd = np.sqrt(np.diag(p.cov(s)[0]))
+    target = p.mean(s)[0] + np.array([0.0, n_sd * sd[1]])
+    support = (0.5, 0.5) if kind is Waypoint else (0.3, 0.7)
+    return p, kind(DofPoint([0, 1]), target, 0.1, support=support, alpha=0.999), target
+
+
+@pytest.mark.parametrize('kind', [Waypoint, UnboundWaypoint])
+@pytest.mark.parametrize('n_sd', [10, 20])
+def test_a_waypoint_far_from_the_prior_is_reached(n_sd, kind):
+    """10 and 20 prior standard deviations away the probability of the ball and its gradient
+    vanish; the guide of the Lagrangian (spheres.guide_rows) still pulls the distribution
+    there, and the report (probabilities and the sampled check) is the unguided one."""
+    p, c, target = _far_waypoint_problem(n_sd, kind)
+    q, rep = adapt(p, [c], AdaptationConfig(n_steps=101))
+    assert rep.converged, rep.to_text()
+    assert rep.constraints[0].probability >= 0.999
+    times = np.linspace(0.0, 1.0, 101)[(np.linspace(0.0, 1.0, 101) >= c.support[0] - 1e-9)
+                                       & (np.linspace(0.0, 1.0, 101) <= c.support[1] + 1e-9)]
+    assert np.linalg.norm(q.mean(times) - target, axis=1).min() < c.radius
+
+
+def test_the_guide_is_zero_where_the_constraint_can_hold_and_its_gradient_is_exact():
+    """G = 0 (with its gradient) for rows within 3 standard scores of the ball, so solutions
+    and reports of reachable constraints are unchanged; far away the guided Lagrangian's
+    gradient matches central differences and does not vanish."""
+    from cdmp_ros.core.adaptation.constraints.spheres import GUIDE_Z, _Sphere
+    rng = np.random.default_rng(4)
+    m = rng.normal(0.0, 1.0, (50, 2))
+    S = np.einsum('nij,nkj->nik', *(2 * [rng.normal(0.0, 0.3, (50, 2, 2))])) + 0.01 * np.eye(2)
+    params = {'inside': np.r_[np.ones(40, bool), np.zeros(10, bool)],
+              'center': rng.normal(0.0, 3.0, (50, 2)), 'r2': np.full(50, 0.04)}
+    G, dm, dS = _Sphere.guide_rows(m, S, params)
+    from cdmp_ros.core.promp.gaussian import quadratic_moments
+    E, V = quadratic_moments(m, S, params['center'])[:2]
+    z = (params['r2'] - E) / np.sqrt(V)
+    near = (z >= GUIDE_Z) | ~params['inside']
+    assert near.any() and (~near).any()
+    assert np.all(G[near] == 0.0) and np.all(dm[near] == 0.0) and np.all(G[~near] < 0.0)
+    for n_sd in (2, 10):
+        prior, c, _ = _far_waypoint_problem(n_sd)
+        prob = Problem(prior, [c], AdaptationConfig(n_steps=101))
+        theta = prob.initial_theta() + 0.01 * np.random.default_rng(0).standard_normal(
+            prob.initial_theta().size)
+        lam = np.array([20.0])
+        _, g = prob.lagrangian(theta, lam)
+        h = 1e-6
+        idx = np.arange(0, theta.size, 7)
+        fd = np.array([(prob.lagrangian(theta + h * e, lam)[0]
+                        - prob.lagrangian(theta - h * e, lam)[0]) / (2 * h)
+                       for e in np.eye(theta.size)[idx]])
+        np.testing.assert_allclose(g[idx], fd, rtol=1e-5, atol=1e-7)
+        g0 = prob.lagrangian(theta, np.zeros(1))[1]  # the KL alone
+        pull = np.abs(g - g0)[:prior.n_weights].max()
+        assert pull > 1e-3, pull  # the constraint pulls the mean, even at 10 sd

@@ -237,8 +237,10 @@ class Problem:
             # evaluations (warm starts of the saddle points)
             params['tail'] = self.config.resolved_tail(linear)
             params['state'] = {}
-            fn = type(self.constraints[members[0]]).probability_rows
-            self.batches.append((fn, members, offsets, params))
+            cls = type(self.constraints[members[0]])
+            # the far-waypoint guide of the Lagrangian (spheres; issue 13's robust objective)
+            self.batches.append((cls.probability_rows, members, offsets, params,
+                                 getattr(cls, 'guide_rows', None)))
 
     def _moments_of(self, i):
         pm, xs = self.bound[i]
@@ -318,8 +320,12 @@ class Problem:
             return kl
         return kl, g_mu, g_L
 
-    def constraint_values(self, mu, L, grads=False):
-        """F for every multiplier (n_values,), optionally with the backward closure."""
+    def constraint_values(self, mu, L, grads=False, guided=False):
+        """F for every multiplier (n_values,), optionally with the backward closure.
+
+        ``guided`` (the Lagrangian): the batches' ``guide_rows`` are added to the rows'
+        probabilities and gradients, and the unguided F is returned as a third value (what
+        the multiplier updates and the report use)."""
         for g in self.groups:
             g.forward(mu, L)
         for pm in self.points:
@@ -338,7 +344,8 @@ class Problem:
             m, S = self._moments_of(i)
             self._store(i, *self.constraints[i].probability(m, S, self.bound[i][0].group.times),
                         F, parts)
-        for fn, members, offsets, params in self.batches:
+        F_true = F.copy() if guided else None
+        for fn, members, offsets, params, guide in self.batches:
             if len(members) == 1:
                 m, S = self._moments_of(members[0])
             else:
@@ -346,8 +353,20 @@ class Problem:
                 m = np.concatenate([v[0] for v in ms])
                 S = np.concatenate([v[1] for v in ms])
             Fr, dm, dS = fn(m, S, params)
+            if guided:
+                for i, (a, b) in zip(members, offsets):
+                    sl, Ft = self.slices[i], Fr[a:b]
+                    F_true[sl] = Ft.max() if self.constraints[i].reduce == 'max' else Ft
+                if guide is not None:
+                    G, dG_dm, dG_dS = guide(m, S, params)
+                    if np.any(G):
+                        Fr, dm, dS = Fr + G, dm + dG_dm, dS + dG_dS
             for i, (a, b) in zip(members, offsets):
                 self._store(i, Fr[a:b], dm[a:b], dS[a:b], F, parts)
+        if guided:  # (weight and single constraints have no guide: F_true holds them)
+            if not grads:
+                return F, F_true
+            return F, parts, F_true
         if not grads:
             return F
         return F, parts
@@ -397,8 +416,8 @@ class Problem:
             g_mu += 2.0 * kappa * Pm
             g_Sigma = kappa * self.Phi_R
         if self.n_values:
-            F, parts = self.constraint_values(mu, L, grads=True)
-            self._last = (theta.copy(), F)
+            F, parts, F_true = self.constraint_values(mu, L, grads=True, guided=True)
+            self._last = (theta.copy(), F_true)
             value += np.sum(lam * (self.alpha - F))
             for c, b, sl, part in zip(self.constraints, self.bound, self.slices, parts):
                 w = -lam[sl]

@@ -16,6 +16,13 @@ from cdmp_ros.core.promp.quadratic_tail import quadratic_form_cdf
 from cdmp_ros.core.validation import as_array, check_positive
 
 
+#: The far-waypoint guide (:meth:`_Sphere.guide_rows`) acts below this standardised distance
+#: (the normal match's P = Phi(-3) = 1.3e-3) with this slope (phi(-3): one unit of z below the
+#: threshold it pulls as hard as the probability itself does at the threshold).
+GUIDE_Z = -3.0
+GUIDE_SLOPE = 0.00443
+
+
 class _Sphere(Constraint):
     inside = True  # waypoint: satisfied inside the ball
 
@@ -66,6 +73,43 @@ class _Sphere(Constraint):
         sign = np.where(inside, 1.0, -1.0)
         return (np.where(inside, G, 1.0 - G), sign[:, None] * dG_dm,
                 sign[:, None, None] * dG_dS)
+
+    @staticmethod
+    def guide_rows(m, S, params):
+        """The far-waypoint guide (issue 13: a robust objective): an addition ``G <= 0`` to
+        the probability of each *inside* row, used only in the Lagrangian.
+
+        Far from a waypoint the probability of being inside the ball and its gradient vanish
+        (to below 1e-300, or exactly 0 where the saddle point skips rows beyond 7.5 standard
+        deviations), so the optimiser cannot move the distribution towards it. With
+        ``z = (r^2 - E[Q]) / sqrt(V[Q])`` (the standardised distance of the normal match of
+        Q = |x - c|^2; Eq. 15's moments), ``G = -GUIDE_SLOPE / 2 (GUIDE_Z - z)^2`` while
+        ``z < GUIDE_Z`` and 0 above it: continuous with its gradient, zero wherever the
+        constraint can hold, so the optimum and every reported probability are unchanged.
+        Its slope grows with the distance, so the pull never fades. Repeller rows: 0.
+        """
+        inside = np.asarray(params['inside'], bool)
+        n = m.shape[0]
+        G = np.zeros(n)
+        dG_dm = np.zeros_like(m)
+        dG_dS = np.zeros_like(S)
+        if not inside.any():
+            return G, dG_dm, dG_dS
+        E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
+        sV = np.sqrt(np.maximum(V, 1e-300))
+        num = params['r2'] - E
+        z = num / sV
+        act = inside & (z < GUIDE_Z)
+        if not act.any():
+            return G, dG_dm, dG_dS
+        gap = np.where(act, GUIDE_Z - z, 0.0)
+        G = -0.5 * GUIDE_SLOPE * gap * gap
+        # dz = -dE / sqrt(V) - num dV / (2 V^1.5); dG = GUIDE_SLOPE gap dz
+        a = GUIDE_SLOPE * gap / sV
+        b = GUIDE_SLOPE * gap * num / (2.0 * sV * V)
+        dG_dm = -a[:, None] * dE_dm - b[:, None] * dV_dm
+        dG_dS = -a[:, None, None] * dE_dS - b[:, None, None] * dV_dS
+        return G, dG_dm, dG_dS
 
     def _dist2(self, X, times):
         d = X - self.centers(times)[None]
