@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import module_domain
+from conftest import module_domain, wait_for
 from sim_harness import SimHarness, start_sim, stop_process
 
 pytestmark = pytest.mark.ros
@@ -73,22 +73,33 @@ def _stream(h, promp, names):
     Y = promp.mean(s)
     Yd = promp.mean(s, derivative=1) / DURATION
     _ramp(h, q_now, Y[0], 1.0, names)
-    t0 = time.monotonic()
-    for k, (y, yd) in enumerate(zip(Y, Yd)):
-        h.publish('joint_reference', h.reference(y, yd, names=names))
-        time.sleep(max(0.0, t0 + (k + 1) / RATE - time.monotonic()))
+    _paced(h, list(zip(Y, Yd)), names)
     return Y
 
 
 def _ramp(h, q0, q1, duration, names):
     n = int(duration * RATE)
-    t0 = time.monotonic()
+    msgs = []
     for k in range(n + 1):
         s = k / n
         pos = q0 + (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5) * (q1 - q0)
         vel = (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / duration * (q1 - q0)
+        msgs.append((pos, vel))
+    _paced(h, msgs, names)
+
+
+def _paced(h, points, names):
+    """Publish ``points`` (position, velocity) as joint_reference (stamped when sent), point k
+    once the sim's own clock (the stamps of its joint_states) has advanced k / RATE s: paced
+    by a condition on the simulated time, not by sleeping on the wall clock."""
+    def stamp():
+        with h.lock:
+            return h.states[-1][1]
+    t0 = stamp()
+    for k, (pos, vel) in enumerate(points):
+        due = t0 + round(k * 1e9 / RATE)
+        assert wait_for(lambda: stamp() >= due, TIMEOUT, period=0.002), (k, stamp() - due)
         h.publish('joint_reference', h.reference(pos, vel, names=names))
-        time.sleep(max(0.0, t0 + (k + 1) / RATE - time.monotonic()))
 
 
 def _path_error(states, Y):
