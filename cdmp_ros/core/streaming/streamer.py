@@ -214,6 +214,7 @@ class ReferenceStreamer:
         self._last: Optional[PreparedPrimitive] = None   # the primitive last started
         self._coupling_joint = [0.0] * n   # the obstacle coupling's joint acceleration
         self._blended = [0.0] * n          # that plus the switch correction
+        self._zeros = (0.0,) * n
 
     # -- configuration ------------------------------------------------------------------------
     def set_config(self, config: StreamerConfig) -> None:
@@ -408,7 +409,7 @@ class ReferenceStreamer:
         if not obstacles:
             self.min_distance = math.inf
             stepper.set_joint_coupling(None)
-            cj[:] = [0.0] * self.n_dims
+            cj[:] = self._zeros
             return 0
         coupling = self.coupling
         try:
@@ -417,10 +418,11 @@ class ReferenceStreamer:
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
             a = ()
         result = stepper.set_joint_coupling(a)
-        if result is CouplingResult.APPLIED:
-            cj[:] = [float(v) for v in a]
+        if result is CouplingResult.APPLIED:  # the tick: in place, no new list
+            for d in range(self.n_dims):
+                cj[d] = a[d]
         else:
-            cj[:] = [0.0] * self.n_dims
+            cj[:] = self._zeros
         if result is CouplingResult.REJECTED:
             return int(StreamFlags.COUPLING_REJECTED)
         return int(StreamFlags.COUPLED) if result is CouplingResult.APPLIED else 0
