@@ -212,6 +212,7 @@ class Problem:
         """Constraints of one ``batch_kind`` and output size, evaluated in one call."""
         batches = {}
         self.single = []
+        self.fused = []
         for i, (c, b) in enumerate(zip(self.constraints, self.bound)):
             if b is None:
                 continue
@@ -241,6 +242,12 @@ class Problem:
             # the far-waypoint guide of the Lagrangian (spheres; issue 13's robust objective)
             self.batches.append((cls.probability_rows, members, offsets, params,
                                  getattr(cls, 'guide_rows', None)))
+            # members with one multiplier per row: their rows' multipliers in batch order,
+            # so the Lagrangian weighs the batch's gradients in one product (see lagrangian)
+            fused = all(self.constraints[i].reduce == 'each' for i in members)
+            self.fused.append(np.concatenate([np.arange(self.slices[i].start,
+                                                        self.slices[i].stop)
+                                              for i in members]) if fused else None)
 
     def _moments_of(self, i):
         pm, xs = self.bound[i]
@@ -345,7 +352,8 @@ class Problem:
             self._store(i, *self.constraints[i].probability(m, S, self.bound[i][0].group.times),
                         F, parts)
         F_true = F.copy() if guided else None
-        for fn, members, offsets, params, guide in self.batches:
+        batch_grads = []
+        for (fn, members, offsets, params, guide), rows in zip(self.batches, self.fused):
             if len(members) == 1:
                 m, S = self._moments_of(members[0])
             else:
@@ -361,8 +369,16 @@ class Problem:
                     G, dG_dm, dG_dS = guide(m, S, params)
                     if np.any(G):
                         Fr, dm, dS = Fr + G, dm + dG_dm, dS + dG_dS
+            if grads and rows is not None:   # fused: weighed per batch in lagrangian
+                F[rows] = Fr
+                batch_grads.append((members, offsets, rows, dm, dS))
+                continue
             for i, (a, b) in zip(members, offsets):
                 self._store(i, Fr[a:b], dm[a:b], dS[a:b], F, parts)
+        if grads:
+            # parts: per constraint (None for the members of a fused batch), then the fused
+            # batches as (members, offsets, multiplier rows, dF/dm, dF/dS)
+            parts = (parts, batch_grads)
         if guided:  # (weight and single constraints have no guide: F_true holds them)
             if not grads:
                 return F, F_true
@@ -416,10 +432,25 @@ class Problem:
             g_mu += 2.0 * kappa * Pm
             g_Sigma = kappa * self.Phi_R
         if self.n_values:
-            F, parts, F_true = self.constraint_values(mu, L, grads=True, guided=True)
+            F, (parts, batch_grads), F_true = self.constraint_values(mu, L, grads=True,
+                                                                     guided=True)
             self._last = (theta.copy(), F_true)
             value += np.sum(lam * (self.alpha - F))
+            for members, offsets, rows, dm, dS in batch_grads:
+                w = -lam[rows]
+                wdm = w[:, None] * dm
+                wdS = w[:, None, None] * dS
+                for i, (a, b) in zip(members, offsets):
+                    pm, xs = self.bound[i]
+                    if xs is None:
+                        pm.g_mx += wdm[a:b]
+                        pm.g_Sx += wdS[a:b]
+                    else:
+                        pm.g_mx[:, xs] += wdm[a:b]
+                        pm.g_Sx[:, xs, xs] += wdS[a:b]
             for c, b, sl, part in zip(self.constraints, self.bound, self.slices, parts):
+                if part is None:
+                    continue
                 w = -lam[sl]
                 if b is None:
                     dmu, dS = part

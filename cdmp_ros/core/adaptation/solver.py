@@ -136,7 +136,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         prev = value
         C_aim = alpha_aim - F
         if config.relative_step:
-            step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_step,
+            step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_decrease,
                            config.max_log_step)
         else:
             step = eta * C_aim
