@@ -2,12 +2,18 @@
 
 Issue 13 item 1. Starts the adapter (``config/adapter.yaml``) and the streamer
 (``config/streamer.yaml``) as two processes; this process is the user and the robot: it
-publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_states`` at 100 Hz
-echoing the last ``joint_reference`` (a perfect robot), then ``--n`` obstacle events, one at a
-time: a MarkerArray of ``--spheres`` spheres (default 3, radius 5-10 cm; near the prior mean
-end-effector path, the last near the elbow path, as panda_problem), each event placing every
-sphere N(0, 2 cm) around its place, so the adapter re-solves the problem with limits and the
-spheres on the end effector and panda_link4.
+publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_states`` at 50 Hz,
+then ``--n`` obstacle events, one at a time: a MarkerArray of ``--spheres`` spheres (default 3,
+radius 5-10 cm; near the prior mean end-effector path, the last near the elbow path, as
+panda_problem), each event placing every sphere N(0, 2 cm) around its place, so the adapter
+re-solves the problem with limits and the spheres on the end effector and panda_link4,
+conditioned on the current joint_states. ``--robot start`` (default): before each event the
+joint_states move to that event's start state, and spheres and start states are exactly the
+events of ``bench_adaptation_solve.py`` (same ``--seed``): the problems do not depend on what
+earlier events did, and the in-process figures of that benchmark are this one's solve part.
+``--robot echo``: the joint_states echo the last ``joint_reference`` (a perfect robot; the
+measurements before 2026-11-24 14:00 UTC), so each event starts where the earlier adaptations
+led and two code versions see different problems.
 
 For each event it records the latency from the obstacle stamp (= publish time, same host
 clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
@@ -25,7 +31,7 @@ Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private do
 Bounded: start-up + n * (at most --timeout) seconds.
 
     .venv/bin/python benchmarks/bench_adaptation_latency.py [--n 25] [--seed 0] [--domain 133]
-        [--code DIR --before] [--param adaptation.n_steps:=30 ...]
+        [--robot start|echo] [--code DIR --before] [--param adaptation.n_steps:=30 ...]
 """
 import argparse
 import os
@@ -56,6 +62,7 @@ class Robot(User):
         from sensor_msgs.msg import JointState
         from cdmp_ros.ros import qos
         self.refs = {}  # stamp ns -> receive time.monotonic()
+        self.echo = True  # joint_states echo the references (--robot echo)
         self.node.create_subscription(JointState, 'joint_reference', self._on_ref,
                                       qos.REFERENCE)
 
@@ -64,7 +71,8 @@ class Robot(User):
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         with self.lock:
             self.refs[stamp] = t
-            self.q = np.array(msg.position)
+            if self.echo:
+                self.q = np.array(msg.position)
 
     def streamer_state(self, since):
         with self.lock:
@@ -153,8 +161,18 @@ def run(args):
             centres.append(x + rng.normal(0.0, 0.04, 3))
             radii.append(rng.uniform(0.05, 0.1))
         base = np.array(centres)
+        if args.robot == 'start':  # the event set of bench_adaptation_solve (same seed)
+            from bench_adaptation_solve import events
+            _, reqs = events(args.n, args.seed, args.spheres)
+            user.echo = False
         for k in range(args.n):
             centres = base + rng.normal(0.0, 0.02, base.shape)  # moved around its place
+            if args.robot == 'start':
+                centres = np.array([ob.center for ob in reqs[k].obstacles])
+                radii = [ob.radius for ob in reqs[k].obstacles]
+                with user.lock:
+                    user.q = np.array(reqs[k].start_y)
+                time.sleep(args.gap)  # joint_states (50 Hz) carry the new start to the adapter
             with user.lock:
                 n_a, n_s = len(user.adapted), len(user.states)
             n_sw = len(log_switches(slog_path))
@@ -233,6 +251,12 @@ def main():
     ap.add_argument('--spheres', type=int, default=3,
                     help='spheres per event (the last near the elbow path when > 1)')
     ap.add_argument('--gap', type=float, default=0.5, help='s between events')
+    ap.add_argument('--robot', choices=('echo', 'start'), default='start',
+                    help='joint_states: "start" (default) holds the robot at the start state '
+                         'of each event of bench_adaptation_solve (prior mean at a phase in '
+                         '[0, 0.1]; the same problems whatever earlier events did, so runs of '
+                         'two code versions compare); "echo" echoes the references (a perfect '
+                         'robot; each event then starts where the previous adaptations led)')
     ap.add_argument('--code', default=REPO, help='tree the nodes run from (default: this one)')
     ap.add_argument('--before', action='store_true',
                     help='code without the adaptation diagnostics: read the streamer log')
