@@ -10,6 +10,7 @@ from cdmp_ros.core.adaptation.constraints import (DofPoint, Hyperplane, JointLim
                                                   MutualAvoidance, NonConvexCorner, Point,
                                                   Repeller, SmoothnessConstraint, UnboundWaypoint,
                                                   Waypoint)
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
@@ -75,6 +76,12 @@ def _constraint_sets():
         'ut_repeller': [Repeller(Planar2(), [1.2, 0.9], 0.3)],
         'ut_hyperplane': [Hyperplane(Planar2(), [0.0, 1.0], [0.0, 1.5])],
         'mutual': [MutualAvoidance(Planar2((0, 1)), Planar2((2, 3)), 0.5)],
+        # batches of several members: weighed in one product per batch (all 'each'), or per
+        # member when a member has one multiplier for its whole support ('max')
+        'sphere_batch': [Repeller(CART, [0.2, 0.1], 0.3), Repeller(CART, [-0.3, 0.2], 0.2),
+                         Waypoint(CART, [0.5, -0.2], 0.2, support=(0.4, 0.5))],
+        'sphere_batch_max': [Repeller(CART, [0.2, 0.1], 0.3),
+                             UnboundWaypoint(CART, [0.4, 0.3], 0.1, support=(0.2, 0.9))],
     }
 
 
@@ -273,3 +280,40 @@ def test_the_guide_is_zero_where_the_constraint_can_hold_and_its_gradient_is_exa
         g0 = prob.lagrangian(theta, np.zeros(1))[1]  # the KL alone
         pull = np.abs(g - g0)[:prior.n_weights].max()
         assert pull > 1e-3, pull  # the constraint pulls the mean, even at 10 sd
+
+
+def test_batches_of_one_multiplier_per_row_are_weighed_together(rng):
+    """The fused path (every member 'each') and the per-member path give one Lagrangian."""
+    prior = _prior(rng)
+    cons = _constraint_sets()['sphere_batch']
+    prob = Problem(prior, cons, AdaptationConfig(n_steps=15))
+    assert len(prob.batches) == 1 and prob.fused[0] is not None
+    theta = 0.05 * rng.standard_normal(prob.initial_theta().size)
+    lam = rng.uniform(0.5, 2.0, prob.n_values)
+    f, g = prob.lagrangian(theta, lam)
+    prob.fused[0] = None                     # force the per-member path
+    f1, g1 = prob.lagrangian(theta, lam)
+    assert f == pytest.approx(f1, rel=1e-13)
+    assert np.allclose(g, g1, rtol=1e-12, atol=1e-14)
+    mixed = Problem(prior, _constraint_sets()['sphere_batch_max'], AdaptationConfig(n_steps=15))
+    assert mixed.fused == [None]
+
+
+def test_multiplier_update_clips_increases_and_decreases_separately():
+    """Relative EMM step: lambda exp(clip(eta (alpha' - F) / (1 - alpha'),
+    -max_log_decrease, max_log_step)); the paper's step lambda exp(eta (alpha' - F))."""
+    from cdmp_ros.core.adaptation.solver import multiplier_update
+    lam = np.array([20.0, 20.0, 20.0, 20.0])
+    aim = np.full(4, 1.0 - 6e-4)
+    F = np.array([0.9, 1.0 - 1.2e-3, 1.0 - 6e-4, 1.0])    # far below, 2x, at, above the aim
+    eta = np.ones(4)
+    cfg = AdaptationConfig()
+    assert cfg.max_log_step == 3.0 and cfg.max_log_decrease == 0.3
+    new = multiplier_update(lam, F, eta, aim, cfg)
+    assert new == pytest.approx(20.0 * np.exp([3.0, 1.0, 0.0, -0.3]), rel=1e-9)
+    sym = multiplier_update(lam, F, eta, aim, AdaptationConfig(max_log_decrease=3.0))
+    assert sym[3] == pytest.approx(20.0 * np.exp(-1.0), rel=1e-9)   # the unclipped -1
+    paper = multiplier_update(lam, F, eta, aim, AdaptationConfig(relative_step=False))
+    assert paper == pytest.approx(20.0 * np.exp(aim - F), rel=1e-12)
+    with pytest.raises(ValidationError, match='max_log_decrease'):
+        AdaptationConfig(max_log_decrease=0.0)

@@ -19,7 +19,7 @@ from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
-           'sample_points', 'monte_carlo_satisfaction', 'solve_levels']
+           'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels']
 
 
 def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
@@ -134,13 +134,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             status = 'stalled_infeasible'
             break
         prev = value
-        C_aim = alpha_aim - F
-        if config.relative_step:
-            step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_decrease,
-                           config.max_log_step)
-        else:
-            step = eta * C_aim
-        lam = lam * np.exp(step)    # exponential method of multipliers (Algorithm 1)
+        lam = multiplier_update(lam, F, eta, alpha_aim, config)
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T
     adapted = prior.copy(mu, 0.5 * (Sigma + Sigma.T))
@@ -162,6 +156,24 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports)
     return adapted, report
+
+
+def multiplier_update(lam: NDArray, F: NDArray, eta: NDArray, alpha_aim: NDArray,
+                      config: AdaptationConfig) -> NDArray:
+    """One step of the exponential method of multipliers (Algorithm 1, paper 003):
+    lambda * exp(eta (alpha' - F)), with alpha' the aim level (``violation_target``).
+
+    With ``config.relative_step`` the exponent is divided by 1 - alpha' and clipped to
+    [-max_log_decrease, max_log_step] (:class:`AdaptationConfig`); otherwise the paper's
+    step.
+    """
+    C_aim = alpha_aim - F
+    if config.relative_step:
+        step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_decrease,
+                       config.max_log_step)
+    else:
+        step = eta * C_aim
+    return lam * np.exp(step)
 
 
 def monte_carlo_satisfaction(promp: ProMP, constraints: Sequence, n_samples: int,
