@@ -5,6 +5,8 @@ import sys
 
 import pytest
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this checkout's package
+
 PROBE = (
     'import os, sys\n'
     'import cdmp_ros.nodes.{name}\n'
@@ -17,6 +19,7 @@ def _run(name, env_extra):
     env = {k: v for k, v in os.environ.items()
            if k not in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS')}
     env.update(env_extra)
+    env['PYTHONPATH'] = ROOT
     out = subprocess.run([sys.executable, '-c', PROBE.format(name=name)], env=env,
                          capture_output=True, text=True, timeout=120, check=True)
     return out.stdout.split()
@@ -36,6 +39,7 @@ def test_node_process_keeps_a_callers_setting(name):
 def test_numpy_is_not_imported_before_the_setting(name):
     probe = ('import sys\nimport cdmp_ros.nodes.{name}\n'
              'print("numpy" in sys.modules)\n').format(name=name)
-    out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
-                         timeout=120, check=True)
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    out = subprocess.run([sys.executable, '-c', probe], env=env, capture_output=True,
+                         text=True, timeout=120, check=True)
     assert out.stdout.strip() == 'False'
