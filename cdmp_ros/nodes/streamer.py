@@ -13,10 +13,19 @@ rebuild per callback dominates; it also runs the tick with ``tick_thread:=false`
 graceful loop of :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag;
 ``EventsExecutor.spin()`` does not return on SIGINT in this rclpy); the node's ``close()``
 stops the tick thread before the node is destroyed.
+
+BLAS is limited to one thread (``OPENBLAS_NUM_THREADS=1``, ``OMP_NUM_THREADS=1`` unless set by
+the caller) before numpy is imported, as in :mod:`cdmp_ros.nodes.adapter`: the streamer's
+numerical work is small, and a second BLAS thread would compete with the adapter's solve on this
+2-core machine.
 """
+import os
 import sys
 
-from cdmp_ros.ros.node_main import catch_stop_signals, make_executor, run_node
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+os.environ.setdefault('OMP_NUM_THREADS', '1')
+
+from cdmp_ros.ros.node_main import catch_stop_signals, make_executor, run_node  # noqa: E402
 
 
 def main(args=None) -> int:

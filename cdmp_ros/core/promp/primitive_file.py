@@ -20,8 +20,8 @@ def promp_body(promp: ProMP) -> Dict[str, Any]:
                   'centers': [float(c) for c in promp.basis.centers],
                   'width': float(promp.basis.width)},
         'n_basis': int(promp.n_basis),
-        'mean_w': [float(v) for v in promp.mean_w],
-        'cov_w': [[float(v) for v in r] for r in promp.cov_w],
+        'mean_w': np.asarray(promp.mean_w, dtype=float).tolist(),
+        'cov_w': np.asarray(promp.cov_w, dtype=float).tolist(),  # Python floats, as float(v)
         'sigma_y': [float(v) for v in promp.sigma_y],
     }
 
