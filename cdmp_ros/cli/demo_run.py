@@ -233,7 +233,7 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
                  'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')},
                  'learner': {'kind': kind}}
     if kind == 'promp':
-        driver_args = ['--no-goal-change', *driver_args]
+        driver_args = ['--no-goal-change', '--wait-adapter', *driver_args]
     adapter_spec = next((spec for spec in graph.nodes if spec.executable == 'adapter'), None)
     nodes = []
     for spec in graph.nodes:

@@ -8,13 +8,18 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    ``/learner/refit``, wait for the latched ``primitive``; plan the end-effector path of the
    primitive from the current reference (core kinematics) and pick the point at
    ``--obstacle-at`` of its arc length;
-2. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point
+2. with ``--wait-adapter`` (``cdmp demo --kind promp``), wait until the adapter has answered
+   that primitive (an ``adapted_primitive`` whose ``metadata.adapter`` names it as its source):
+   then every obstacle message of the drop finds the adapter holding the primitive, however
+   late a loaded machine delivered it there;
+3. when the reference has covered ``--drop-at`` of that path (and step 2 is done), drop a
+   sphere onto the point
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
    ``DROP_PERIOD``), or with ``--motion cross`` move it horizontally across the path through
    the point (``--cross-length`` at ``--cross-speed``, ``--cross-rate`` messages per second);
-3. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
+4. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
    skipped with ``--no-goal-change``);
-4. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
+5. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
    with the event times, the obstacle, and the last ``diagnostics`` status of every node.
 """
 import argparse
@@ -35,6 +40,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
+from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.robot_model import default_urdf_path
 
@@ -78,6 +84,9 @@ def parse_args(argv):
                     help='m travelled, centred on the landing point (default 0.6)')
     ap.add_argument('--no-goal-change', action='store_true',
                     help='end after the first motion rests (cdmp demo --kind promp)')
+    ap.add_argument('--wait-adapter', action='store_true',
+                    help='drop only after the adapter answered the primitive with an '
+                         'adapted_primitive (cdmp demo --kind promp)')
     ap.add_argument('--frame', default='panda_link0')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     return ap.parse_args(argv)
@@ -92,6 +101,8 @@ class DemoDriver(Node):
         self.events = {}
         self.diagnostics = {}
         self.prim = None
+        self.prim_id = None
+        self.adapter_ready = not args.wait_adapter
         self.path = None
         self.obstacle = None
         self.ref = None
@@ -104,6 +115,9 @@ class DemoDriver(Node):
         self.obs_pub = self.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
         self.goal_pub = self.create_publisher(JointState, 'goal', qos.COMMAND)
         self.create_subscription(String, 'primitive', self._on_primitive, qos.LATCHED)
+        if args.wait_adapter:
+            self.create_subscription(String, 'adapted_primitive', self._on_adapted,
+                                     qos.LATCHED)
         self.create_subscription(JointState, 'joint_reference', self._on_ref,
                                  qos.REFERENCE)
         self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag,
@@ -128,7 +142,20 @@ class DemoDriver(Node):
             self.get_logger().error(f'cannot use the primitive: {exc}')
             return
         self.prim = prepared.prim
+        self.prim_id = primitive_id(msg.data)
         self._event('primitive')
+
+    def _on_adapted(self, msg):
+        if self.adapter_ready or self.prim_id is None:
+            return
+        try:
+            prov = read_provenance(json.loads(msg.data).get('metadata'))
+        except Exception as exc:  # noqa: BLE001 -- the demo reports any failure
+            self.get_logger().error(f'cannot read the adapted_primitive: {exc}')
+            return
+        if prov is not None and prov.source_id == self.prim_id:
+            self.adapter_ready = True
+            self._event('adapter_ready')
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)
@@ -201,7 +228,7 @@ class DemoDriver(Node):
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
             ee = self.chain.forward(self.ref[0], self.ee)[0]
-            if path_progress(self.path, ee) >= a.drop_at:
+            if self.adapter_ready and path_progress(self.path, ee) >= a.drop_at:
                 self._event('drop_start')
                 self.phase = 'drop' if a.motion == 'drop' else 'cross'
                 self.cross_t0 = self.next_drop = time.monotonic()
