@@ -30,6 +30,11 @@ def test_info_on_truncated_bag_fails_with_a_clear_error(tmp_path, capsys):
     assert 'recover' in capsys.readouterr().err
 
 
+def test_play_refuses_a_non_positive_wait_timeout(capsys):
+    assert main(['bag', 'play', DEMO, '--wait-for-subscribers', '1', '--wait-timeout', '0']) == 2
+    assert '--wait-timeout' in capsys.readouterr().err
+
+
 def test_recover_command_reports_loss(tmp_path, capsys):
     from cdmp_ros.bag import BagWriter
     from cdmp_ros.bag.cdr import encode_string
@@ -69,7 +74,7 @@ def test_record_and_play_commands(tmp_path):
         # ... and the player starts once it subscribed: a reliable writer then delivers all
         play = subprocess.run(cdmp + ['play', DEMO, '--rate', '4', '--remap',
                                       '/demonstration:=/replayed', '--wait-for-subscribers',
-                                      '1'],
+                                      '1', '--wait-timeout', str(WAIT_S)],
                               env=ros_env(), capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stdout + play.stderr
         # every message is on disk before the recorder is stopped

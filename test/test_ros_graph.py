@@ -16,6 +16,7 @@ import pytest
 
 from cdmp_ros.cli.cmd_bringup import Bringup, parse_graph
 from conftest import ros_env, module_domain
+from node_harness import wait_matched
 from streamer_harness import LOWER, PANDA_JOINTS, UPPER, Harness, max_acceleration
 
 pytestmark = pytest.mark.ros
@@ -62,10 +63,18 @@ def graph(tmp_path_factory):
     h = Harness(DOMAIN)
     h.robot_on = False  # the sim is the robot
     try:
+        # evidence from every node, not this node's view of the graph: DDS discovery between
+        # two other nodes (learner -> adapter) can lag by seconds on a loaded machine, and a
+        # primitive reaching the adapter after the goal would clear that goal
         ok = h.wait(lambda: status(h, 'sim', 'state') is not None and h.n_refs() > 100
                     and 'cdmp' in (status(h, 'streamer', 'primitive') or '')
+                    and status(h, 'adapter', 'primitive') == 'cdmp'
                     or b.exited(), STARTUP)
         assert ok and not b.exited(), log_path.read_text()[-3000:]
+        # this node's commands reach their subscribers: goal (streamer, adapter), obstacles
+        # (streamer, adapter, sim)
+        assert wait_matched(h.pub['goal'], 2, STARTUP) and \
+            wait_matched(h.pub['obstacles'], 3, STARTUP), log_path.read_text()[-3000:]
         yield h, b, log_path
     finally:
         h.close()

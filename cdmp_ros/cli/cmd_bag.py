@@ -41,7 +41,10 @@ def add_arguments(parser):
                    help='topic remappings, e.g. /demonstration:=/goal')
     p.add_argument('--clock', action='store_true', help='publish /clock')
     p.add_argument('--wait-for-subscribers', type=int, default=0, metavar='N',
-                   help='wait (up to 10 s) until every topic has N subscribers')
+                   help='wait (up to --wait-timeout s) until every topic has N subscribers')
+    p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
+                   help='longest wait for the subscribers of --wait-for-subscribers, s '
+                        '(default 10); then the player warns and plays anyway')
     p.add_argument('--start-delay', type=float, default=0.0, help='seconds before playing')
     p.set_defaults(_bag=_play)
 
@@ -136,9 +139,12 @@ def _record(args) -> int:
 def _play(args) -> int:
     from cdmp_ros.bag import BagReader
     BagReader(args.bag).verify()  # refuse a bad bag here with a clear message
+    if not args.wait_timeout > 0.0:
+        from cdmp_ros.core.errors import ValidationError
+        raise ValidationError(f'--wait-timeout: expected seconds > 0, got {args.wait_timeout}')
     params = {'bag': os.path.abspath(args.bag), 'rate': float(args.rate), 'loop': args.loop,
               'clock': args.clock, 'wait_for_subscribers': args.wait_for_subscribers,
-              'start_delay': float(args.start_delay)}
+              'wait_timeout': float(args.wait_timeout), 'start_delay': float(args.start_delay)}
     if args.topics:
         params['topics'] = args.topics
     for r in args.remap:

@@ -9,9 +9,12 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    primitive from the current reference (core kinematics) and pick the point at
    ``--obstacle-at`` of its arc length;
 2. with ``--wait-adapter`` (``cdmp demo --kind promp``), wait until the adapter has answered
-   that primitive (an ``adapted_primitive`` whose ``metadata.adapter`` names it as its source):
-   then every obstacle message of the drop finds the adapter holding the primitive, however
-   late a loaded machine delivered it there;
+   that primitive (an ``adapted_primitive`` whose ``metadata.adapter`` names it as its source)
+   and the streamer streams that answer (its diagnostics' ``adapted_generation``): then every
+   obstacle message of the drop finds the adapter holding the primitive and the adapter's
+   results reach the streamer, however late a loaded machine's DDS discovery matched the
+   learner, adapter and streamer with each other (the driver's own view of the graph says
+   nothing about those pairs);
 3. when the reference has covered ``--drop-at`` of that path (and step 2 is done), drop a
    sphere onto the point
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
@@ -102,6 +105,7 @@ class DemoDriver(Node):
         self.diagnostics = {}
         self.prim = None
         self.prim_id = None
+        self.answer = None              # provenance of the newest adapted_primitive
         self.adapter_ready = not args.wait_adapter
         self.path = None
         self.obstacle = None
@@ -146,16 +150,28 @@ class DemoDriver(Node):
         self._event('primitive')
 
     def _on_adapted(self, msg):
-        if self.adapter_ready or self.prim_id is None:
+        # kept whatever arrives first: the adapter's answer may overtake the primitive here
+        if self.adapter_ready:
             return
         try:
-            prov = read_provenance(json.loads(msg.data).get('metadata'))
+            self.answer = read_provenance(json.loads(msg.data).get('metadata'))
         except Exception as exc:  # noqa: BLE001 -- the demo reports any failure
             self.get_logger().error(f'cannot read the adapted_primitive: {exc}')
-            return
-        if prov is not None and prov.source_id == self.prim_id:
-            self.adapter_ready = True
-            self._event('adapter_ready')
+
+    def _check_adapter(self) -> bool:
+        """``--wait-adapter``: the adapter answered the current primitive and the streamer
+        streams that answer."""
+        if not self.adapter_ready:
+            prov = self.answer
+            if prov is not None and self.prim_id is not None and prov.source_id == self.prim_id:
+                streamed = next((st['values'].get('adapted_generation')
+                                 for name, st in self.diagnostics.items()
+                                 if name.lstrip('/').startswith('streamer')
+                                 and 'adapted_generation' in st['values']), None)
+                if streamed == str(prov.generation):
+                    self.adapter_ready = True
+                    self._event('adapter_ready')
+        return self.adapter_ready
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)
@@ -208,16 +224,25 @@ class DemoDriver(Node):
     def _step(self):
         a = self.args
         if time.monotonic() - self.t0 > a.timeout and self.phase != 'finish':
-            self.get_logger().error(f'timeout in phase {self.phase}')
+            waiting = ('' if self.phase != 'wait_motion' or self.adapter_ready else
+                       ' (the adapter has not answered the primitive, or the streamer does not '
+                       'stream its answer)')
+            self.get_logger().error(f'timeout in phase {self.phase}{waiting}')
             self.events['timeout_phase'] = self.phase
             self.phase = 'finish'
         if self.phase == 'wait_graph':
-            # every node is up and connected (the recorder too) before the motion starts
+            # every node is up before the motion starts, as this node sees the graph (its own
+            # subscriptions count): joint_reference by sim, recorder and this node; obstacles
+            # by streamer, adapter, sim and recorder; primitive by streamer, adapter, recorder
+            # and this node; and this node's publishers matched (goal: streamer, adapter,
+            # recorder). Pairs of other nodes may match later (see --wait-adapter).
             ready = (self.refit.service_is_ready() and self.snap.service_is_ready()
-                     and self.count_subscribers('joint_reference') >= 2
+                     and self.count_subscribers('joint_reference') >= 3
                      and self.count_publishers('joint_states') >= 1
                      and self.count_subscribers('obstacles') >= 4
-                     and self.count_subscribers('primitive') >= 3 and self.ref is not None)
+                     and self.obs_pub.get_subscription_count() >= 4
+                     and self.goal_pub.get_subscription_count() >= 3
+                     and self.count_subscribers('primitive') >= 4 and self.ref is not None)
             if ready:
                 self._event('graph_ready')
                 self.refit_future = self.refit.call_async(Trigger.Request())
@@ -228,7 +253,7 @@ class DemoDriver(Node):
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
             ee = self.chain.forward(self.ref[0], self.ee)[0]
-            if self.adapter_ready and path_progress(self.path, ee) >= a.drop_at:
+            if self._check_adapter() and path_progress(self.path, ee) >= a.drop_at:
                 self._event('drop_start')
                 self.phase = 'drop' if a.motion == 'drop' else 'cross'
                 self.cross_t0 = self.next_drop = time.monotonic()
