@@ -14,7 +14,8 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    obstacle message of the drop finds the adapter holding the primitive and the adapter's
    results reach the streamer, however late a loaded machine's DDS discovery matched the
    learner, adapter and streamer with each other (the driver's own view of the graph says
-   nothing about those pairs);
+   nothing about those pairs). The answer restarts the motion from the current state, so the
+   path is planned (step 1) only then;
 3. when the reference has covered ``--drop-at`` of that path (and step 2 is done), drop a
    sphere onto the point
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
@@ -224,7 +225,7 @@ class DemoDriver(Node):
     def _step(self):
         a = self.args
         if time.monotonic() - self.t0 > a.timeout and self.phase != 'finish':
-            waiting = ('' if self.phase != 'wait_motion' or self.adapter_ready else
+            waiting = ('' if self.phase != 'wait_adapter' else
                        ' (the adapter has not answered the primitive, or the streamer does not '
                        'stream its answer)')
             self.get_logger().error(f'timeout in phase {self.phase}{waiting}')
@@ -249,11 +250,17 @@ class DemoDriver(Node):
                 self.phase = 'wait_primitive'
         elif self.phase == 'wait_primitive':
             if self.prim is not None and self.ref is not None:
+                self.phase = 'wait_adapter'
+        elif self.phase == 'wait_adapter':
+            # the adapter's answer restarts the motion from the current state (the streamer
+            # switches it in): plan the path, the landing point and the drop from here on, so
+            # the sphere lands ahead of the arm however late the answer came
+            if self._check_adapter():
                 self._plan(self.ref[0])
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
             ee = self.chain.forward(self.ref[0], self.ee)[0]
-            if self._check_adapter() and path_progress(self.path, ee) >= a.drop_at:
+            if path_progress(self.path, ee) >= a.drop_at:
                 self._event('drop_start')
                 self.phase = 'drop' if a.motion == 'drop' else 'cross'
                 self.cross_t0 = self.next_drop = time.monotonic()
