@@ -224,7 +224,8 @@ class DemoDriver(Node):
 
     def _step(self):
         a = self.args
-        if time.monotonic() - self.t0 > a.timeout and self.phase != 'finish':
+        if (time.monotonic() - self.t0 > a.timeout and 'timeout_phase' not in self.events
+                and self.phase not in ('finish', 'snapshot', 'diagnostics')):
             waiting = ('' if self.phase != 'wait_adapter' else
                        ' (the adapter has not answered the primitive, or the streamer does not '
                        'stream its answer)')
