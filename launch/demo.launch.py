@@ -36,5 +36,9 @@ def generate_launch_description():
             'repeller.influence_distance': 0.25}),
         node('recorder', 'bag.yaml'),
         node('adapter', 'adapter.yaml'),
-        node('learner', 'learner.yaml', fit_on_start=False),
+        # the URDF's soft limits (safety_controller) as the task's limits: see demo.yaml
+        node('learner', 'learner.yaml', **{
+            'fit_on_start': False,
+            'limits.lower': [-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973],
+            'limits.upper': [2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]}),
     ])

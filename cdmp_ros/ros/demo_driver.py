@@ -16,8 +16,9 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    learner, adapter and streamer with each other (the driver's own view of the graph says
    nothing about those pairs). The answer restarts the motion from the current state, so the
    path is planned (step 1) only then;
-3. when the reference has covered ``--drop-at`` of that path (and step 2 is done), drop a
-   sphere onto the point
+3. when the reference has covered ``--drop-at`` of that path and the arm is clear of the
+   sphere's first position (``SPAWN_CLEARANCE``), drop a sphere onto the point (when the arm
+   is under the fall but clear of the landing point, the sphere appears there instead)
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
    ``DROP_PERIOD``), or with ``--motion cross`` move it horizontally across the path through
    the point (``--cross-length`` at ``--cross-speed``, ``--cross-rate`` messages per second);
@@ -53,6 +54,9 @@ REST_SPEED = 0.01
 REST_TIME = 0.3
 #: Period of the falling obstacle's messages (s): below the adapter's input rate limit.
 DROP_PERIOD = 0.06
+#: Least distance (m) from the arm's link axes to the sphere's surface where it appears: the
+#: streamer's link capsules (6 cm) and 2 cm.
+SPAWN_CLEARANCE = 0.08
 
 
 def parse_args(argv):
@@ -174,6 +178,21 @@ class DemoDriver(Node):
                     self._event('adapter_ready')
         return self.adapter_ready
 
+    def _clear_of_arm(self, p) -> bool:
+        """A sphere appearing at ``p`` would be clear of the arm: every segment between
+        consecutive joint origins and on to the end effector is farther from ``p`` than the
+        radius + SPAWN_CLEARANCE. The first drop position lies above the path, where the arm
+        may still be; a sphere appearing inside the arm is not this demo's scenario (and made
+        the streamer's coupling jump the reference, a defect of its own)."""
+        q = self.ref[0]
+        pts = np.vstack([self.chain.joint_origins(q), self.chain.forward(q, self.ee)])
+        a, b = pts[:-1], pts[1:]
+        ab = b - a
+        t = np.clip(np.einsum('ij,ij->i', p - a, ab) / np.maximum(
+            np.einsum('ij,ij->i', ab, ab), 1e-12), 0.0, 1.0)
+        d = np.linalg.norm(a + t[:, None] * ab - p, axis=1)
+        return float(d.min()) > self.args.radius + SPAWN_CLEARANCE
+
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)
         self.path = self.chain.forward(traj.Y, self.ee)[:, 0, :]
@@ -261,7 +280,16 @@ class DemoDriver(Node):
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
             ee = self.chain.forward(self.ref[0], self.ee)[0]
-            if path_progress(self.path, ee) >= a.drop_at:
+            first = (self.drop[0] if a.motion == 'drop' else
+                     self.obstacle - 0.5 * a.cross_length * self.across)
+            start = path_progress(self.path, ee) >= a.drop_at
+            if start and a.motion == 'drop' and not self._clear_of_arm(first) \
+                    and self._clear_of_arm(self.obstacle):
+                # the arm is under the fall: the sphere appears at its landing point instead
+                self.drop = [self.obstacle]
+                self.events['drop_mode'] = 'appear at the landing point (the arm under the fall)'
+                first = self.obstacle
+            if start and self._clear_of_arm(first):
                 self._event('drop_start')
                 self.phase = 'drop' if a.motion == 'drop' else 'cross'
                 self.cross_t0 = self.next_drop = time.monotonic()
