@@ -16,9 +16,10 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    learner, adapter and streamer with each other (the driver's own view of the graph says
    nothing about those pairs). The answer restarts the motion from the current state, so the
    path is planned (step 1) only then;
-3. when the reference has covered ``--drop-at`` of that path and the arm is clear of the
-   sphere's first position (``SPAWN_CLEARANCE``), drop a sphere onto the point (when the arm
-   is under the fall but clear of the landing point, the sphere appears there instead)
+3. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point;
+   while the arm is under the sphere's first position (closer than ``SPAWN_CLEARANCE``) the
+   sphere appears at its landing point instead if that is clear, else the drop waits (for at
+   most ``SPAWN_WAIT`` more of the path)
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
    ``DROP_PERIOD``), or with ``--motion cross`` move it horizontally across the path through
    the point (``--cross-length`` at ``--cross-speed``, ``--cross-rate`` messages per second);
@@ -57,6 +58,8 @@ DROP_PERIOD = 0.06
 #: Least distance (m) from the arm's link axes to the sphere's surface where it appears: the
 #: streamer's link capsules (6 cm) and 2 cm.
 SPAWN_CLEARANCE = 0.08
+#: Fraction of the path the drop may wait beyond --drop-at for the arm to clear.
+SPAWN_WAIT = 0.15
 
 
 def parse_args(argv):
@@ -280,16 +283,16 @@ class DemoDriver(Node):
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
             ee = self.chain.forward(self.ref[0], self.ee)[0]
-            first = (self.drop[0] if a.motion == 'drop' else
-                     self.obstacle - 0.5 * a.cross_length * self.across)
-            start = path_progress(self.path, ee) >= a.drop_at
-            if start and a.motion == 'drop' and not self._clear_of_arm(first) \
-                    and self._clear_of_arm(self.obstacle):
-                # the arm is under the fall: the sphere appears at its landing point instead
-                self.drop = [self.obstacle]
-                self.events['drop_mode'] = 'appear at the landing point (the arm under the fall)'
-                first = self.obstacle
-            if start and self._clear_of_arm(first):
+            progress = path_progress(self.path, ee)
+            start = progress >= a.drop_at
+            if start and a.motion == 'drop' and not self._clear_of_arm(self.drop[0]):
+                if self._clear_of_arm(self.obstacle):
+                    # the arm is under the fall: the sphere appears at its landing point
+                    self.drop = [self.obstacle]
+                    self.events['drop_mode'] = 'appeared at the landing point (arm under the fall)'
+                elif progress < a.drop_at + SPAWN_WAIT:
+                    start = False  # wait for the arm to clear (bounded: then it falls anyway)
+            if start:
                 self._event('drop_start')
                 self.phase = 'drop' if a.motion == 'drop' else 'cross'
                 self.cross_t0 = self.next_drop = time.monotonic()
