@@ -44,6 +44,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+from cdmp_ros.core.kinematics.closest import segment_sphere
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
@@ -183,18 +184,14 @@ class DemoDriver(Node):
 
     def _clear_of_arm(self, p) -> bool:
         """A sphere appearing at ``p`` would be clear of the arm: every segment between
-        consecutive joint origins and on to the end effector is farther from ``p`` than the
-        radius + SPAWN_CLEARANCE. The first drop position lies above the path, where the arm
-        may still be; a sphere appearing inside the arm is not this demo's scenario (and made
-        the streamer's coupling jump the reference, a defect of its own)."""
+        consecutive joint origins (the base first) and on to the end effector is farther than
+        SPAWN_CLEARANCE from its surface. The first drop position lies above the path, where
+        the arm may still be; a sphere appearing inside the arm is not this demo's scenario
+        (and made the streamer's coupling jump the reference, a defect of its own)."""
         q = self.ref[0]
         pts = np.vstack([self.chain.joint_origins(q), self.chain.forward(q, self.ee)])
-        a, b = pts[:-1], pts[1:]
-        ab = b - a
-        t = np.clip(np.einsum('ij,ij->i', p - a, ab) / np.maximum(
-            np.einsum('ij,ij->i', ab, ab), 1e-12), 0.0, 1.0)
-        d = np.linalg.norm(a + t[:, None] * ab - p, axis=1)
-        return float(d.min()) > self.args.radius + SPAWN_CLEARANCE
+        _, d, _, _ = segment_sphere(pts[:-1], pts[1:], p, self.args.radius)
+        return float(d.min()) > SPAWN_CLEARANCE
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)
