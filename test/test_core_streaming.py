@@ -307,7 +307,8 @@ def test_bad_coupling_is_dropped_not_raised(cdmp_text, bad):
 @settings(max_examples=12, deadline=None)
 @given(st.lists(st.floats(-1e9, 1e9), min_size=7, max_size=7))
 def test_any_strong_coupling_keeps_a_cdmp_inside_the_limits(acc):
-    rs, prep = make_streamer(TEXT_CACHE['cdmp'], timeout=0.0, coupling=lambda y, yd: acc)
+    rs, prep = make_streamer(TEXT_CACHE['cdmp'], timeout=0.0, coupling=lambda y, yd: acc,
+                             coupling_max_acceleration=0.0)  # unbounded: the stepper alone
     rs.activate(prep, 0.0)
     for _ in range(100):
         rs.advance(1, 0.0)
@@ -328,7 +329,8 @@ def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text):
         push = {'a': 1e5}
         rs, prep = make_streamer(cdmp_text, timeout=0.0,
                                  coupling=lambda y, yd: [0.0, 0.0, 0.0, push['a'], 0.0, 0.0,
-                                                         0.0])
+                                                         0.0],
+                                 coupling_max_acceleration=0.0)  # the stepper's cap alone
         rs.activate(prep, 0.0)
         rec = []
         run(rs, 400, 0.0, measure=False, record=rec)
@@ -343,7 +345,8 @@ def test_coupling_turning_away_from_a_saturated_limit_does_not_jump(cdmp_text):
 
 def test_plain_dmp_is_clamped_to_the_limits():
     rs, prep = make_streamer(dumps_primitive(reach_dmp()), timeout=0.0,
-                             coupling=lambda y, yd: [0.0, 0.0, 0.0, 200.0, 0.0, 0.0, 0.0])
+                             coupling=lambda y, yd: [0.0, 0.0, 0.0, 200.0, 0.0, 0.0, 0.0],
+                             coupling_max_acceleration=0.0)
     rs.activate(prep, 0.0)
     flags = 0
     for _ in range(500):
@@ -351,6 +354,77 @@ def test_plain_dmp_is_clamped_to_the_limits():
         y = np.array(rs.y)
         assert np.all(y >= LOWER) and np.all(y <= UPPER)
     assert flags & StreamFlags.CLAMPED and rs.y[3] == UPPER[3]
+
+
+def test_bound_factor_scales_the_largest_joint_to_the_limit_keeping_the_direction():
+    from cdmp_ros.core.coupling.contract import bound_factor
+    a = [3.0, -400.0, 0.0, 100.0, 0.0, 0.0, -1.0]
+    f = bound_factor(a, 50.0)
+    assert f == pytest.approx(0.125)
+    b = np.array(a) * f
+    assert np.abs(b).max() == pytest.approx(50.0)
+    np.testing.assert_allclose(b / np.linalg.norm(b), np.array(a) / np.linalg.norm(a))
+    assert bound_factor(a, 400.0) == 1.0          # within the bound
+    assert bound_factor(a, 0.0) == 1.0            # no bound
+    # not finite numbers: left to the stepper, which rejects them
+    for bad in ([float('nan')] * 7, [float('inf')] + [0.0] * 6, 'x', 3.0):
+        assert bound_factor(bad, 50.0) == 1.0
+
+
+def _sphere_inside_link_case():
+    """The streamed reach at tick 450 and a sphere (4 cm) centred on the axis of panda_link4,
+    inside its 6 cm capsule, appearing then (the demo's drop that starts in the arm)."""
+    import pybullet_data
+    from cdmp_ros.core.kinematics import panda_chain
+    from cdmp_ros.core.kinematics.closest import Sphere
+    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    free, prep = make_streamer(TEXT_CACHE['cdmp'], timeout=0.0)
+    free.activate(prep, 0.0)
+    run(free, 450, 0.0, measure=False)
+    (name, a, b), = [seg for seg in chain.link_segments() if seg[0] == 'panda_link4']
+    from cdmp_ros.core.kinematics import PointOfInterest
+    pa, pb = chain.forward(np.array(free.y), [PointOfInterest(name, a), PointOfInterest(name, b)])
+    return chain, Sphere(tuple(0.5 * (pa + pb)), 0.04)
+
+
+@pytest.mark.parametrize('bound', [500.0, 50.0, 0.0])
+def test_a_sphere_inside_a_link_gives_a_bounded_push(bound):
+    """A sphere appearing inside a link's capsule: the repeller asks for a joint acceleration
+    of ~1e5 rad/s^2 or more. Bounded (500 rad/s^2, the default, or 50) the coupling the
+    stepper gets is the bound at most (flagged COUPLING_BOUNDED, the request reported in
+    ``coupling_peak``) and the reference moves at most (vmax + bound dt) dt per tick;
+    unbounded
+    (0) the same sphere moves the reference by more than 0.1 rad in one tick (the defect the
+    bound removes, seen in the demo as a 3 rad jump onto the limits)."""
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+    from cdmp_ros.core.coupling.potential_fields import RepellerField
+    chain, sphere = _sphere_inside_link_case()
+    coupling = ObstacleCoupling(chain, ['panda_link4', 'panda_link6'],
+                                RepellerField(gain=0.03, influence_distance=0.25),
+                                config=CouplingConfig(link_radius=0.06))
+    rs, prep = make_streamer(TEXT_CACHE['cdmp'], timeout=0.0, coupling=coupling,
+                             obstacles=(), coupling_max_acceleration=bound)
+    rs.activate(prep, 0.0)
+    rec = []
+    run(rs, 450, 0.0, measure=False, record=rec)
+    rs.obstacles = (sphere,)
+    flags, applied, first = 0, 0.0, None
+    for _ in range(300):
+        flags |= rs.advance(1, 0.0)
+        first = rs.min_distance if first is None else first
+        applied = max(applied, float(np.abs(rs._coupling_joint).max()))
+        rec.append((list(rs.y), list(rs.yd), rs.state))
+        assert np.all(np.array(rs.y) > LOWER) and np.all(np.array(rs.y) < UPPER)
+    dy = max_step_changes(rec)[0]
+    assert first < -0.05  # inside the capsule at the first evaluation
+    if bound:
+        assert flags & StreamFlags.COUPLING_BOUNDED and rs.coupling_peak > 100 * bound
+        assert applied == pytest.approx(bound, rel=1e-9)
+        assert dy.max() <= (VMAX.max() + bound * DT) * DT * (1 + 1e-9), dy.max()
+        assert np.abs(np.array([r[1] for r in rec])).max(axis=0).tolist() <= VMAX.tolist()
+    else:
+        assert not flags & StreamFlags.COUPLING_BOUNDED and rs.coupling_peak == 0.0
+        assert applied > 1e4 and dy.max() > 0.1, (applied, dy.max())
 
 
 def _free_ee_path(chain, text, n=1000):

@@ -149,7 +149,7 @@ def test_sphere_obstacle_changes_the_reference(graph):
     ee = chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0]
     m = Marker(ns='test', id=1, type=Marker.SPHERE, action=Marker.ADD)
     m.header.frame_id = 'panda_link0'
-    m.pose.position = Point(x=float(ee[0]) + 0.08, y=float(ee[1]), z=float(ee[2]))
+    m.pose.position = Point(x=float(ee[0]) + 0.06, y=float(ee[1]), z=float(ee[2]))
     m.scale.x = m.scale.y = m.scale.z = 0.1
     n_lat = int(h.last_state()[1].get('obstacle_latency_n', 0))
 
@@ -161,6 +161,10 @@ def test_sphere_obstacle_changes_the_reference(graph):
         assert moved
         assert h.wait(lambda: int(h.last_state()[1].get('coupled', 0)) > 0
                       and h.last_state()[1].get('obstacles') == '1', TIMEOUT)
+        # 1 cm from the fingertips the repeller asks for more than the default bound
+        # (coupling_max_acceleration, 500 rad/s^2): the streamer applied it bounded
+        assert h.wait(lambda: int(h.last_state()[1].get('coupling_bounded', 0)) > 0,
+                      TIMEOUT), h.last_state()
         # obstacle stamp -> first reference computed with it, reported on diagnostics (the
         # figures themselves are benchmarks/bench_streamer.py's)
         assert h.wait(lambda: int(h.last_state()[1].get('obstacle_latency_n', 0)) > n_lat,

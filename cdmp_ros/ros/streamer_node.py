@@ -138,11 +138,11 @@ class StreamerNode(Node):
                                    key=lambda request: request[0])
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
-                       'coupled': 0}
+                       'coupled': 0, 'coupling_bounded': 0}
         self.active_text = None
         # which primitive is streamed (issue 13: deterministic restart) and the latency from
         # an adaptation's trigger stamp to the first reference computed from it
-        self.selection = AdaptationSelector()
+        self.selection = AdaptationSelector(cfg.stream_unadapted)
         self._adapt_latency = LatencyRing('adaptation_latency')
         self._adapt_pending = None  # the switched-in adaptation awaiting its first reference
         self._adapt_first = {}
@@ -229,6 +229,7 @@ class StreamerNode(Node):
 
     def _apply_params(self, cfg: StreamerConfig, coupling: ObstacleCoupling) -> None:
         self.streamer.set_config(cfg)
+        self.selection.stream_unadapted = cfg.stream_unadapted
         self.coupling = coupling
         self.streamer.coupling = coupling if cfg.coupling_enabled else None
         self.obstacles.max_obstacles = cfg.max_obstacles
@@ -375,6 +376,8 @@ class StreamerNode(Node):
                 c['coupling_rejected'] += 1
             if flags & StreamFlags.COUPLED:
                 c['coupled'] += 1
+            if flags & StreamFlags.COUPLING_BOUNDED:
+                c['coupling_bounded'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
     def _switch_in(self, topic: str, prepared, now: float) -> None:
@@ -382,7 +385,7 @@ class StreamerNode(Node):
         dec = self.selection.offer(topic, prepared)
         # one call site per severity: rclpy refuses a call site whose severity changes
         for counter, message in dec.ignored:
-            if counter == 'adapted_held':
+            if counter in ('adapted_held', 'primitive_awaiting_adaptation'):
                 self.get_logger().info(message)
             else:
                 self.get_logger().warning(message)
@@ -448,6 +451,8 @@ class StreamerNode(Node):
             counts = dict(self.counts, **self.schedule.counts)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
+            # the largest coupling asked for beyond the bound in this period (0: none)
+            peak, st.coupling_peak = st.coupling_peak, 0.0
             adaptation = dict(self.selection.values(), **self._adapt_latency.values(),
                               **self._adapt_first)
         level = OK if state is StreamState.RUNNING else WARN
@@ -470,6 +475,7 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
+                coupling_peak_rad_s2=f'{peak:.4g}',
                 rate_hz=f'{self.config.rate:g}', **latency, **adaptation,
                 **extra,
                 **extra_limits,

@@ -7,7 +7,14 @@ experiments) calls ``coupling.joint_acceleration(q, qd, obstacles)`` and hands t
 the stepper, which alone maps it into the exogenous space of a CDMP (Eq. 21/29, paper 000, with
 the cap near saturation). :class:`~cdmp_ros.core.coupling.obstacle.ObstacleCoupling` (Eq. 7 and
 12) is the implementation for a kinematic chain.
+
+:func:`bound_factor` is the one bound of a coupling's magnitude (the streamer's
+``coupling_max_acceleration``): potential fields grow without bound as an obstacle approaches
+(a FIRAS repeller like ``1/d^3``), and an obstacle that appears inside or next to a link asked
+for up to 2.4e6 rad/s^2 in the demo, enough to move the reference from mid-range onto the joint
+limits in one 2 ms tick (benchmarks/RESULTS.md, "The obstacle coupling is bounded").
 """
+import math
 from typing import List, Optional, Protocol, Sequence, runtime_checkable
 
 
@@ -28,3 +35,28 @@ class Coupling(Protocol):
                            obstacles: Sequence) -> Optional[Sequence[float]]:
         """Joint acceleration change [rad/s^2] (n_dofs) at positions ``q`` and velocities
         ``qd`` (None: at rest) for the obstacle set; None means no coupling (zero)."""
+
+
+def bound_factor(dq_dd: Sequence[float], limit: float) -> float:
+    """The factor that scales a joint acceleration ``dq_dd`` into ``max_d |dq_dd_d| <= limit``.
+
+    One factor for all joints, so the direction of the coupling (the avoidance direction, the
+    null-space structure of Eq. 12) is kept and only its magnitude is bounded. Returns 1.0 when
+    ``dq_dd`` is within the bound, when ``limit <= 0`` (no bound), and when ``dq_dd`` is not a
+    sequence of finite numbers (left to the consumer's own check:
+    :meth:`~cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling` rejects it).
+    Allocation-free (the streaming tick).
+    """
+    if limit <= 0.0:
+        return 1.0
+    peak = 0.0
+    try:
+        for v in dq_dd:
+            m = abs(v)
+            if m > peak:
+                peak = m
+    except TypeError:
+        return 1.0
+    if not math.isfinite(peak) or peak <= limit:
+        return 1.0
+    return limit / peak

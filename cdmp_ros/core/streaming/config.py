@@ -71,8 +71,22 @@ class StreamerConfig:
     max_obstacle_distance: float = obstacle_distance_param()
     diagnostics_period: float = _param(0.5, 'Period of the diagnostics messages [s].',
                                        0.01, 60.0)
+    stream_unadapted: bool = _param(
+        True, "Stream a primitive from 'primitive' as soon as it arrives; false: only record "
+        "it as the source and start with its first adaptation from 'adapted_primitive' (with "
+        'the adapter: the robot executes only trajectories adapted to the constraints, never '
+        'the raw prior).')
     coupling_enabled: bool = _param(
         True, 'Apply the obstacle coupling terms (paper 000, Eq. 7/12) every tick.')
+    coupling_max_acceleration: float = _param(
+        500.0, 'Bound [rad/s^2] of the obstacle coupling: its joint acceleration is scaled '
+        'down (one factor for all joints, direction kept) so that no joint gets more. The '
+        'potential fields grow without bound near an obstacle; unbounded, a sphere appearing '
+        'next to a link moved the reference from mid-range onto the limits in one tick. The '
+        "default keeps the demo's avoidance and changes the velocity by at most 1 rad/s per "
+        "2 ms tick; it is not a hardware limit (set the robot's own for a real arm, and expect "
+        'weaker avoidance). 0: no bound.',
+        0.0, 1e6)
     coupling_decimation: int = _param(
         1, 'Evaluate the coupling every N ticks and hold it in between (box obstacles with '
         'link terms cost milliseconds per evaluation).', 1, 1000)

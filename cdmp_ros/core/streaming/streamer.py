@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.contract import Coupling
+from cdmp_ros.core.coupling.contract import Coupling, bound_factor
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.coupling.terms import DampingConfig
@@ -85,6 +85,7 @@ class StreamFlags(enum.IntFlag):
     SATURATED = 4         #: the exogenous state saturated (stepper)
     VELOCITY_LIMITED = 8  #: the phase was slowed to respect velocity limits (stepper)
     COUPLING_REJECTED = 16  #: the coupling term was non-finite or failed and was dropped
+    COUPLING_BOUNDED = 32   #: the coupling term was scaled down to coupling_max_acceleration
 
 
 def _h(s: float) -> float:
@@ -182,6 +183,10 @@ class ReferenceStreamer:
     min_distance : float
         Smallest of the coupling's ``last_distances`` at its last evaluation (inf without
         obstacles).
+    coupling_peak : float
+        Largest joint acceleration [rad/s^2] the coupling asked for beyond
+        ``config.coupling_max_acceleration`` (before the bound; 0 while it never did). The
+        caller may reset it (the node does, every diagnostics period).
     """
 
     def __init__(self, lower: ArrayLike, upper: ArrayLike, config: StreamerConfig,
@@ -197,6 +202,7 @@ class ReferenceStreamer:
         self.coupling = coupling
         self.obstacles: Sequence = ()
         self.min_distance = math.inf
+        self.coupling_peak = 0.0
         self.y = [0.0] * n
         self.yd = [0.0] * n
         self.ydd = [0.0] * n
@@ -417,6 +423,14 @@ class ReferenceStreamer:
             self.min_distance = min(coupling.last_distances, default=math.inf)
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
             a = ()
+        bounded = 0
+        factor = bound_factor(a, self.config.coupling_max_acceleration)
+        if factor < 1.0:
+            peak = self.config.coupling_max_acceleration / factor
+            if peak > self.coupling_peak:
+                self.coupling_peak = peak
+            a = [v * factor for v in a]  # rare (an obstacle close by): may allocate
+            bounded = int(StreamFlags.COUPLING_BOUNDED)
         result = stepper.set_joint_coupling(a)
         if result is CouplingResult.APPLIED:  # the tick: in place, no new list
             for d in range(self.n_dims):
@@ -425,7 +439,7 @@ class ReferenceStreamer:
             cj[:] = self._zeros
         if result is CouplingResult.REJECTED:
             return int(StreamFlags.COUPLING_REJECTED)
-        return int(StreamFlags.COUPLED) if result is CouplingResult.APPLIED else 0
+        return (int(StreamFlags.COUPLED) | bounded) if result is CouplingResult.APPLIED else 0
 
     def _guard(self) -> int:
         flags = 0

@@ -1,0 +1,108 @@
+"""Replay a recorded demo run through the core streamer, offline, for several coupling bounds.
+
+Reads the bag of a ``cdmp demo`` run (``OUT/bag``) and feeds its ``primitive``,
+``adapted_primitive``, ``goal`` and ``obstacles`` messages, at their recorded (log) times, to a
+:class:`~cdmp_ros.core.streaming.streamer.ReferenceStreamer` built with the demo graph's
+streamer parameters (``config/graphs/demo.yaml``: links 4, 6, 7 as 6 cm capsules, repeller
+gain 0.03 over 0.25 m), stepping 2 ms ticks from the first recorded reference; no sim, no ROS
+graph (the reference is open loop: ``joint_states_timeout`` 0). For every
+``--bound`` (``coupling_max_acceleration``, 0 = unbounded) it prints the largest change of
+the reference in one tick, the largest reported velocity, the largest requested coupling, and
+the smallest capsule distance of the reference to the obstacles, as a markdown table.
+
+This is how the 3 rad one-tick jump of the demo (benchmarks/RESULTS.md, "The obstacle
+coupling is bounded") was reproduced without ROS, and how the bound was checked on the
+recorded runs. Deterministic: the same bag gives the same figures.
+
+    .venv/bin/python benchmarks/replay_coupling.py out/demo_promp --bound 0 50 200
+"""
+import argparse
+import dataclasses
+import math
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
+
+from cdmp_ros.bag.cdr import decode_joint_state, decode_string  # noqa: E402
+from cdmp_ros.bag.reader import BagReader  # noqa: E402
+from cdmp_ros.core.coupling.obstacle import CouplingConfig  # noqa: E402
+from cdmp_ros.core.coupling.potential_fields import RepellerField  # noqa: E402
+from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
+from cdmp_ros.core.streaming.config import StreamerConfig  # noqa: E402
+from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
+from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
+from cdmp_ros.ros.robot_model import default_urdf_path  # noqa: E402
+
+TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
+DT_NS = 2_000_000
+
+
+def replay(msgs, chain, bound: float) -> dict:
+    """Stream the recorded inputs with ``coupling_max_acceleration = bound``."""
+    from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
+    from cdmp_ros.ros.convert import ObstacleSet
+    cfg = StreamerConfig(rate=500.0, joint_states_timeout=0.0,
+                         coupling_links=('panda_link4', 'panda_link6', 'panda_link7'),
+                         coupling_max_acceleration=bound)
+    coupling = streamer_coupling(chain, cfg, CouplingConfig(link_radius=0.06),
+                                 repeller=dataclasses.replace(RepellerField(), gain=0.03,
+                                                              influence_distance=0.25))
+    rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
+    obstacles = ObstacleSet('panda_link0', 64, 10.0, 100.0)
+    first = next(m for m in msgs if m.topic == '/joint_reference')
+    rs.note_joint_states(decode_joint_state(first.data).position, 0.0)
+    t, end, i = first.log_time, msgs[-1].log_time, 0
+    Y, V, dmin, peak = [], [], math.inf, 0.0
+    while t < end:
+        while i < len(msgs) and msgs[i].log_time <= t:
+            m = msgs[i]
+            i += 1
+            if m.topic in ('/primitive', '/adapted_primitive'):
+                prep = prepare_primitive(decode_string(m.data), chain.joint_names, cfg.dt,
+                                         chain.lower, chain.upper, chain.velocity_limits,
+                                         source=m.topic[1:])
+                rs.activate(prep, 0.0)
+            elif m.topic == '/goal':
+                rs.set_goal(decode_joint_state(m.data).position)
+            elif m.topic == '/obstacles':
+                obstacles.apply(deserialize_message(m.data, MarkerArray).markers, 0.0)
+                rs.obstacles = obstacles.snapshot.items
+        rs.advance(1, 0.0)
+        if rs.obstacles:
+            dmin = min(dmin, rs.min_distance)
+        peak = max(peak, rs.coupling_peak, float(np.abs(rs._coupling_joint).max()))
+        Y.append(list(rs.y))
+        V.append(list(rs.yd))
+        t += DT_NS
+    Y, V = np.array(Y), np.array(V)
+    return {'max_step_rad': float(np.abs(np.diff(Y, axis=0)).max()),
+            'max_velocity': float(np.abs(V).max()),
+            'peak_request': peak, 'min_distance_m': dmin}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('run', help='output directory of a cdmp demo run (with bag/)')
+    ap.add_argument('--bound', type=float, nargs='+', default=[0.0, 50.0],
+                    help='coupling_max_acceleration values [rad/s^2] (0 = unbounded)')
+    a = ap.parse_args(argv)
+    bag = os.path.join(a.run, 'bag')
+    msgs = sorted(BagReader(bag).messages(TOPICS), key=lambda m: m.log_time)
+    chain = panda_chain(default_urdf_path())
+    print(f'{bag}: {len(msgs)} messages\n')
+    print('| bound [rad/s^2] | largest step in one 2 ms tick [rad] | largest velocity [rad/s] '
+          '| largest coupling requested [rad/s^2] | smallest capsule distance [cm] |')
+    print('|---|---|---|---|---|')
+    for bound in a.bound:
+        r = replay(msgs, chain, bound)
+        print(f"| {bound:g} | {r['max_step_rad']:.4f} | {r['max_velocity']:.2f} | "
+              f"{r['peak_request']:.3g} | {100 * r['min_distance_m']:.2f} |")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
