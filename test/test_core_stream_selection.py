@@ -17,10 +17,10 @@ def adapted(source, gen, stamp=0):
     return Provenance(source, gen, 'obstacles', stamp)
 
 
-def run(events):
+def run(events, stream_unadapted=True):
     """Feed events ('p', id) / ('a', Provenance); returns the selector and what was streamed
     (in order, as labels)."""
-    sel = AdaptationSelector()
+    sel = AdaptationSelector(stream_unadapted)
     streamed = []
     for kind, x in events:
         if kind == 'p':
@@ -49,6 +49,24 @@ def test_adaptation_then_its_primitive_streams_the_adaptation():
     sel, streamed = run([('a', adapted(P1, 10)), ('p', P1)])
     assert streamed == [f'A:{P1[:4]}:10']
     assert sel.counts['adapted_held'] == 1 and sel.held is None
+
+
+@pytest.mark.parametrize('order', ['primitive first', 'adaptation first'])
+def test_without_stream_unadapted_only_adaptations_are_streamed(order):
+    """stream_unadapted false: a primitive is only recorded as the source; its adaptation, in
+    either arrival order, is the first thing streamed; a newer primitive waits again, and an
+    adaptation of the older one stays stale."""
+    events = [('p', P1), ('a', adapted(P1, 10))]
+    if order == 'adaptation first':
+        events.reverse()
+    sel, streamed = run(events + [('p', P2), ('a', adapted(P1, 11)), ('a', adapted(P2, 12))],
+                        stream_unadapted=False)
+    assert streamed == [f'A:{P1[:4]}:10', f'A:{P2[:4]}:12']
+    assert sel.counts['primitive_awaiting_adaptation'] == (2 if order == 'primitive first'
+                                                           else 1)
+    assert sel.counts['adapted_ignored_stale'] == 1
+    dec = AdaptationSelector(False).offer_primitive(P3, 'P3')
+    assert dec.activate is None and dec.ignored[0][0] == 'primitive_awaiting_adaptation'
 
 
 def test_adaptation_of_an_older_primitive_is_never_streamed():

@@ -14,6 +14,9 @@ at the request), and its ``trigger`` (the topic of the message that caused it) w
 
 - a ``primitive`` becomes the current one and is streamed, unless it is the current one
   again while an adaptation of it is streamed (a re-publication does not undo the adaptation);
+  with ``stream_unadapted`` false it only becomes the current one, and its first adaptation is
+  the first thing streamed (``primitive_awaiting_adaptation``): in a pipeline with the adapter
+  the robot then executes only trajectories adapted to the constraints, never the raw prior;
 - an adapted primitive of the current primitive is streamed if its generation is newer than
   the streamed adaptation's, else ignored (``adapted_ignored_old``);
 - an adapted primitive of a primitive received before the current one is dropped
@@ -128,13 +131,15 @@ class AdaptationSelector(Generic[Item]):
     ``adapted_held``, ``adapted_unversioned``, ``primitive_unchanged``.
     """
 
-    def __init__(self):
+    def __init__(self, stream_unadapted: bool = True):
+        self.stream_unadapted = stream_unadapted
         self.current_id: Optional[str] = None
         self.streamed: Optional[Provenance] = None  # the adaptation streamed now (if any)
         self._held: Optional[Tuple[Provenance, Item]] = None
         self._known: List[str] = []
         self.counts = {'adapted_ignored_stale': 0, 'adapted_ignored_old': 0, 'adapted_held': 0,
-                       'adapted_unversioned': 0, 'primitive_unchanged': 0}
+                       'adapted_unversioned': 0, 'primitive_unchanged': 0,
+                       'primitive_awaiting_adaptation': 0}
 
     @property
     def held(self) -> Optional[Provenance]:
@@ -161,6 +166,12 @@ class AdaptationSelector(Generic[Item]):
                 self.streamed = prov
                 return Decision(activate=held_item, provenance=prov)
             dec.ignored.append(self._stale(prov))
+        if not self.stream_unadapted:
+            self.counts['primitive_awaiting_adaptation'] += 1
+            dec.activate = None
+            dec.ignored.append(('primitive_awaiting_adaptation',
+                                f'primitive: waiting for its adaptation (id {pid[:12]}; '
+                                f'stream_unadapted is false)'))
         return dec
 
     def offer_adapted(self, prov: Optional[Provenance], item: Item) -> Decision:
