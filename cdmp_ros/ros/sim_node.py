@@ -39,6 +39,7 @@ with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_dista
 ``min_robot_distance_since_start_m``; with ``dual_panda`` the contacts include the two
 robots' links against each other) plus ``state`` (waiting / tracking / holding), ``robot``,
 ``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
+``scheduling`` (``realtime_priority``: normal, or SCHED_FIFO and on how many threads),
 ``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
 ``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``rejected_total`` and
 ``rejected_<reason>`` per category of
@@ -77,6 +78,7 @@ from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.realtime import process_thread_ids, set_threads_fifo
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
@@ -114,6 +116,20 @@ class SimNode(Node):
         except Exception:
             self.sim.close()
             raise
+        self.scheduling = self._go_realtime(cfg.realtime_priority)
+
+    def _go_realtime(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for every thread of the process (``realtime_priority``);
+        returns the scheduling for the diagnostics. A refusal is logged, never raised."""
+        if priority == 0:
+            return 'normal'
+        n, problems = set_threads_fifo(priority, process_thread_ids())
+        if problems:
+            self.get_logger().warning(f'realtime_priority: {problems}; {n} threads lifted')
+            return f'SCHED_FIFO {priority} refused: {problems}' if n == 0 else \
+                f'SCHED_FIFO {priority} on {n} threads ({problems})'
+        self.get_logger().info(f'SCHED_FIFO priority {priority} on all {n} threads')
+        return f'SCHED_FIFO {priority}'
 
     def _declare_initial_positions(self) -> None:
         desc = ParameterDescriptor(
@@ -420,7 +436,7 @@ class SimNode(Node):
         level, text, state = self._state()
         self.reporter.set_state(
             level, text, state=state, robot=self.config.robot, control=self.config.control,
-            obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}',
+            obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}', scheduling=self.scheduling,
             real_time_factor=f'{rtf:.3f}' if math.isfinite(rtf) else 'nan',
             **sim.stats.as_values(), **self.counts, **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
