@@ -125,3 +125,41 @@ def test_a_required_node_that_fails_stops_the_graph(tmp_path):
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "required node 'bad' exited" in proc.stdout
     assert 'rate' in proc.stdout
+
+
+SIGTERM_SCRIPT = '''
+import subprocess, sys, time
+from cdmp_ros.cli.cmd_bringup import Terminated, sigterm_raises
+child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'],
+                         start_new_session=True)
+try:
+    with sigterm_raises():
+        try:
+            print(child.pid, flush=True)  # the handler is in place
+            while True:
+                time.sleep(0.05)
+        finally:
+            child.kill()
+            child.wait()
+except Terminated as exc:
+    print('stopped:', exc, flush=True)
+    sys.exit(3)
+'''
+
+
+def test_sigterm_runs_the_cleanup_of_a_graph_run():
+    """``cdmp demo`` stops its graph in a ``finally``; under :func:`sigterm_raises` a SIGTERM
+    reaches it (by default it ended the interpreter at once and left the node processes, each
+    in its own session, running). The stand-in child here is such a process."""
+    proc = subprocess.Popen([sys.executable, '-c', SIGTERM_SCRIPT], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        child = int(proc.stdout.readline())  # the child runs: the script is in its loop
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 3 and 'stopped: terminated by signal 15' in out, out
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)

@@ -28,6 +28,7 @@ forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL 
 by that signal in the first instants of the interpreter, before the node's entry point
 installed its handlers, see :mod:`cdmp_ros.ros.node_main`).
 """
+import contextlib
 import os
 import signal
 import subprocess
@@ -39,7 +40,7 @@ from typing import Dict, List, Optional, Sequence
 
 import yaml
 
-from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.errors import CdmpError, ValidationError
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
@@ -294,6 +295,31 @@ class Bringup:
     def __exit__(self, *exc):
         self.stop()
         return False
+
+
+class Terminated(CdmpError):
+    """SIGTERM arrived while :func:`sigterm_raises` was active."""
+
+
+@contextlib.contextmanager
+def sigterm_raises():
+    """Within the block SIGTERM raises :class:`Terminated` in the main thread, so the
+    ``finally`` blocks that stop a graph run (the default action ends the interpreter at once
+    and leaves the node processes, each in its own session, running: ``cdmp demo`` killed
+    by SIGTERM left a whole graph publishing on its domain). No-op outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_term(signum, _frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not break the stop
+        raise Terminated(f'terminated by signal {signum}; the graph was stopped')
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:

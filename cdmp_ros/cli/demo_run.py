@@ -35,7 +35,7 @@ import numpy as np
 
 from cdmp_ros.bag import BagReader, bag_info
 from cdmp_ros.bag.cdr import decode_joint_state
-from cdmp_ros.cli.cmd_bringup import Bringup, load_graph, package_config_dir
+from cdmp_ros.cli.cmd_bringup import Bringup, load_graph, package_config_dir, sigterm_raises
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.run_metrics import tracking_error
 from cdmp_ros.core.dmp.dmp import limit_usage
@@ -234,6 +234,9 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
                  'learner': {'kind': kind}}
     if kind == 'promp':
         driver_args = ['--no-goal-change', '--wait-adapter', *driver_args]
+        # the robot executes only adapted trajectories: it starts with the adapter's answer
+        # to the primitive, not with the raw prior (which ignores the constraints)
+        overrides['streamer'] = {'stream_unadapted': False}
     adapter_spec = next((spec for spec in graph.nodes if spec.executable == 'adapter'), None)
     nodes = []
     for spec in graph.nodes:
@@ -250,25 +253,26 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
               f'{env["ROS_AUTOMATIC_DISCOVERY_RANGE"]}); output in {out}\n')
     b = Bringup(graph, log=log, extra_env=env)
     driver = None
-    try:
-        b.start()
-        driver = subprocess.Popen(
-            [sys.executable, '-m', 'cdmp_ros.ros.demo_driver', '--out', out,
-             '--timeout', str(timeout), *driver_args], env=b.env, stdout=log
-            if hasattr(log, 'fileno') else None, stderr=subprocess.STDOUT)
-        end = time.monotonic() + timeout + 30.0
-        while driver.poll() is None and time.monotonic() < end:
-            dead = b.exited()
-            if dead:
-                raise CdmpError(f'demo: node(s) exited early: {dead}')
-            time.sleep(0.1)
-        if driver.poll() is None:
-            raise CdmpError(f'demo: the driver did not finish within {timeout + 30:.0f} s')
-    finally:
-        if driver is not None and driver.poll() is None:
-            driver.terminate()
-            driver.wait(timeout=10)
-        codes = b.stop()
+    with sigterm_raises():  # SIGTERM stops the graph too (the finally below)
+        try:
+            b.start()
+            driver = subprocess.Popen(
+                [sys.executable, '-m', 'cdmp_ros.ros.demo_driver', '--out', out,
+                 '--timeout', str(timeout), *driver_args], env=b.env, stdout=log
+                if hasattr(log, 'fileno') else None, stderr=subprocess.STDOUT)
+            end = time.monotonic() + timeout + 30.0
+            while driver.poll() is None and time.monotonic() < end:
+                dead = b.exited()
+                if dead:
+                    raise CdmpError(f'demo: node(s) exited early: {dead}')
+                time.sleep(0.1)
+            if driver.poll() is None:
+                raise CdmpError(f'demo: the driver did not finish within {timeout + 30:.0f} s')
+        finally:
+            if driver is not None and driver.poll() is None:
+                driver.terminate()
+                driver.wait(timeout=10)
+            codes = b.stop()
     log.write(f'demo: graph stopped ({codes}); {time.monotonic() - t_start:.1f} s\n')
     if driver.returncode != 0:
         raise CdmpError(f'demo: the scripted run failed (exit code {driver.returncode}); see '
