@@ -26,7 +26,10 @@ def generate_launch_description():
                     ([parameters] if parameters else []))
 
     return LaunchDescription([
-        node('sim', 'sim.yaml', control='computed_torque', real_time=True),
+        # the simulated robot stands for hardware with its own real-time controller: see
+        # demo.yaml
+        node('sim', 'sim.yaml', control='computed_torque', real_time=True,
+             realtime_priority=45),
         node('streamer', 'streamer.yaml', **{
             'rate': 500.0,
             # the forearm, the wrist and the hand avoid obstacles too (6 cm capsules)
