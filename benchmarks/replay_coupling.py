@@ -2,10 +2,13 @@
 
 Reads the bag of a ``cdmp demo`` run (``OUT/bag``) and feeds its ``primitive``,
 ``adapted_primitive``, ``goal`` and ``obstacles`` messages, at their recorded (log) times, to a
-:class:`~cdmp_ros.core.streaming.streamer.ReferenceStreamer` built with the demo graph's
-streamer parameters (``config/graphs/demo.yaml``: links 4, 6, 7 as 6 cm capsules, repeller
-gain 0.03 over 0.25 m), stepping 2 ms ticks from the first recorded reference; no sim, no ROS
-graph (the reference is open loop: ``joint_states_timeout`` 0). For every
+:class:`~cdmp_ros.core.streaming.streamer.ReferenceStreamer` built with the streamer
+parameters of the graph (``--graph``, default ``config/graphs/demo.yaml``: links 4, 6, 7 as
+6 cm capsules, repeller gain 0.03 over 0.25 m; ``stream_unadapted`` false for a ProMP run, as
+``cdmp demo --kind promp`` sets it), choosing what to switch in with the node's
+:class:`~cdmp_ros.core.streaming.selection.AdaptationSelector`, stepping 2 ms ticks from the
+first recorded reference; no sim, no ROS graph (the reference is open loop:
+``joint_states_timeout`` 0). For every
 ``--bound`` (``coupling_max_acceleration``, 0 = unbounded) it prints the largest change of
 the reference in one tick, the largest reported velocity, the largest requested coupling, and
 the smallest capsule distance of the reference to the obstacles, as a markdown table.
@@ -14,17 +17,19 @@ This is how the 3 rad one-tick jump of the demo (benchmarks/RESULTS.md, "The obs
 coupling is bounded") was reproduced without ROS, and how the bound was checked on the
 recorded runs. Deterministic: the same bag gives the same figures.
 
-    .venv/bin/python benchmarks/replay_coupling.py out/demo_promp --bound 0 50 200
+    .venv/bin/python benchmarks/replay_coupling.py out/demo_promp --bound 0 50 500
 """
 import argparse
 import dataclasses
+import json
 import math
 import os
 import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), '..')
+sys.path.insert(0, ROOT)
 
 from cdmp_ros.bag.cdr import decode_joint_state, decode_string  # noqa: E402
 from cdmp_ros.bag.reader import BagReader  # noqa: E402
@@ -33,26 +38,43 @@ from cdmp_ros.core.coupling.potential_fields import RepellerField  # noqa: E402
 from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
 from cdmp_ros.core.streaming.config import StreamerConfig  # noqa: E402
 from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
+from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance  # noqa: E402
 from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
+from cdmp_ros.cli.cmd_bringup import load_graph  # noqa: E402
 from cdmp_ros.ros.robot_model import default_urdf_path  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
 DT_NS = 2_000_000
 
 
-def replay(msgs, chain, bound: float) -> dict:
+SECTIONS = {'': StreamerConfig, 'coupling': CouplingConfig, 'repeller': RepellerField}
+
+
+def graph_configs(graph_file: str, overrides: dict) -> dict:
+    """The streamer's StreamerConfig / CouplingConfig / RepellerField from the inline
+    parameters of the graph's streamer node (the parameter file's values are the defaults)."""
+    spec = next(s for s in load_graph(graph_file).nodes if s.executable == 'streamer')
+    values = {k: {} for k in SECTIONS}
+    for key, v in {**spec.parameters, **overrides}.items():
+        section, _, name = key.rpartition('.')
+        if section not in SECTIONS:
+            raise SystemExit(f'{graph_file}: streamer parameter {key!r} is not replayed')
+        values[section][name] = tuple(v) if isinstance(v, list) else v
+    return {k: cls(**values[k]) for k, cls in SECTIONS.items()}
+
+
+def replay(msgs, chain, configs: dict, bound: float) -> dict:
     """Stream the recorded inputs with ``coupling_max_acceleration = bound``."""
     from rclpy.serialization import deserialize_message
     from visualization_msgs.msg import MarkerArray
     from cdmp_ros.ros.convert import ObstacleSet
-    cfg = StreamerConfig(rate=500.0, joint_states_timeout=0.0,
-                         coupling_links=('panda_link4', 'panda_link6', 'panda_link7'),
-                         coupling_max_acceleration=bound)
-    coupling = streamer_coupling(chain, cfg, CouplingConfig(link_radius=0.06),
-                                 repeller=dataclasses.replace(RepellerField(), gain=0.03,
-                                                              influence_distance=0.25))
+    cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
+                              coupling_max_acceleration=bound)
+    coupling = streamer_coupling(chain, cfg, configs['coupling'], repeller=configs['repeller'])
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
-    obstacles = ObstacleSet('panda_link0', 64, 10.0, 100.0)
+    selection = AdaptationSelector(cfg.stream_unadapted)
+    obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
+                            cfg.max_obstacle_distance)
     first = next(m for m in msgs if m.topic == '/joint_reference')
     rs.note_joint_states(decode_joint_state(first.data).position, 0.0)
     t, end, i = first.log_time, msgs[-1].log_time, 0
@@ -62,10 +84,15 @@ def replay(msgs, chain, bound: float) -> dict:
             m = msgs[i]
             i += 1
             if m.topic in ('/primitive', '/adapted_primitive'):
+                topic = m.topic[1:]
                 prep = prepare_primitive(decode_string(m.data), chain.joint_names, cfg.dt,
                                          chain.lower, chain.upper, chain.velocity_limits,
-                                         source=m.topic[1:])
-                rs.activate(prep, 0.0)
+                                         source=topic)
+                if topic != 'primitive':
+                    prep.provenance = read_provenance(prep.metadata)
+                chosen = selection.offer(topic, prep).activate
+                if chosen is not None:
+                    rs.activate(chosen, 0.0)
             elif m.topic == '/goal':
                 rs.set_goal(decode_joint_state(m.data).position)
             elif m.topic == '/obstacles':
@@ -87,9 +114,21 @@ def replay(msgs, chain, bound: float) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('run', help='output directory of a cdmp demo run (with bag/)')
-    ap.add_argument('--bound', type=float, nargs='+', default=[0.0, 50.0],
+    ap.add_argument('--bound', type=float, nargs='+', default=[0.0, 500.0],
                     help='coupling_max_acceleration values [rad/s^2] (0 = unbounded)')
+    ap.add_argument('--graph', default=os.path.join(ROOT, 'config', 'graphs', 'demo.yaml'),
+                    help='graph file whose streamer parameters are replayed (default the demo)')
+    ap.add_argument('--stream-unadapted', choices=('auto', 'true', 'false'), default='auto',
+                    help='auto: false for a ProMP run, as cdmp demo --kind promp sets it since '
+                    '2026-11-26 (runs recorded before streamed the raw primitive: true)')
     a = ap.parse_args(argv)
+    kind = 'cdmp'
+    summary = os.path.join(a.run, 'summary.json')
+    if os.path.exists(summary):
+        with open(summary) as f:
+            kind = json.load(f).get('kind', 'cdmp')
+    unadapted = {'auto': kind != 'promp', 'true': True, 'false': False}[a.stream_unadapted]
+    configs = graph_configs(a.graph, {'stream_unadapted': unadapted})
     bag = os.path.join(a.run, 'bag')
     msgs = sorted(BagReader(bag).messages(TOPICS), key=lambda m: m.log_time)
     chain = panda_chain(default_urdf_path())
@@ -98,7 +137,7 @@ def main(argv=None) -> int:
           '| largest coupling requested [rad/s^2] | smallest capsule distance [cm] |')
     print('|---|---|---|---|---|')
     for bound in a.bound:
-        r = replay(msgs, chain, bound)
+        r = replay(msgs, chain, configs, bound)
         print(f"| {bound:g} | {r['max_step_rad']:.4f} | {r['max_velocity']:.2f} | "
               f"{r['peak_request']:.3g} | {100 * r['min_distance_m']:.2f} |")
     return 0

@@ -65,8 +65,13 @@ def test_without_stream_unadapted_only_adaptations_are_streamed(order):
     assert sel.counts['primitive_awaiting_adaptation'] == (2 if order == 'primitive first'
                                                            else 1)
     assert sel.counts['adapted_ignored_stale'] == 1
+    assert sel.streamed.generation == 12
     dec = AdaptationSelector(False).offer_primitive(P3, 'P3')
     assert dec.activate is None and dec.ignored[0][0] == 'primitive_awaiting_adaptation'
+    # a new primitive while an adaptation streams: that adaptation stays (and is reported)
+    sel, streamed = run([('p', P1), ('a', adapted(P1, 10)), ('p', P2)], stream_unadapted=False)
+    assert streamed == [f'A:{P1[:4]}:10'] and sel.current_id == P2
+    assert sel.streamed.generation == 10
 
 
 def test_adaptation_of_an_older_primitive_is_never_streamed():

@@ -298,44 +298,40 @@ class Bringup:
 
 
 class Terminated(CdmpError):
-    """SIGTERM arrived while :func:`sigterm_raises` was active."""
+    """A graph run ended by SIGTERM (after its graph was stopped)."""
 
 
 @contextlib.contextmanager
-def sigterm_raises():
-    """Within the block SIGTERM raises :class:`Terminated` in the main thread, so the
-    ``finally`` blocks that stop a graph run (the default action ends the interpreter at once
-    and leaves the node processes, each in its own session, running: ``cdmp demo`` killed
-    by SIGTERM left a whole graph publishing on its domain). No-op outside the main thread."""
+def signal_flag(*signums: int):
+    """Within the block the given signals are recorded instead of acted on: yields
+    ``(event, received)``; a signal appends its number to ``received`` and sets ``event``.
+    The caller's loop checks the event and stops its graph in an orderly way. The handler
+    itself never raises, so a signal cannot interrupt the stop (by default SIGTERM ended the
+    interpreter at once: ``cdmp demo`` left its node processes, each in its own session,
+    publishing on their domain). Outside the main thread nothing is installed."""
+    event, received = threading.Event(), []
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        event.set()
+
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield event, received
         return
-
-    def on_term(signum, _frame):
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not break the stop
-        raise Terminated(f'terminated by signal {signum}; the graph was stopped')
-
-    previous = signal.signal(signal.SIGTERM, on_term)
+    previous = {s: signal.signal(s, on_signal) for s in signums}
     try:
-        yield
+        yield event, received
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
     """``cdmp bringup``: start, wait for Ctrl-C / SIGTERM / a required exit / ``duration``,
     stop; 0 when every process ended cleanly."""
     graph = load_graph(path)
-    stop = threading.Event()
-    received = []  # the signal to forward
-
-    def on_signal(signum, _frame):
-        received.append(signum)
-        stop.set()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     out = log if log is not None else sys.stdout
-    try:
+    with signal_flag(signal.SIGINT, signal.SIGTERM) as (stop, received):  # received: forwarded
         b = Bringup(graph, log=out)
         out.write(f'bringup: starting {len(graph.nodes)} nodes from {path} '
                   f'(ROS_DOMAIN_ID={b.env.get("ROS_DOMAIN_ID", "0")}, discovery '
@@ -346,9 +342,6 @@ def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
             out.write(f'bringup: required node {ended!r} exited with code '
                       f'{b.procs[ended].returncode}; stopping the graph\n')
         codes = b.stop(received[0] if received else signal.SIGINT)
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
     bad = {n: c for n, c in codes.items() if c not in CLEAN_EXIT_CODES}
     out.write('bringup: ' + ('all nodes stopped cleanly\n' if not bad else
                              f'nodes that did not stop cleanly: {bad}\n'))

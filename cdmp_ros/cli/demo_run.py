@@ -26,6 +26,7 @@ Figures and where they come from:
 """
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -35,7 +36,8 @@ import numpy as np
 
 from cdmp_ros.bag import BagReader, bag_info
 from cdmp_ros.bag.cdr import decode_joint_state
-from cdmp_ros.cli.cmd_bringup import Bringup, load_graph, package_config_dir, sigterm_raises
+from cdmp_ros.cli.cmd_bringup import (Bringup, Terminated, load_graph, package_config_dir,
+                                      signal_flag)
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.run_metrics import tracking_error
 from cdmp_ros.core.dmp.dmp import limit_usage
@@ -253,7 +255,7 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
               f'{env["ROS_AUTOMATIC_DISCOVERY_RANGE"]}); output in {out}\n')
     b = Bringup(graph, log=log, extra_env=env)
     driver = None
-    with sigterm_raises():  # SIGTERM stops the graph too (the finally below)
+    with signal_flag(signal.SIGTERM) as (terminated, _):  # SIGTERM stops the graph too
         try:
             b.start()
             driver = subprocess.Popen(
@@ -262,6 +264,8 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
                 if hasattr(log, 'fileno') else None, stderr=subprocess.STDOUT)
             end = time.monotonic() + timeout + 30.0
             while driver.poll() is None and time.monotonic() < end:
+                if terminated.is_set():
+                    raise Terminated('demo: terminated by SIGTERM; the graph was stopped')
                 dead = b.exited()
                 if dead:
                     raise CdmpError(f'demo: node(s) exited early: {dead}')

@@ -14,10 +14,11 @@ deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint co
 per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
 ``diagnostics``. Which prepared primitive is switched in is decided by
 :class:`cdmp_ros.core.streaming.selection.AdaptationSelector` (issue 13: only the newest
-adaptation of the current ``primitive``, in any arrival order; counters ``adapted_ignored_*``,
-``adapted_held``); per switched-in adaptation the node reports the latency from its trigger
-stamp to the stamp of the first reference computed from it (``adaptation_latency_ms_*``,
-``adapted_reference_stamp_ns``).
+adaptation of the current ``primitive``, in any arrival order; counters
+``adapted_ignored_*``, ``adapted_held``, ``primitive_awaiting_adaptation`` with
+``stream_unadapted`` false); per switched-in adaptation the node reports the latency from its
+trigger stamp to the stamp of the first reference computed from it
+(``adaptation_latency_ms_*``, ``adapted_reference_stamp_ns``).
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
 deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
@@ -229,7 +230,6 @@ class StreamerNode(Node):
 
     def _apply_params(self, cfg: StreamerConfig, coupling: ObstacleCoupling) -> None:
         self.streamer.set_config(cfg)
-        self.selection.stream_unadapted = cfg.stream_unadapted
         self.coupling = coupling
         self.streamer.coupling = coupling if cfg.coupling_enabled else None
         self.obstacles.max_obstacles = cfg.max_obstacles

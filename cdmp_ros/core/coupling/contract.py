@@ -8,10 +8,10 @@ the stepper, which alone maps it into the exogenous space of a CDMP (Eq. 21/29, 
 the cap near saturation). :class:`~cdmp_ros.core.coupling.obstacle.ObstacleCoupling` (Eq. 7 and
 12) is the implementation for a kinematic chain.
 
-:func:`bound_factor` is the one bound of a coupling's magnitude (the streamer's
+:func:`bound_into` is the one bound of a coupling's magnitude (the streamer's
 ``coupling_max_acceleration``): potential fields grow without bound as an obstacle approaches
 (a FIRAS repeller like ``1/d^3``), and an obstacle that appears inside or next to a link asked
-for up to 2.4e6 rad/s^2 in the demo, enough to move the reference from mid-range onto the joint
+for up to 6.7e6 rad/s^2 in the demo, enough to move the reference from mid-range onto the joint
 limits in one 2 ms tick (benchmarks/RESULTS.md, "The obstacle coupling is bounded").
 """
 import math
@@ -37,26 +37,39 @@ class Coupling(Protocol):
         ``qd`` (None: at rest) for the obstacle set; None means no coupling (zero)."""
 
 
-def bound_factor(dq_dd: Sequence[float], limit: float) -> float:
-    """The factor that scales a joint acceleration ``dq_dd`` into ``max_d |dq_dd_d| <= limit``.
+def bound_into(dq_dd, limit: float, out: List[float]) -> float:
+    """Copy a joint acceleration ``dq_dd`` into ``out`` as floats, scaled so that
+    ``max_d |out_d| <= limit``; returns the peak ``max_d |dq_dd_d|`` before scaling.
 
     One factor for all joints, so the direction of the coupling (the avoidance direction, the
-    null-space structure of Eq. 12) is kept and only its magnitude is bounded. Returns 1.0 when
-    ``dq_dd`` is within the bound, when ``limit <= 0`` (no bound), and when ``dq_dd`` is not a
-    sequence of finite numbers (left to the consumer's own check:
-    :meth:`~cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling` rejects it).
-    Allocation-free (the streaming tick).
+    null-space structure of Eq. 12) is kept and only its magnitude is bounded. ``limit <= 0``
+    copies without a bound. Returns -1.0, with ``out`` unspecified, when ``dq_dd`` is not
+    ``len(out)`` finite numbers (the caller rejects it, as
+    :meth:`~cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling` would). Never raises;
+    allocation-free (the streaming tick).
     """
-    if limit <= 0.0:
-        return 1.0
+    n = len(out)
     peak = 0.0
+    i = 0
     try:
         for v in dq_dd:
-            m = abs(v)
-            if m > peak:
-                peak = m
-    except TypeError:
-        return 1.0
-    if not math.isfinite(peak) or peak <= limit:
-        return 1.0
-    return limit / peak
+            if i == n:
+                return -1.0
+            f = float(v)
+            if not -math.inf < f < math.inf:
+                return -1.0
+            out[i] = f
+            i += 1
+            if f > peak:
+                peak = f
+            elif -f > peak:
+                peak = -f
+    except (TypeError, ValueError, OverflowError):
+        return -1.0
+    if i != n:
+        return -1.0
+    if 0.0 < limit < peak:
+        factor = limit / peak
+        for d in range(n):
+            out[d] *= factor
+    return peak

@@ -75,7 +75,7 @@ class StreamerConfig:
         True, "Stream a primitive from 'primitive' as soon as it arrives; false: only record "
         "it as the source and start with its first adaptation from 'adapted_primitive' (with "
         'the adapter: the robot executes only trajectories adapted to the constraints, never '
-        'the raw prior).')
+        'the raw prior).', read_only=True)
     coupling_enabled: bool = _param(
         True, 'Apply the obstacle coupling terms (paper 000, Eq. 7/12) every tick.')
     coupling_max_acceleration: float = _param(

@@ -16,7 +16,8 @@ at the request), and its ``trigger`` (the topic of the message that caused it) w
   again while an adaptation of it is streamed (a re-publication does not undo the adaptation);
   with ``stream_unadapted`` false it only becomes the current one, and its first adaptation is
   the first thing streamed (``primitive_awaiting_adaptation``): in a pipeline with the adapter
-  the robot then executes only trajectories adapted to the constraints, never the raw prior;
+  the robot then executes only trajectories adapted to the constraints, never the raw prior
+  (an adaptation of the previous primitive that is streaming stays until then);
 - an adapted primitive of the current primitive is streamed if its generation is newer than
   the streamed adaptation's, else ignored (``adapted_ignored_old``);
 - an adapted primitive of a primitive received before the current one is dropped
@@ -128,7 +129,8 @@ class AdaptationSelector(Generic[Item]):
 
     Items are opaque (the streamer passes prepared primitives); the selector only reads the
     ids given with them. Counters: ``adapted_ignored_stale``, ``adapted_ignored_old``,
-    ``adapted_held``, ``adapted_unversioned``, ``primitive_unchanged``.
+    ``adapted_held``, ``adapted_unversioned``, ``primitive_unchanged``,
+    ``primitive_awaiting_adaptation``.
     """
 
     def __init__(self, stream_unadapted: bool = True):
@@ -153,6 +155,7 @@ class AdaptationSelector(Generic[Item]):
             return Decision(ignored=[('primitive_unchanged',
                                       f'primitive: unchanged (id {pid[:12]}); the adaptation '
                                       f'of generation {self.streamed.generation} stays')])
+        still_streamed = self.streamed
         self.current_id, self.streamed = pid, None
         if pid in self._known:
             self._known.remove(pid)
@@ -167,6 +170,9 @@ class AdaptationSelector(Generic[Item]):
                 return Decision(activate=held_item, provenance=prov)
             dec.ignored.append(self._stale(prov))
         if not self.stream_unadapted:
+            # nothing is switched in: the adaptation streamed so far stays until this
+            # primitive's own adaptation arrives (newer adaptations of the old one are stale)
+            self.streamed = still_streamed
             self.counts['primitive_awaiting_adaptation'] += 1
             dec.activate = None
             dec.ignored.append(('primitive_awaiting_adaptation',

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.contract import Coupling, bound_factor
+from cdmp_ros.core.coupling.contract import Coupling, bound_into
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.coupling.terms import DampingConfig
@@ -220,6 +220,7 @@ class ReferenceStreamer:
         self._last: Optional[PreparedPrimitive] = None   # the primitive last started
         self._coupling_joint = [0.0] * n   # the obstacle coupling's joint acceleration
         self._blended = [0.0] * n          # that plus the switch correction
+        self._bounded = [0.0] * n          # the coupling as bounded (coupling_max_acceleration)
         self._zeros = (0.0,) * n
 
     # -- configuration ------------------------------------------------------------------------
@@ -408,8 +409,11 @@ class ReferenceStreamer:
         return (4 if status & 4 else 0) | (8 if status & 16 else 0)
 
     def _coupling_into(self, stepper) -> int:
-        """The coupling at the reference for the current obstacles, handed to the stepper
-        (which maps it into its exogenous space, capped near saturation); never raises."""
+        """The coupling at the reference for the current obstacles, bounded to
+        ``coupling_max_acceleration`` (:func:`~cdmp_ros.core.coupling.contract.bound_into`;
+        finite values beyond the stepper's ``MAX_JOINT_COUPLING`` are then scaled down too,
+        not dropped) and handed to the stepper (which maps it into its exogenous space, capped
+        near saturation); never raises."""
         obstacles = self.obstacles
         cj = self._coupling_joint
         if not obstacles:
@@ -424,17 +428,22 @@ class ReferenceStreamer:
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
             a = ()
         bounded = 0
-        factor = bound_factor(a, self.config.coupling_max_acceleration)
-        if factor < 1.0:
-            peak = self.config.coupling_max_acceleration / factor
-            if peak > self.coupling_peak:
-                self.coupling_peak = peak
-            a = [v * factor for v in a]  # rare (an obstacle close by): may allocate
-            bounded = int(StreamFlags.COUPLING_BOUNDED)
-        result = stepper.set_joint_coupling(a)
-        if result is CouplingResult.APPLIED:  # the tick: in place, no new list
+        limit = self.config.coupling_max_acceleration
+        buf = self._bounded
+        peak = bound_into(a, limit, buf) if a is not None else 0.0  # in place, no new list
+        if a is None:  # the Coupling contract's "no coupling"
+            result = stepper.set_joint_coupling(None)
+        elif peak < 0.0:
+            result = stepper.set_joint_coupling(())  # not n finite numbers: rejected
+        else:
+            if 0.0 < limit < peak:
+                if peak > self.coupling_peak:
+                    self.coupling_peak = peak
+                bounded = int(StreamFlags.COUPLING_BOUNDED)
+            result = stepper.set_joint_coupling(buf)
+        if result is CouplingResult.APPLIED:
             for d in range(self.n_dims):
-                cj[d] = a[d]
+                cj[d] = buf[d]
         else:
             cj[:] = self._zeros
         if result is CouplingResult.REJECTED:
