@@ -20,9 +20,10 @@ def add_arguments(parser):
     parser.add_argument('--kind', choices=('cdmp', 'promp'), default='cdmp',
                         help='cdmp (default): the learner fits a CDMP; a sphere dropped into '
                              'the path is avoided by the coupling terms, then the goal changes. '
-                             'promp: the learner fits a ProMP; every obstacle message triggers a '
-                             'constrained adaptation (paper 003) that the streamer follows; '
-                             'exits non-zero if none happened')
+                             'promp: the learner fits a ProMP; the arm starts with the '
+                             "adapter's answer to it (streamer stream_unadapted false), and "
+                             'every obstacle message triggers a constrained adaptation (paper '
+                             '003) that the streamer follows; exits non-zero if none happened')
     parser.add_argument('--motion', choices=('drop', 'cross'), default='drop',
                         help='drop (default): the sphere falls onto the path; cross: it moves '
                              'horizontally across the path at 0.2 m/s, published at 30 Hz '
