@@ -172,3 +172,31 @@ def test_sigterm_lets_a_graph_run_stop_its_processes():
                 pass
     assert proc.returncode == 3 and f'stopped by [{int(signal.SIGTERM)}]' in out, out
     assert not child_left
+
+
+def test_a_killed_bringup_takes_its_nodes_with_it(tmp_path):
+    """SIGKILL of ``cdmp bringup`` (no handler, no ``finally`` runs): the kernel sends every
+    node SIGTERM (``PR_SET_PDEATHSIG``), so no node keeps running on the domain. Each node has
+    its own session, so without it they all stayed (a killed ``cdmp demo`` left its whole
+    graph publishing)."""
+    import psutil
+    proc = subprocess.Popen([sys.executable, '-m', 'cdmp_ros.cli.main', 'bringup',
+                             _graph(tmp_path, tmp_path / 'bag')], env=ros_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out = Lines(proc.stdout)
+    nodes = []
+    try:
+        assert wait_for(lambda: out.seen('streaming 7 joints', 'subscribed to /diagnostics'),
+                        WAIT_S), out.text(0)
+        nodes = psutil.Process(proc.pid).children()
+        assert len(nodes) == 2, nodes
+        proc.kill()
+        proc.wait(timeout=WAIT_S)
+        gone, alive = psutil.wait_procs(nodes, timeout=2 * WAIT_S)
+    finally:
+        for p in nodes:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)  # own session: its group (a failed run)
+            except ProcessLookupError:
+                pass
+    assert not alive and len(gone) == 2, (gone, alive)

@@ -26,9 +26,14 @@ with the node name. Ctrl-C (SIGINT) or SIGTERM stops every process: the same sig
 forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL after
 ``stop_timeout``; the exit code is 0 when every process stopped cleanly (exit code 0, or ended
 by that signal in the first instants of the interpreter, before the node's entry point
-installed its handlers, see :mod:`cdmp_ros.ros.node_main`).
+installed its handlers, see :mod:`cdmp_ros.ros.node_main`). If the launching process dies
+without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kernel
+(``PR_SET_PDEATHSIG``; Linux): the thread that calls :meth:`Bringup.start` must live as long
+as the graph.
 """
 import contextlib
+import ctypes
+import ctypes.util
 import os
 import signal
 import subprocess
@@ -238,7 +243,8 @@ class Bringup:
                 time.sleep(spec.delay)
             proc = subprocess.Popen(spec.command(), env=self.env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True,
-                                    start_new_session=True)
+                                    start_new_session=True,
+                                    preexec_fn=_terminate_with_parent(os.getpid()))
             self.procs[spec.name] = proc
             t = threading.Thread(target=self._pump, args=(spec.name, proc.stdout), daemon=True)
             t.start()
@@ -295,6 +301,26 @@ class Bringup:
     def __exit__(self, *exc):
         self.stop()
         return False
+
+
+#: prctl option that sends the calling process a signal when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+
+
+def _terminate_with_parent(parent_pid: int):
+    """``preexec_fn`` of a graph's node: SIGTERM to the node when the launching process dies,
+    however it dies (SIGKILL, a crash: no ``finally`` runs then, and each node has its own
+    session, so nothing else would stop it). Linux only; elsewhere a no-op. If the parent
+    already died before the call, the child exits at once."""
+    def preexec():
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        except (OSError, AttributeError):
+            return
+        if os.getppid() != parent_pid:  # the parent died between fork and prctl
+            os._exit(1)
+    return preexec
 
 
 class Terminated(CdmpError):
