@@ -128,15 +128,14 @@ def test_a_required_node_that_fails_stops_the_graph(tmp_path):
 
 
 SIGTERM_SCRIPT = '''
-import signal, subprocess, sys, time
+import signal, subprocess, sys
 from cdmp_ros.cli.cmd_bringup import signal_flag
-child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'],
+child = subprocess.Popen([sys.executable, '-c', 'import signal; signal.pause()'],
                          start_new_session=True)
 with signal_flag(signal.SIGTERM) as (terminated, received):
     try:
         print(child.pid, flush=True)  # the handler is in place
-        while not terminated.is_set():  # the loop of a graph run (cdmp demo)
-            time.sleep(0.05)
+        terminated.wait()  # the loop of a graph run (cdmp demo) waits on the flag
     finally:
         child.kill()  # the stop of the graph
         child.wait()

@@ -81,19 +81,25 @@ def check_priority(name: str, priority: int) -> int:
     return priority
 
 
+def prctl(option: int, arg: int) -> bool:
+    """``prctl(option, arg, 0, 0, 0)`` for the calling thread/process (Linux); False when
+    prctl is unavailable or refuses. Never raises."""
+    global _libc
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+        return _libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
 def set_timer_slack(ns: int) -> bool:
     """Set the calling thread's timer slack (how late the kernel may fire its timers) [ns].
 
     The default slack of normal threads is 50 us, which shifts every wake-up of a 1 kHz loop;
     threads under SCHED_FIFO have none. Returns False when prctl is unavailable or refuses.
     """
-    global _libc
-    try:
-        if _libc is None:
-            _libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-        return _libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(max(1, int(ns))), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
+    return prctl(PR_SET_TIMERSLACK, max(1, int(ns)))
 
 
 def configure_thread(priority: int = 0, cpus: Sequence[int] = (),
