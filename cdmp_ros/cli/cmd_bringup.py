@@ -32,6 +32,8 @@ without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kerne
 as the graph.
 """
 import contextlib
+import ctypes
+import ctypes.util
 import os
 import signal
 import subprocess
@@ -44,7 +46,6 @@ from typing import Dict, List, Optional, Sequence
 import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.ros.realtime import prctl
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
@@ -312,8 +313,13 @@ def _terminate_with_parent(parent_pid: int):
     session, so nothing else would stop it). Linux only; elsewhere a no-op. If the parent
     already died before the call, the child exits at once."""
     def preexec():
-        if prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM)) and os.getppid() != parent_pid:
-            os._exit(1)  # the parent died between fork and prctl
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        except (OSError, AttributeError):
+            return
+        if os.getppid() != parent_pid:  # the parent died between fork and prctl
+            os._exit(1)
     return preexec
 
 
