@@ -32,8 +32,12 @@ def generate_launch_description():
              realtime_priority=45),
         node('streamer', 'streamer.yaml', **{
             'rate': 500.0,
-            # the forearm, the wrist and the hand avoid obstacles too (6 cm capsules)
-            'coupling_links': ['panda_link4', 'panda_link6', 'panda_link7'],
+            # the tool and the arm from the elbow avoid obstacles too: see demo.yaml
+            'tcp_offset': [0.0, 0.0, 0.02],
+            'coupling.end_effector_radius': 0.11,
+            'coupling_capsule_links': ['panda_link3', 'panda_link4', 'panda_link5',
+                                       'panda_link6', 'panda_link7'],
+            'coupling_links': ['panda_link7'],
             'coupling.link_radius': 0.06,
             'repeller.gain': 0.03,
             'repeller.influence_distance': 0.25}),

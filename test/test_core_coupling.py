@@ -843,3 +843,33 @@ def test_limit_aware_null_space_keeps_the_joint_off_its_limit(panda, case):
     assert u_old[joint] > 0.999 and u_old.argmax() == joint
     assert u_new.max() < 0.98
     assert d_new > d_free + 0.01 and d_new > d_old - 0.005
+
+
+def test_an_end_effector_ball_is_a_larger_obstacle(panda, rng):
+    """``end_effector_radius`` r: Eq. 7 on a ball of radius r around the tool centre point
+    equals Eq. 7 on the point with every sphere grown by r and every box face moved out by r
+    (closed form: the distances to the ball's surface are those to the point, less r)."""
+    field = RepellerField(gain=0.03, influence_distance=0.25)
+    boxes = ConstantField(magnitude=1.0, influence_distance=0.1)
+    r = 0.08
+    ball = ObstacleCoupling(panda, [], sphere_field=field, box_field=boxes,
+                            config=CouplingConfig(end_effector_radius=r))
+    point = ObstacleCoupling(panda, [], sphere_field=field, box_field=boxes)
+    active = 0
+    for _ in range(8):
+        q = _well_conditioned_q(panda, rng)
+        x = panda.forward(q, [PointOfInterest('ee')])[0]
+        c = x + rng.normal(size=3) * 0.1
+        got = ball.joint_acceleration(q, None, [Sphere(tuple(c), 0.04)])
+        want = point.joint_acceleration(q, None, [Sphere(tuple(c), 0.04 + r)])
+        np.testing.assert_allclose(got, want, atol=1e-9 * max(1.0, np.abs(want).max()))
+        assert ball.last_distances[0] == pytest.approx(point.last_distances[0], abs=1e-12)
+        active += np.abs(want).max() > 0
+        lo = x + [0.1, -0.5, -0.5]
+        got = ball.joint_acceleration(q, None, [Box(tuple(lo), tuple(lo + 1.0))])
+        want = point.joint_acceleration(q, None, [Box(tuple(lo - [r, 0, 0]), tuple(lo + 1.0))])
+        np.testing.assert_allclose(got, want, atol=1e-9 * max(1.0, np.abs(want).max()))
+        assert np.abs(want).max() > 0
+    assert active >= 4
+    with pytest.raises(ValidationError, match='end_effector_radius'):
+        CouplingConfig(end_effector_radius=-0.1)

@@ -251,6 +251,7 @@ def test_distance_to_a_sphere_matches_the_closed_form(planar):
     planar.sync_obstacles({'s': Sphere((1.5, 0.3, 0.0), 0.05)})  # new radius: replaced
     assert planar.monitor().min_obstacle_distance_m == pytest.approx(0.2, abs=1e-4)
     assert st.min_obstacle_distance_since_start_m == pytest.approx(0.15, abs=1e-4)
+    assert st.closest_pair_since_start == 'link2/s'
     planar.sync_obstacles({'b': Box((1.2, 0.2, -0.1), (1.8, 0.4, 0.1))})
     assert planar.world.obstacles.names == ('b',)
     assert planar.monitor().min_obstacle_distance_m == pytest.approx(0.15, abs=1e-4)

@@ -10,7 +10,8 @@
 Figures and where they come from:
 
 - ``min_obstacle_distance_m``: the sim's ``min_obstacle_distance_since_start_m`` (pybullet
-  closest points between every robot link and the obstacle), from its last diagnostics;
+  closest points between every robot link and the obstacle), from its last diagnostics, and
+  ``closest_pair`` the ``link/obstacle`` it was measured on;
 - ``max_limit_usage``: max over joints and samples of ``|q - centre| / half_range`` of the
   measured ``joint_states`` in the bag (``reference_limit_usage``: same for
   ``joint_reference``); above 1 is outside a limit. ``limit_violations``: the sim's count of
@@ -96,6 +97,7 @@ def summarise(out: str, bag: str, driver: Dict, lower, upper) -> Dict:
     counts = {t['name']: t['count'] for t in info['topics']}
     return {
         'min_obstacle_distance_m': _float(sim, 'min_obstacle_distance_since_start_m'),
+        'closest_pair': sim.get('closest_pair_since_start', ''),
         'contacts': _float(sim, 'contacts_since_start'),
         'max_limit_usage': limit_usage(Q, lower, upper),
         'reference_limit_usage': limit_usage(Q_ref, lower, upper),
@@ -168,7 +170,8 @@ def plot(out: str, bag: str, driver: Dict, lower, upper, chain) -> None:
 
 
 def markdown(s: Dict) -> str:
-    rows = [('minimum robot-obstacle distance', f'{s["min_obstacle_distance_m"] * 100:.2f} cm'),
+    rows = [('minimum robot-obstacle distance', f'{s["min_obstacle_distance_m"] * 100:.2f} cm'
+             f' ({s.get("closest_pair") or "no obstacle"})'),
             ('contacts', f'{s["contacts"]:.0f}'),
             ('largest joint-limit usage (measured)', f'{s["max_limit_usage"]:.3f}'),
             ('largest joint-limit usage (reference)', f'{s["reference_limit_usage"]:.3f}'),

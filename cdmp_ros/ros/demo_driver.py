@@ -17,7 +17,8 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
    nothing about those pairs). The answer restarts the motion from the current state, so the
    path is planned (step 1) only then;
 3. when the reference has covered ``--drop-at`` of that path, drop a sphere onto the point;
-   while the arm is under the sphere's first position (closer than ``SPAWN_CLEARANCE``) the
+   while the arm is under the sphere's first position (its capsules closer than
+   ``SPAWN_CLEARANCE``) the
    sphere appears at its landing point instead if that is clear, else the drop waits (for at
    most ``SPAWN_WAIT`` more of the path)
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
@@ -44,6 +45,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+from cdmp_ros.core.kinematics.capsules import Capsule, collision_capsules
 from cdmp_ros.core.kinematics.closest import segment_sphere
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
@@ -56,9 +58,13 @@ REST_SPEED = 0.01
 REST_TIME = 0.3
 #: Period of the falling obstacle's messages (s): below the adapter's input rate limit.
 DROP_PERIOD = 0.06
-#: Least distance (m) from the arm's link axes to the sphere's surface where it appears: the
-#: streamer's link capsules (6 cm) and 2 cm.
-SPAWN_CLEARANCE = 0.08
+#: Least distance (m) from the arm to the sphere's surface where it appears: from the capsules
+#: around the collision geometry of ARM_LINKS (core.kinematics.capsules), and from the
+#: wrist-to-fingertips axis less FINGER_RADIUS.
+SPAWN_CLEARANCE = 0.02
+ARM_LINKS = tuple(f'panda_link{i}' for i in range(1, 8)) + ('panda_hand',)
+#: Radius (m) around the wrist-to-fingertips axis that holds the fingers.
+FINGER_RADIUS = 0.06
 #: Fraction of the path the drop may wait beyond --drop-at for the arm to clear.
 SPAWN_WAIT = 0.15
 
@@ -109,6 +115,12 @@ class DemoDriver(Node):
         super().__init__('demo_driver')
         self.args = args
         self.chain = panda_chain(default_urdf_path())
+        caps = collision_capsules(default_urdf_path(), ARM_LINKS)
+        fingers = next(seg for seg in self.chain.link_segments() if seg[0] == 'panda_link7')
+        caps.append(Capsule(fingers[0], fingers[1], fingers[2], FINGER_RADIUS))
+        self.capsules = caps
+        self.capsule_ends = [PointOfInterest(c.link, c.start) for c in caps] + \
+            [PointOfInterest(c.link, c.end) for c in caps]
         self.ee = [PointOfInterest('ee')]
         self.events = {}
         self.diagnostics = {}
@@ -183,15 +195,16 @@ class DemoDriver(Node):
         return self.adapter_ready
 
     def _clear_of_arm(self, p) -> bool:
-        """A sphere appearing at ``p`` would be clear of the arm: every segment between
-        consecutive joint origins (the base first) and on to the end effector is farther than
-        SPAWN_CLEARANCE from its surface. The first drop position lies above the path, where
+        """A sphere appearing at ``p`` would be clear of the arm: farther than
+        SPAWN_CLEARANCE from every capsule of ``self.capsules`` (they enclose the links'
+        collision meshes and the fingers). The first drop position lies above the path, where
         the arm may still be; a sphere appearing inside the arm is not this demo's scenario
         (and made the streamer's coupling jump the reference, a defect of its own)."""
-        q = self.ref[0]
-        pts = np.vstack([self.chain.joint_origins(q), self.chain.forward(q, self.ee)])
-        _, d, _, _ = segment_sphere(pts[:-1], pts[1:], p, self.args.radius)
-        return float(d.min()) > SPAWN_CLEARANCE
+        n = len(self.capsules)
+        ends = self.chain.forward(self.ref[0], self.capsule_ends)
+        _, d, _, _ = segment_sphere(ends[:n], ends[n:], p, self.args.radius)
+        radii = np.array([c.radius for c in self.capsules])
+        return float((d - radii).min()) > SPAWN_CLEARANCE
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)

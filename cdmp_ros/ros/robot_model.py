@@ -51,3 +51,27 @@ def load_panda_chain(urdf_path: str, joint_names: Sequence[str], robot_descripti
         raise ValidationError(f'joint_names: expected the joints of {source!r} '
                               f'{list(chain.joint_names)}, got {list(joint_names)}')
     return chain
+
+
+def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = ''):
+    """The capsules fitted around the collision geometry of ``links``
+    (:func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`) of the robot of
+    :func:`limits_source`. Mesh files of a ``robot_description`` are looked up from the
+    working directory (absolute or ``file://`` names always work).
+
+    Raises
+    ------
+    ValidationError
+        Naming ``coupling_capsule_links`` and what is wrong (unknown link, no collision
+        geometry, a mesh that cannot be read).
+    """
+    if not links:
+        return []
+    from cdmp_ros.core.kinematics.capsules import collision_capsules
+    source = limits_source(urdf_path, robot_description)
+    text = robot_description if source == ROBOT_DESCRIPTION else None
+    try:
+        return collision_capsules(source, links, urdf_text=text,
+                                  mesh_dir=os.getcwd() if text is not None else None)
+    except CdmpError as exc:
+        raise ValidationError(f'coupling_capsule_links: {exc}') from None

@@ -33,7 +33,8 @@ reported).
 
 Diagnostics: status ``sim: state`` (level WARN while holding a stale reference or in contact)
 with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
-``min_obstacle_distance_since_start_m``, ``contacts``, ``contacts_since_start``,
+``min_obstacle_distance_since_start_m``, ``closest_pair_since_start`` (its link/obstacle),
+``contacts``, ``contacts_since_start``,
 ``limit_violations``, ``max_limit_usage_since_start``, ``tracking_error_rad``,
 ``tracking_error_max_rad``, ``min_robot_distance_m``,
 ``min_robot_distance_since_start_m``; with ``dual_panda`` the contacts include the two

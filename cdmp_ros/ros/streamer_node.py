@@ -71,7 +71,8 @@ from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_
 from cdmp_ros.ros.latest_worker import LatestWorker
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
-from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
+from cdmp_ros.ros.robot_model import (limits_source, load_collision_capsules,
+                                      load_panda_chain)
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
@@ -96,6 +97,8 @@ class StreamerNode(Node):
         # the limits and kinematics of the robot: robot_description, else urdf_path
         self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
         self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
+        self.capsules = load_collision_capsules(cfg.urdf_path, cfg.coupling_capsule_links,
+                                                cfg.robot_description)
         self.coupling = self._make_coupling(self.params.configs)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
@@ -188,7 +191,7 @@ class StreamerNode(Node):
     def _make_coupling(self, configs) -> ObstacleCoupling:
         return streamer_coupling(self.chain, configs[''], configs['coupling'],
                                  configs['damping'], configs['repeller'], configs['box_field'],
-                                 configs['board_field'])
+                                 configs['board_field'], self.capsules)
 
     def _controller_output(self, cfg: StreamerConfig):
         """The publisher and writer of ``controller_output`` (None, None for 'none'); the

@@ -98,6 +98,9 @@ class SimStats:
         Current smallest link-obstacle distance [m] (inf: no obstacle within range).
     min_obstacle_distance_since_start_m : float
         Smallest value of the above over every :meth:`LiveSim.monitor` call [m].
+    closest_pair_since_start : str
+        ``link/obstacle`` of that smallest distance (empty: none yet): which part of the arm
+        came closest, or touched.
     contacts : int
         Link-obstacle pairs, and in a cell link-link pairs of two robots, in contact now
         (distance <= contact_threshold).
@@ -122,6 +125,7 @@ class SimStats:
 
     min_obstacle_distance_m: float = math.inf
     min_obstacle_distance_since_start_m: float = math.inf
+    closest_pair_since_start: str = ''
     contacts: int = 0
     contacts_since_start: int = 0
     limit_violations: int = 0
@@ -138,6 +142,7 @@ class SimStats:
             'min_obstacle_distance_m': f'{self.min_obstacle_distance_m:.5f}',
             'min_obstacle_distance_since_start_m':
                 f'{self.min_obstacle_distance_since_start_m:.5f}',
+            'closest_pair_since_start': self.closest_pair_since_start,
             'contacts': str(self.contacts),
             'contacts_since_start': str(self.contacts_since_start),
             'limit_violations': str(self.limit_violations),
@@ -381,6 +386,7 @@ class LiveSim:
         st = self.stats
         cfg = self.config
         best = math.inf
+        best_pair = ''
         keys = set()
         pairs = []
         if len(self.world.obstacles):
@@ -389,12 +395,14 @@ class LiveSim:
                 for (link, obstacle), p in report.pairs.items():
                     if p.distance < best:
                         best = p.distance
+                        best_pair = f'{link}/{obstacle}'
                     if p.distance <= cfg.contact_threshold:
                         keys.add((r.name, link, obstacle))
                         pairs.append((link, obstacle, p.distance))
         st.min_obstacle_distance_m = best
         if best < st.min_obstacle_distance_since_start_m:
             st.min_obstacle_distance_since_start_m = best
+            st.closest_pair_since_start = best_pair
         if len(self.robots) > 1:
             closest = math.inf
             for a, b, link_a, link_b, d in self._robot_distances():

@@ -45,6 +45,7 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.potential_fields import (ZERO, BoardField, ConstantField,
                                                      RepellerField)
 from cdmp_ros.core.kinematics import Chain, PointOfInterest
+from cdmp_ros.core.kinematics.capsules import Capsule
 from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_box,
                                               segment_box_scalar)
 from cdmp_ros.core.validation import as_array, check_positive
@@ -82,6 +83,10 @@ class CouplingConfig:
     end_effector: bool = param(
         True, 'Apply the fields to the end-effector point (Eq. 7). The link terms always act in '
         'the null space of the end-effector task.')
+    end_effector_radius: float = param(
+        0.0, 'Radius [m] of a ball around the tool centre point that Eq. 7 keeps away from '
+        'obstacles (distances are to its surface): with the centre inside the hand, a ball '
+        'that encloses hand and fingers makes the primary task avoid with the whole tool.')
     limit_aware: bool = param(
         True, 'Weight the link terms (Eq. 12) away from joints near their limits (weighted '
         'least norm); false: Eq. (12) as is.')
@@ -97,6 +102,8 @@ class CouplingConfig:
             raise ValidationError(f'CouplingConfig.damping: expected DampingConfig, got '
                                   f'{type(self.damping).__name__}')
         check_positive('CouplingConfig.link_radius', self.link_radius, allow_zero=True)
+        check_positive('CouplingConfig.end_effector_radius', self.end_effector_radius,
+                       allow_zero=True)
         onset = check_positive('CouplingConfig.limit_onset', self.limit_onset)
         lock = check_positive('CouplingConfig.limit_lock', self.limit_lock)
         if onset >= 1.0:
@@ -113,9 +120,13 @@ class ObstacleCoupling:
     Parameters
     ----------
     chain : Chain
-    links : sequence of str or (link, start, end)
+    links : sequence of str, (link, start, end) or Capsule
         Link segments that get a null-space avoidance term: link names (looked up in
-        ``chain.link_segments()``) or explicit segments (points in the link frame).
+        ``chain.link_segments()``), explicit segments (points in the link frame), both with
+        radius ``config.link_radius``, or
+        :class:`~cdmp_ros.core.kinematics.capsules.Capsule` s with their own radius (e.g.
+        fitted to the link's collision geometry,
+        :func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`).
     sphere_field, box_field : field
         Potential fields of spheres and of boxes.
     config : CouplingConfig
@@ -137,15 +148,27 @@ class ObstacleCoupling:
         self.box_field = box_field
         by_name = {seg[0]: seg for seg in chain.link_segments()}
         self.segments = []
+        radii = []
         for i, link in enumerate(links):
             if isinstance(link, str):
                 if link not in by_name:
                     raise ValidationError(f'links[{i}]: expected one of {list(by_name)}, got '
                                           f'{link!r}')
                 self.segments.append(by_name[link])
+                radii.append(config.link_radius)
+            elif isinstance(link, Capsule):
+                if not (math.isfinite(link.radius) and link.radius >= 0.0):
+                    raise ValidationError(f'links[{i}]: radius: expected a finite value >= 0, '
+                                          f'got {link.radius!r}')
+                self.segments.append((link.link, tuple(map(float, link.start)),
+                                      tuple(map(float, link.end))))
+                radii.append(float(link.radius))
             else:
                 name, start, end = link
                 self.segments.append((name, tuple(map(float, start)), tuple(map(float, end))))
+                radii.append(config.link_radius)
+        #: capsule radius [m] of every segment
+        self.radii = tuple(radii)
         if tcp_offset is None:
             tcp = PointOfInterest('ee')
         else:
@@ -171,7 +194,7 @@ class ObstacleCoupling:
         self._limit = (LimitScale(chain.lower, chain.upper, config.limit_onset,
                                   config.limit_lock)
                        if self.segments and config.limit_aware else None)
-        self._gate = ClosestPointGate(len(self.segments), sphere_field, box_field, config)
+        self._gate = ClosestPointGate(self.radii, sphere_field, box_field, config)
         self._coupled = None
         if self._axes == (0, 1, 2) and not self._needs_velocity:
             self._coupled = compile_coupling(
@@ -281,12 +304,14 @@ class ClosestPointGate:
     is inlined (the arithmetic of its ``acceleration``); other fields are called.
     """
 
-    def __init__(self, n_links: int, sphere_field, box_field, config):
+    def __init__(self, radii: Sequence[float], sphere_field, box_field, config):
+        n_links = len(radii)
         self.n_links = n_links
         self.sphere_field = sphere_field
         self.box_field = box_field
-        self.link_radius = config.link_radius
+        self.radii = tuple(float(r) for r in radii)
         self.end_effector = config.end_effector
+        self.ee_radius = config.end_effector_radius
         self.distances: List[float] = []
         self.link_t: List[float] = [0.0] * n_links
         self.repeller = None
@@ -296,12 +321,13 @@ class ClosestPointGate:
 
     def __call__(self, x: List[float], obstacles, velocity=None) -> Optional[list]:
         """``x``: end effector, then start and end of every segment (world)."""
-        radius = self.link_radius
+        radii = self.radii
         sphere_field, box_field = self.sphere_field, self.box_field
         rep = self.repeller
         if rep is not None:
             gain, d0, d_floor, inv_d0 = rep
         use_ee = self.end_effector
+        ee_radius = self.ee_radius
         e0, e1, e2 = ee = x[0], x[1], x[2]
         xd_e = ZERO if velocity is None or not use_ee else velocity(-1, 0.0)
         ax = ay = az = 0.0
@@ -313,10 +339,10 @@ class ClosestPointGate:
                 v0, v1, v2 = e0 - c0, e1 - c1, e2 - c2
                 r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
                 if r > 1e-12:
-                    d = r - obs.radius
+                    d = r - obs.radius - ee_radius
                     n0, n1, n2 = v0 / r, v1 / r, v2 / r
                 else:
-                    d, n0, n1, n2 = -obs.radius, 0.0, 0.0, 1.0
+                    d, n0, n1, n2 = -obs.radius - ee_radius, 0.0, 0.0, 1.0
                 if d < dmin:
                     dmin = d
                 if not use_ee:
@@ -332,6 +358,7 @@ class ClosestPointGate:
                 a = sphere_field.acceleration(ee, xd_e, obs, d, (n0, n1, n2))
             elif type(obs) is Box:
                 d, _, normal = point_box(ee, obs.lower, obs.upper)
+                d -= ee_radius
                 if d < dmin:
                     dmin = d
                 if not use_ee:
@@ -339,6 +366,7 @@ class ClosestPointGate:
                 a = box_field.acceleration(ee, xd_e, obs, d, normal)
             elif type(obs) is OrientedBox:
                 d, normal = obs.point(ee)
+                d -= ee_radius
                 if d < dmin:
                     dmin = d
                 if not use_ee:
@@ -356,6 +384,7 @@ class ClosestPointGate:
         for i in range(self.n_links):
             j = 3 + 6 * i
             a0, a1, a2, b0, b1, b2 = x[j:j + 6]
+            radius = radii[i]
             u0, u1, u2 = b0 - a0, b1 - a1, b2 - a2
             uu = u0 * u0 + u1 * u1 + u2 * u2
             best_d = math.inf

@@ -132,6 +132,10 @@ class StreamerConfig:
     coupling_links: Tuple[str, ...] = _param(
         ('panda_link3', 'panda_link5'), 'Link segments that get a null-space avoidance term '
         '(Eq. 12); the end effector always gets Eq. 7.', read_only=True)
+    coupling_capsule_links: Tuple[str, ...] = _param(
+        (), 'Links that get Eq. 12 on one capsule fitted around their URDF collision geometry '
+        '(its own radius; it encloses the link, so its distance bounds the true one from '
+        'below), next to the joint-axis segments of coupling_links.', read_only=True)
     tcp_offset: Tuple[float, ...] = _param(
         PANDA_EE_OFFSET, 'Tool centre point on which the end-effector term (Eq. 7) acts: 3 '
         "coordinates [m] in the frame of the chain's tip link (the Panda's hand flange, "

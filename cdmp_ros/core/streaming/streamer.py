@@ -41,6 +41,7 @@ from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.kinematics import Chain
+from cdmp_ros.core.kinematics.capsules import Capsule
 from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
 from cdmp_ros.core.streaming.config import StreamerConfig
@@ -53,12 +54,16 @@ def streamer_coupling(chain: Chain, config: StreamerConfig,
                       damping: DampingConfig = DampingConfig(),
                       repeller: RepellerField = RepellerField(),
                       box_field: ConstantField = ConstantField(),
-                      board_field: BoardField = BoardField()) -> ObstacleCoupling:
+                      board_field: BoardField = BoardField(),
+                      capsules: Sequence[Capsule] = ()) -> ObstacleCoupling:
     """The streamer's obstacle coupling from its parameters (the ``coupling.*``,
     ``damping.*``, ``repeller.*``, ``box_field.*`` and ``board_field.*`` sections):
     Eq. (7) on the tool centre point ``config.tcp_offset``, Eq. (12) on
-    ``config.coupling_links``; spheres get ``repeller``, boxes ``box_field`` (IV-B) or, with
-    ``config.box_field_kind == 'board'``, ``board_field`` (Eq. 30-31).
+    ``config.coupling_links`` (joint-axis segments, radius ``coupling.link_radius``) and on
+    ``capsules`` (their own radius: those of ``config.coupling_capsule_links``, fitted by
+    :func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`); spheres get
+    ``repeller``, boxes ``box_field`` (IV-B) or, with ``config.box_field_kind == 'board'``,
+    ``board_field`` (Eq. 30-31).
 
     Raises
     ------
@@ -66,7 +71,8 @@ def streamer_coupling(chain: Chain, config: StreamerConfig,
         Unknown link names.
     """
     boxes = board_field if config.box_field_kind == 'board' else box_field
-    return ObstacleCoupling(chain, config.coupling_links, sphere_field=repeller, box_field=boxes,
+    return ObstacleCoupling(chain, list(config.coupling_links) + list(capsules),
+                            sphere_field=repeller, box_field=boxes,
                             config=dataclasses.replace(coupling, damping=damping),
                             tcp_offset=config.tcp_offset)
 

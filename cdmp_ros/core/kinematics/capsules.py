@@ -1,0 +1,271 @@
+"""Capsules that enclose a link's collision geometry, read from the URDF (no pybullet, no ROS).
+
+The obstacle coupling models a link as a capsule (a segment and a radius, distances to its
+surface). Segments between consecutive joint origins with one radius for every link
+(:meth:`~cdmp_ros.core.kinematics.chain.Chain.link_segments`) miss much of a real arm: the
+Panda's forearm (``panda_link5``) runs up to 8 cm beside the elbow-wrist axis, and its hand is
+21 cm wide. :func:`collision_capsules` fits one capsule to every ``<collision>`` element of a
+link instead, in that link's frame, so that the capsule **encloses** the geometry: a distance
+to the capsule is a lower bound of the distance to the link's collision shape (the one the
+simulator and a real collision checker use).
+
+Geometry read from ``<collision>``: ``<mesh filename scale>`` (Wavefront ``.obj`` vertices;
+other formats are refused), ``<box size>``, ``<cylinder radius length>`` and ``<sphere
+radius>``, each placed by its ``<origin xyz rpy>``. A mesh's ``package://`` or relative
+``filename`` is looked up under ``mesh_dir`` (default: the URDF's directory), with and
+without its first path component (the package name).
+
+Fit (:func:`fit_capsule`): the geometry becomes balls (points with a radius: mesh and box
+vertices with radius 0, sphere centres, cylinder rims sampled with the chord's sag as radius).
+For each candidate axis (the principal axis of the points and the three axes of the link
+frame, then refined by Nelder-Mead on the volume) and radius ``R`` (a grid from the smallest
+possible), the shortest segment whose capsule contains every ball is closed form: a ball at
+axial coordinate ``t_i``, radial distance ``r_i`` and radius ``rho_i`` lies inside iff
+``t_0 <= t_i + sqrt((R - rho_i)^2 - r_i^2)`` and ``t_1 >= t_i - sqrt((R - rho_i)^2 - r_i^2)``.
+The capsule of least volume found wins (a local search: small, not proven minimal; what is
+guaranteed is the enclosure). A capsule is convex, so enclosing a mesh's vertices encloses
+the mesh.
+"""
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+from scipy.spatial import ConvexHull, QhullError
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.urdf import rpy_to_matrix
+
+Vec3 = Tuple[float, float, float]
+#: Points of a cylinder's rim per cap.
+RIM_POINTS = 32
+#: Radii tried per axis, from the least enclosing one to twice it.
+RADIUS_STEPS = 120
+#: Largest mesh file read [bytes]: a URDF is input, its cost is bounded before parsing.
+MAX_MESH_BYTES = 50_000_000
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A segment ``start``-``end`` in the frame of ``link`` and a ``radius`` [m]."""
+
+    link: str
+    start: Vec3
+    end: Vec3
+    radius: float
+
+    def distance(self, points: NDArray) -> NDArray:
+        """Distance [m] of ``points`` (..., 3), in the link frame, to the capsule's surface
+        (negative inside)."""
+        a, b = np.asarray(self.start), np.asarray(self.end)
+        u = b - a
+        uu = float(u @ u)
+        p = np.asarray(points, dtype=np.float64)
+        t = np.zeros(p.shape[:-1]) if uu == 0.0 else np.clip((p - a) @ u / uu, 0.0, 1.0)
+        return np.linalg.norm(p - a - t[..., None] * u, axis=-1) - self.radius
+
+
+def _enclose(X, rho, axis, c):
+    """(volume, start, end, radius) of the least-volume capsule on the line ``c + t axis``
+    (over the radius grid) that encloses the balls."""
+    t = (X - c) @ axis
+    r = np.linalg.norm(X - c - np.outer(t, axis), axis=1)
+    r_min = float((r + rho).max())
+    R = np.linspace(r_min, 2.0 * r_min + 1e-9, RADIUS_STEPS)[:, None]  # (K, 1)
+    h = np.sqrt(np.maximum((R - rho) ** 2 - r * r, 0.0))             # (K, N)
+    t1 = (t - h).max(axis=1)
+    t0 = np.minimum((t + h).min(axis=1), t1)  # ball-shaped: any t in [t1, t0] encloses
+    R = R[:, 0]
+    volume = np.pi * R * R * (t1 - t0) + 4.0 / 3.0 * np.pi * R ** 3
+    k = int(np.argmin(volume))
+    return float(volume[k]), c + t0[k] * axis, c + t1[k] * axis, float(R[k])
+
+
+def fit_capsule(centres: NDArray, radii: Optional[NDArray] = None
+                ) -> Tuple[NDArray, NDArray, float]:
+    """The least-volume capsule (over the candidate axes and radii of the module docstring)
+    enclosing the balls ``centres`` (N, 3) with ``radii`` (N,) (default 0): ``(start, end,
+    radius)``."""
+    X = np.asarray(centres, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or len(X) == 0 or not np.isfinite(X).all():
+        raise ValidationError(f'centres: expected finite points (N, 3), N >= 1, got shape '
+                              f'{X.shape}')
+    rho = np.zeros(len(X)) if radii is None else np.asarray(radii, dtype=np.float64)
+    if rho.shape != (len(X),) or not np.isfinite(rho).all() or (rho < 0).any():
+        raise ValidationError(f'radii: expected {len(X)} finite values >= 0')
+    if len(X) > 4 and np.ptp(rho) == 0.0:
+        # equal radii: only the convex hull's vertices can touch the surface
+        try:
+            X = X[ConvexHull(X).vertices]
+            rho = rho[:len(X)]
+        except QhullError:  # flat or degenerate: keep every point
+            pass
+    c0 = X.mean(axis=0)
+    candidates = [np.eye(3)[k] for k in range(3)]
+    if len(X) > 1:
+        candidates.insert(0, np.linalg.svd(X - c0, full_matrices=False)[2][0])
+    best = min((_enclose(X, rho, axis, c0) for axis in candidates), key=lambda b: b[0])
+    if len(X) > 1:
+        # refine the axis direction and where it passes (Nelder-Mead on the volume)
+        axis0 = (best[2] - best[1]) / max(np.linalg.norm(best[2] - best[1]), 1e-12) \
+            if np.linalg.norm(best[2] - best[1]) > 1e-9 else candidates[0]
+        e1 = np.cross(axis0, [1.0, 0.0, 0.0] if abs(axis0[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(axis0, e1)
+        scale = float(np.ptp(X, axis=0).max()) or 1.0
+
+        def volume(z):
+            axis = axis0 + z[0] * e1 + z[1] * e2
+            return _enclose(X, rho, axis / np.linalg.norm(axis),
+                            c0 + scale * (z[2] * e1 + z[3] * e2))[0]
+
+        res = minimize(volume, np.zeros(4), method='Nelder-Mead',
+                       options={'xatol': 1e-4, 'fatol': 1e-12, 'maxiter': 400})
+        if res.fun < best[0]:
+            z = res.x
+            axis = axis0 + z[0] * e1 + z[1] * e2
+            best = _enclose(X, rho, axis / np.linalg.norm(axis),
+                            c0 + scale * (z[2] * e1 + z[3] * e2))
+    return best[1], best[2], best[3]
+
+
+def _mesh_file(filename: str, mesh_dir: str, where: str) -> str:
+    if filename.startswith('file://'):
+        candidates = [filename[len('file://'):]]
+    else:
+        rel = filename[len('package://'):] if filename.startswith('package://') else filename
+        candidates = [rel] if os.path.isabs(rel) else [os.path.join(mesh_dir, rel)]
+        if not os.path.isabs(rel) and '/' in rel:
+            candidates.append(os.path.join(mesh_dir, rel.split('/', 1)[1]))
+    for path in candidates:
+        if os.path.isfile(path):
+            return path
+    raise ValidationError(f'{where}: mesh {filename!r} not found (looked for '
+                          f'{", ".join(repr(p) for p in candidates)})')
+
+
+def _obj_vertices(path: str, where: str) -> NDArray:
+    if not path.lower().endswith('.obj'):
+        raise ValidationError(f'{where}: mesh {path!r}: only Wavefront .obj meshes are read '
+                              f'for collision capsules')
+    if os.path.getsize(path) > MAX_MESH_BYTES:
+        raise ValidationError(f'{where}: mesh {path!r} is larger than {MAX_MESH_BYTES} bytes')
+    vertices = []
+    with open(path, encoding='utf-8', errors='replace') as f:
+        for n, line in enumerate(f, 1):
+            if line.startswith('v '):
+                try:
+                    vertices.append([float(v) for v in line.split()[1:4]])
+                except ValueError:
+                    raise ValidationError(f'{where}: mesh {path!r} line {n}: bad vertex '
+                                          f'{line.strip()!r}') from None
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.shape[0] == 0 or V.shape[1:] != (3,) or not np.isfinite(V).all():
+        raise ValidationError(f'{where}: mesh {path!r} has no usable vertices')
+    return V
+
+
+def _floats(el, attr: str, n: int, default, where: str) -> NDArray:
+    """Attribute ``attr`` of ``el`` as ``n`` finite numbers; ``default`` None: required."""
+    text = el.get(attr) if el is not None else None
+    if text is None:
+        if default is None:
+            raise ValidationError(f'{where}: <{el.tag}> needs {attr}')
+        return np.asarray(default, dtype=np.float64)
+    try:
+        v = np.asarray([float(x) for x in text.split()], dtype=np.float64)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (n,) or not np.isfinite(v).all():
+        raise ValidationError(f'{where}: {attr}: expected {n} numbers, got {text!r}')
+    return v
+
+
+def collision_balls(link_el, mesh_dir: str, where: str) -> Tuple[NDArray, NDArray]:
+    """The collision geometry of a ``<link>`` element as balls (centres (N, 3) in the link
+    frame, radii (N,)): see the module docstring."""
+    centres, radii = [], []
+    for k, col in enumerate(link_el.findall('collision')):
+        at = f'{where} <collision> {k}'
+        origin = col.find('origin')
+        R = rpy_to_matrix(_floats(origin, 'rpy', 3, (0.0, 0.0, 0.0), at))
+        p = _floats(origin, 'xyz', 3, (0.0, 0.0, 0.0), at)
+        geom = col.find('geometry')
+        shape = None if geom is None or len(geom) == 0 else geom[0]
+        if shape is None:
+            raise ValidationError(f'{at}: no <geometry>')
+        if shape.tag == 'mesh':
+            V = _obj_vertices(_mesh_file(shape.get('filename', ''), mesh_dir, at), at)
+            V = V * _floats(shape, 'scale', 3, (1.0, 1.0, 1.0), at)
+            rho = np.zeros(len(V))
+        elif shape.tag == 'box':
+            half = 0.5 * _floats(shape, 'size', 3, None, at)
+            V = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
+                          for sz in (-1, 1)]) * half
+            rho = np.zeros(8)
+        elif shape.tag in ('sphere', 'cylinder'):
+            r = _floats(shape, 'radius', 1, None, at)
+            if r[0] < 0:
+                raise ValidationError(f'{at}: <{shape.tag}> radius: expected >= 0, got {r[0]}')
+            if shape.tag == 'sphere':
+                V, rho = np.zeros((1, 3)), r.copy()
+            else:
+                half = 0.5 * _floats(shape, 'length', 1, None, at)[0]
+                a = np.linspace(0.0, 2.0 * np.pi, RIM_POINTS, endpoint=False)
+                rim = np.stack([r[0] * np.cos(a), r[0] * np.sin(a), np.zeros_like(a)], 1)
+                V = np.vstack([rim + [0.0, 0.0, -half], rim + [0.0, 0.0, half]])
+                rho = np.full(len(V), r[0] * (1.0 - np.cos(np.pi / RIM_POINTS)))
+        else:
+            raise ValidationError(f'{at}: unsupported geometry <{shape.tag}>')
+        centres.append(V @ R.T + p)
+        radii.append(rho)
+    if not centres:
+        raise ValidationError(f'{where}: no <collision> geometry')
+    return np.vstack(centres), np.concatenate(radii)
+
+
+def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str] = None,
+                       mesh_dir: Optional[str] = None) -> List[Capsule]:
+    """One enclosing capsule per link of ``links``, fitted to its URDF ``<collision>``
+    geometry (module docstring), in the link's frame.
+
+    Parameters
+    ----------
+    path : str
+        The URDF file (read unless ``urdf_text`` is given; names it in messages).
+    links : sequence of str
+    urdf_text : str, optional
+        The URDF XML itself (a ``robot_description``).
+    mesh_dir : str, optional
+        Where mesh file names are looked up; default the directory of ``path``.
+
+    Raises
+    ------
+    ValidationError
+        Naming the link and what is wrong: unknown link, no collision geometry, a mesh not
+        found or not ``.obj``, bad numbers.
+    """
+    if urdf_text is None:
+        try:
+            with open(path, encoding='utf-8') as f:
+                urdf_text = f.read()
+        except OSError as exc:
+            raise ValidationError(f'urdf path: cannot read {path!r} ({exc})') from None
+    try:
+        root = ET.fromstring(urdf_text)
+    except ET.ParseError as exc:
+        raise ValidationError(f'{path}: malformed XML ({exc})') from None
+    by_name = {el.get('name'): el for el in root.findall('link')}
+    mesh_dir = os.path.dirname(os.path.abspath(path)) if mesh_dir is None else mesh_dir
+    out = []
+    for i, link in enumerate(links):
+        if link not in by_name:
+            raise ValidationError(f'links[{i}]: no link {link!r} in {path!r}')
+        centres, radii = collision_balls(by_name[link], mesh_dir, f'link {link!r}')
+        a, b, r = fit_capsule(centres, radii)
+        out.append(Capsule(link, tuple(float(v) for v in a), tuple(float(v) for v in b),
+                           float(r)))
+    return out
