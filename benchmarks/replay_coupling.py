@@ -11,7 +11,9 @@ first recorded reference; no sim, no ROS graph (the reference is open loop:
 ``joint_states_timeout`` 0). For every
 ``--bound`` (``coupling_max_acceleration``, 0 = unbounded) it prints the largest change of
 the reference in one tick, the largest reported velocity, the largest requested coupling, and
-the smallest capsule distance of the reference to the obstacles, as a markdown table.
+the smallest capsule distance of the reference to the obstacles and the largest speed in the
+last second (a reference that should rest and does not: a coupling that makes it oscillate), as
+a markdown table.
 
 This is how the 3 rad one-tick jump of the demo (benchmarks/RESULTS.md, "The obstacle
 coupling is bounded") was reproduced without ROS, and how the bound was checked on the
@@ -42,9 +44,12 @@ from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenanc
 from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
 from cdmp_ros.cli.cmd_bringup import load_graph  # noqa: E402
 from cdmp_ros.ros.robot_model import default_urdf_path  # noqa: E402
+from cdmp_ros.core.kinematics.capsules import collision_capsules  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
 DT_NS = 2_000_000
+#: Ticks at the end over which the largest speed is reported (1 s): does the reference rest?
+REST_TICKS = 500
 
 
 SECTIONS = {'': StreamerConfig, 'coupling': CouplingConfig, 'repeller': RepellerField}
@@ -70,7 +75,9 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     from cdmp_ros.ros.convert import ObstacleSet
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
                               coupling_max_acceleration=bound)
-    coupling = streamer_coupling(chain, cfg, configs['coupling'], repeller=configs['repeller'])
+    capsules = collision_capsules(default_urdf_path(), cfg.coupling_capsule_links)
+    coupling = streamer_coupling(chain, cfg, configs['coupling'], repeller=configs['repeller'],
+                                 capsules=capsules)
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
     selection = AdaptationSelector(cfg.stream_unadapted)
     obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
@@ -90,9 +97,9 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
                                          source=topic)
                 if topic != 'primitive':
                     prep.provenance = read_provenance(prep.metadata)
-                chosen = selection.offer(topic, prep).activate
-                if chosen is not None:
-                    rs.activate(chosen, 0.0)
+                dec = selection.offer(topic, prep)
+                if dec.activate is not None:
+                    rs.activate(dec.activate, 0.0, dec.continues)
             elif m.topic == '/goal':
                 rs.set_goal(decode_joint_state(m.data).position)
             elif m.topic == '/obstacles':
@@ -108,7 +115,8 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     Y, V = np.array(Y), np.array(V)
     return {'max_step_rad': float(np.abs(np.diff(Y, axis=0)).max()),
             'max_velocity': float(np.abs(V).max()),
-            'peak_request': peak, 'min_distance_m': dmin}
+            'peak_request': peak, 'min_distance_m': dmin,
+            'final_speed': float(np.abs(V[-REST_TICKS:]).max())}
 
 
 def main(argv=None) -> int:
@@ -134,12 +142,14 @@ def main(argv=None) -> int:
     chain = panda_chain(default_urdf_path())
     print(f'{bag}: {len(msgs)} messages\n')
     print('| bound [rad/s^2] | largest step in one 2 ms tick [rad] | largest velocity [rad/s] '
-          '| largest coupling requested [rad/s^2] | smallest capsule distance [cm] |')
-    print('|---|---|---|---|---|')
+          '| largest coupling requested [rad/s^2] | smallest capsule distance [cm] '
+          '| largest speed in the last second [rad/s] |')
+    print('|---|---|---|---|---|---|')
     for bound in a.bound:
         r = replay(msgs, chain, configs, bound)
         print(f"| {bound:g} | {r['max_step_rad']:.4f} | {r['max_velocity']:.2f} | "
-              f"{r['peak_request']:.3g} | {100 * r['min_distance_m']:.2f} |")
+              f"{r['peak_request']:.3g} | {100 * r['min_distance_m']:.2f} | "
+              f"{r['final_speed']:.4f} |")
     return 0
 
 

@@ -32,11 +32,9 @@ def generate_launch_description():
              realtime_priority=45),
         node('streamer', 'streamer.yaml', **{
             'rate': 500.0,
-            # the tool and the arm from the elbow avoid obstacles too: see demo.yaml
-            'tcp_offset': [0.0, 0.0, 0.02],
-            'coupling.end_effector_radius': 0.11,
+            # the arm from the elbow to the hand avoids obstacles too: see demo.yaml
             'coupling_capsule_links': ['panda_link3', 'panda_link4', 'panda_link5',
-                                       'panda_link6', 'panda_link7'],
+                                       'panda_link6', 'panda_link7', 'panda_hand'],
             'coupling_links': ['panda_link7'],
             'coupling.link_radius': 0.06,
             'repeller.gain': 0.03,

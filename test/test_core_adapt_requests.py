@@ -177,6 +177,14 @@ def test_build_problem_collects_limits_near_obstacles_and_conditions(chain, prio
     np.testing.assert_allclose(prob.prior.mean([0.0])[0], q0, atol=0.02)
     np.testing.assert_allclose(prob.prior.mean([1.0])[0], Q_GOAL - 0.05, atol=0.02)
     assert prob.config.n_steps == 20
+    assert prob.notes == ['conditioned on the current state and the goal']
+    # a request that continues the running motion: the current state is not a phase-0
+    # observation; the prior's start stays
+    cont = build_problem(AdaptRequest(prior, (near,), None, Q_GOAL - 0.05, q0, continues=True),
+                         chain, cfg)
+    assert cont.notes == ['conditioned on the goal']
+    np.testing.assert_allclose(cont.prior.mean([0.0])[0], prior.mean([0.0])[0], atol=0.015)
+    assert np.abs(cont.prior.mean([0.0])[0] - q0).min() > 0.03
     with pytest.raises(ValidationError, match='avoid_links'):
         build_problem(req, chain, AdaptRequestConfig(avoid_links=('no_such_link',)))
 

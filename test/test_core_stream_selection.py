@@ -135,9 +135,37 @@ def test_read_provenance_accepts_the_adapter_metadata_and_names_bad_fields():
                        ({'source_id': P1, 'generation': True}, 'generation'),
                        ({'source_id': P1, 'generation': 1, 'trigger': 5}, 'trigger'),
                        ({'source_id': P1, 'generation': 1, 'trigger_stamp_ns': 1.5},
-                        'trigger_stamp_ns')]:
+                        'trigger_stamp_ns'),
+                       ({'source_id': P1, 'generation': 1, 'continues': 'yes'}, 'continues')]:
         with pytest.raises(PrimitiveFileError, match=field):
             read_provenance({'adapter': bad})
+
+
+def test_a_continuing_adaptation_continues_only_the_motion_that_streams():
+    cont = Provenance(P1, 5, 'obstacles', 0, continues=True)
+    assert read_provenance({'adapter': cont.as_dict()}) == cont
+    # the primitive streams, then adaptations of it: they continue it (if they say so)
+    sel = AdaptationSelector()
+    sel.offer_primitive(P1, 'p1')
+    assert sel.offer_adapted(cont, 'a5').continues
+    assert not sel.offer_adapted(Provenance(P1, 6, 'goal', 0), 'a6').continues
+    assert sel.offer_adapted(Provenance(P1, 7, 'obstacles', 0, True), 'a7').continues
+    # without stream_unadapted the first adaptation starts the motion: nothing to continue
+    sel = AdaptationSelector(stream_unadapted=False)
+    sel.offer_primitive(P1, 'p1')
+    dec = sel.offer_adapted(cont, 'a5')
+    assert dec.activate == 'a5' and not dec.continues
+    assert sel.offer_adapted(Provenance(P1, 6, 'obstacles', 0, True), 'a6').continues
+    # a new primitive awaits its adaptation while P1's motion streams on: P2's first
+    # adaptation starts P2's motion
+    sel.offer_primitive(P2, 'p2')
+    dec = sel.offer_adapted(Provenance(P2, 7, 'obstacles', 0, True), 'b7')
+    assert dec.activate == 'b7' and not dec.continues
+    # an adaptation held until its source arrives starts that motion
+    sel = AdaptationSelector()
+    assert sel.offer_adapted(cont, 'a5').activate is None
+    dec = sel.offer_primitive(P1, 'p1')
+    assert dec.activate == 'a5' and not dec.continues
 
 
 def test_prepare_primitive_keeps_the_content_id_and_metadata():

@@ -701,3 +701,85 @@ def test_switch_keeps_the_acceleration_continuous(coupling):
     # (+ the normal change), here about 14 x smaller than the jump
     assert switched < 1.875 * 0.002 / blend * jump * 1.1 + 2 * normal
     assert dyd < 0.05  # rad/s per step: velocity continuous throughout
+
+
+# -- an adaptation continues the running motion at its phase (issue 13) -------------------------
+def test_a_continuing_switch_keeps_the_phase_and_does_not_replay_the_motion(cdmp_text):
+    """Switching in the same motion with ``continues`` at 40 % of it changes nothing (the
+    stepper resumes at the current phase: the streamed reference equals the uninterrupted
+    one), while a restart at phase 0 replays the whole movement from the current state (it
+    arrives about as late as the full duration after the switch)."""
+    def stream(continues):
+        rs, prep = make_streamer(cdmp_text, timeout=0.0, switch_blend_time=0.05)
+        same = prepare_primitive(cdmp_text, PANDA_JOINTS, rs.dt, LOWER, UPPER, VMAX)
+        rs.activate(prep, 0.0)
+        rec = []
+        t = run(rs, 400, 0.0, measure=False, record=rec)  # 0.8 s of the 2 s reach
+        text = rs.activate(same, t, continues=continues)
+        run(rs, 1200, t, measure=False, record=rec)
+        return text, np.array([r[0] for r in rec]), np.array([r[1] for r in rec])
+
+    text_c, Y_c, Yd_c = stream(True)
+    assert 'at phase 0.4' in text_c
+    rs, prep = make_streamer(cdmp_text, timeout=0.0)
+    rs.activate(prep, 0.0)
+    rec = []
+    run(rs, 1600, 0.0, measure=False, record=rec)
+    Y_ref = np.array([r[0] for r in rec])
+    np.testing.assert_allclose(Y_c, Y_ref, atol=1e-9)
+    _, Y_r, Yd_r = stream(False)
+    # the restart replays the reach: still far from the goal 1.2 s after the switch, while
+    # the continued motion is there
+    err_c = np.abs(Y_c[1000] - Q_GOAL).max()
+    err_r = np.abs(Y_r[1000] - Q_GOAL).max()
+    assert err_c < 0.02 and err_r > 5 * err_c, (err_c, err_r)
+
+
+def test_a_continuing_switch_to_a_reshaped_motion_is_jump_free():
+    """An adaptation that bends the rest of the motion, switched in mid-motion at its phase:
+    position and velocity continuous, the acceleration blended (as any switch), and the rest
+    follows the new primitive's own trajectory from that phase on."""
+    cfg = StreamerConfig(joint_states_timeout=0.0, switch_blend_time=0.05)
+    rs = ReferenceStreamer(LOWER, UPPER, cfg)
+    other = np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15])
+    a = prepare_primitive(dumps_primitive(reach_cdmp(Q_START, Q_GOAL, 2.0)), PANDA_JOINTS,
+                          cfg.dt, LOWER, UPPER, VMAX)
+    b = prepare_primitive(dumps_primitive(reach_cdmp(Q_START, other, 2.0)), PANDA_JOINTS,
+                          cfg.dt, LOWER, UPPER, VMAX)
+    rs.activate(a, 0.0)
+    rec = []
+    t = run(rs, 500, 0.0, measure=False, record=rec)
+    rs.activate(b, t, continues=True)
+    assert rs.active.stepper.output.u == pytest.approx(500 * cfg.dt / a.prim.tau_, abs=1e-9)
+    run(rs, 1500, t, measure=False, record=rec)
+    Y = np.array([r[0] for r in rec])
+    dy, dyd = max_step_changes(rec)
+    assert dy[499] <= 1.5 * dy[497] + 1e-9 and dyd[499] <= 0.05
+    acc = np.diff(Y, 2, axis=0) / cfg.dt ** 2
+    dacc = np.abs(np.diff(acc, axis=0)).max(axis=1)
+    assert dacc[495:560].max() < 20 * dacc[400:490].max() + 50.0
+    np.testing.assert_allclose(Y[-1], other, atol=2e-2)
+
+
+def test_stepper_reset_at_a_phase_continues_the_integration():
+    """``DmpStepper.reset(phase_u=u)`` from the state at step K equals the uninterrupted
+    integration (CDMP and DMP), and bad phases are refused."""
+    from cdmp_ros.core.dmp.stepper import DmpStepper, StepInput
+    from streamer_harness import reach_dmp
+    for prim in (reach_cdmp(), reach_dmp()):
+        run_a = DmpStepper(prim, 0.002)
+        inp = StepInput(7)
+        Y = []
+        for k in range(900):
+            out, _ = run_a.update(inp)
+            Y.append(list(out.y))
+            if k == 299:
+                y, yd, u = list(out.y), list(out.yd), out.u
+        b = DmpStepper(prim, 0.002)
+        b.reset(start_y=y, start_yd=yd, phase_u=u)
+        assert b.output.u == pytest.approx(u)
+        Yb = [list(b.update(inp)[0].y) for _ in range(600)]
+        np.testing.assert_allclose(Yb, Y[300:], atol=1e-8)
+    for bad in (-0.1, float('nan'), float('inf'), 'x'):
+        with pytest.raises(ValidationError, match='phase_u'):
+            b.reset(phase_u=bad)

@@ -213,12 +213,19 @@ def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
     from visualization_msgs.msg import Marker, MarkerArray
     h, proc, _ = graph
     use(h, prims, 'promp')
+    # the robot is inside the sphere; the obstacle's own request continues the running motion
+    # (not conditioned on the robot's state), a new goal restarts the motion from the robot's
+    # state: the ProMP is conditioned to start inside the sphere
+    t0 = time.monotonic()
+    h.publish('obstacles', MarkerArray(markers=[h.sphere(ee(chain, Q_ROBOT), 0.1, mid=3)]))
+    assert h.wait_state(lambda m, lv, kv: kv.get('trigger') == 'obstacles'
+                        and kv.get('outcome') in ('converged', 'infeasible', 'unconverged'),
+                        t0, 30.0) is not None
     t0 = time.monotonic()
     n0 = h.n_adapted()
-    # the robot (where the ProMP is conditioned to start) is inside the sphere
-    h.publish('obstacles', MarkerArray(markers=[h.sphere(ee(chain, Q_ROBOT), 0.1, mid=3)]))
+    h.publish('goal', h.joint_state(Q_GOAL))
     st = h.wait_state(lambda m, lv, kv: kv.get('outcome') == 'infeasible'
-                      and kv.get('trigger') == 'obstacles', t0, 30.0)
+                      and kv.get('trigger') == 'goal', t0, 30.0)
     assert st is not None
     m, level, kv = st
     assert level == 2 and 'last good primitive kept' in m
@@ -226,7 +233,8 @@ def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
     assert 'p.obstacle_0_ee' in kv and float(kv['p.obstacle_0_ee'].split()[0]) < 0.99
     assert h.n_adapted() == n0
     h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-    assert h.wait_adapted(n0, trigger='obstacles') is not None
+    d = h.wait_adapted(n0, trigger='obstacles')
+    assert d is not None and d['metadata']['adapter']['continues'] is True
     alive(h, proc)
 
 

@@ -29,8 +29,11 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 - Every published primitive carries in ``metadata.adapter`` its provenance
   (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
   ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
-  increasing), ``trigger`` and ``trigger_stamp_ns``; the streamer uses it to stream only the
-  newest adaptation of its current primitive.
+  increasing), ``trigger``, ``trigger_stamp_ns`` and ``continues``; the streamer uses it to
+  stream only the newest adaptation of its current primitive. An adaptation to ``obstacles``
+  or ``constraints`` ``continues`` the running motion: it is not conditioned on the current
+  joint_states at phase 0, and the streamer switches it in at its current phase; one to a new
+  ``primitive`` or goal restarts the motion from the current state (conditioned at phase 0).
 
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
@@ -80,6 +83,8 @@ from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
+#: Triggers whose adaptation reshapes the running motion (Provenance.continues).
+CONTINUING_TRIGGERS = ('obstacles', 'constraints')
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
                'kl', 'iterations', 'outer_iterations', 'obstacles_used', 'obstacles_ignored',
                'latency_ms')
@@ -308,8 +313,11 @@ class AdapterNode(Node):
             return
         cfg = self.config
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
+        # obstacles and constraints reshape the running motion (the streamer continues it at
+        # its phase); a new primitive or goal starts a motion from the current state
         req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
-                           self.goal_y, start, p['limits'])
+                           self.goal_y, start, p['limits'],
+                           continues=topic in CONTINUING_TRIGGERS)
         self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
                                time.monotonic(), self.primitive_id, p['sha1'],
                                generation=self._next_generation()))

@@ -67,7 +67,7 @@ def job_provenance(job: Job) -> Provenance:
     """What the streamer needs to pick the newest adaptation of its current primitive
     (:mod:`cdmp_ros.core.streaming.selection`)."""
     return Provenance(job.source_sha1, int(job.generation), job.trigger,
-                      int(job.trigger_stamp_ns))
+                      int(job.trigger_stamp_ns), bool(job.request.continues))
 
 
 def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None) -> JobResult:

@@ -395,7 +395,7 @@ class StreamerNode(Node):
         chosen = dec.activate
         if chosen is None:
             return
-        text = self.streamer.activate(chosen, now)
+        text = self.streamer.activate(chosen, now, dec.continues)
         if dec.provenance is not None:
             text += f' (generation {dec.provenance.generation}, {dec.provenance.trigger_topic})'
         text += '; ' + '; '.join(chosen.notes) if chosen.notes else ''

@@ -359,7 +359,9 @@ class AdaptRequestConfig:
     joint_limits: bool = _param(
         True, 'Constrain every joint to the robot limits (paper 003 Eq. 12).')
     condition_start: bool = _param(
-        True, 'Condition the ProMP on the current joint_states at phase 0 (when available).')
+        True, 'Condition the ProMP on the current joint_states at phase 0 (when available) '
+        'for a request that starts a motion (a new primitive or goal); one that reshapes the '
+        'running motion (obstacles, constraints) is not conditioned there.')
     start_var: float = _param(
         1e-4, 'Observation variance of the start conditioning [rad^2].', 1e-10, 1.0)
     goal_var: float = _param(

@@ -210,6 +210,11 @@ class AdaptRequest:
         Joint goal (conditioning at phase 1).
     start_y : (n_dims,), optional
         Current joint state (conditioning at phase 0).
+    continues : bool
+        The request reshapes the running motion (obstacles, constraints), which the streamer
+        continues at its phase: ``start_y`` is then not a phase-0 observation and the prior is
+        not conditioned on it (conditioning on it would describe a motion restarted from
+        there, one the streamer does not execute).
     limits : ((n_dims,), (n_dims,)), optional
         Lower and upper bounds of the joint-limit constraints: the tighter of the primitive's
         and the robot's (:func:`cdmp_ros.core.joint_limits.merge_limits`). None: the chain's.
@@ -221,6 +226,7 @@ class AdaptRequest:
     goal_y: Optional[NDArray[np.float64]] = None
     start_y: Optional[NDArray[np.float64]] = None
     limits: Optional[Tuple[NDArray[np.float64], NDArray[np.float64]]] = None
+    continues: bool = False
 
 
 @dataclass
@@ -252,7 +258,8 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         raise ValidationError(f'primitive.n_dims: expected {chain.n_dofs} (the robot), got {n}')
     notes = []
     s_obs, y_obs, var = [], [], []
-    if req.start_y is not None and cfg.condition_start:
+    condition_start = req.start_y is not None and cfg.condition_start and not req.continues
+    if condition_start:
         s_obs.append(0.0)
         y_obs.append(np.asarray(req.start_y, float))
         var.append(cfg.start_var)
@@ -264,8 +271,7 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         prior = prior.condition(np.array(s_obs), np.array(y_obs),
                                 np.repeat(np.array(var)[:, None], n, axis=1))
         notes.append('conditioned on ' + ' and '.join(
-            name for name, on in (('the current state', req.start_y is not None
-                                   and cfg.condition_start),
+            name for name, on in (('the current state', condition_start),
                                   ('the goal', req.goal_y is not None)) if on))
     for link in cfg.avoid_links:
         if link not in chain.link_names:

@@ -230,23 +230,39 @@ class DmpStepper:
         self.reset(start_y, start_yd, goal_y, goal_noise)
 
     # -- configuration (outside the tick; may allocate) ---------------------------------------
-    def reset(self, start_y=None, start_yd=None, goal_y=None, goal_noise=None) -> None:
-        """Restart the movement from ``start_y`` with velocity ``start_yd``."""
+    def reset(self, start_y=None, start_yd=None, goal_y=None, goal_noise=None,
+              phase_u: float = 0.0, origin_y=None) -> None:
+        """Restart the movement from ``start_y`` with velocity ``start_yd``.
+
+        ``phase_u`` > 0 continues a movement instead of starting one: the state is
+        ``start_y``/``start_yd`` at normalised time ``phase_u`` (``t / tau``, rounded to the
+        grid of ``dt``), and the forcing term scales with ``g - origin_y`` (Eq. 15-16; default
+        the primitive's own start, so from a state on its trajectory the stepper reproduces the
+        rest of it). At ``phase_u = 0`` with no ``origin_y`` the start is the origin, as before.
+        """
         prim, n = self.prim, self.n_dims
         sy = prim.start_y_ if start_y is None else as_array('start_y', start_y, (n,))
         syd = np.zeros(n) if start_yd is None else as_array('start_yd', start_yd, (n,))
         gy = prim.goal_y_ if goal_y is None else as_array('goal_y', goal_y, (n,))
+        if not (isinstance(phase_u, (int, float)) and math.isfinite(phase_u)
+                and phase_u >= 0.0):
+            raise ValidationError(f'phase_u: expected a finite number >= 0, got {phase_u!r}')
         x0, xd0, g, g0 = prim.initial_state(sy, syd, gy, goal_noise)
+        if origin_y is None and phase_u > 0.0:
+            origin_y = prim.start_y_
+        origin = x0 if origin_y is None else prim.to_internal(
+            as_array('origin_y', origin_y, (n,)))
         self._x[:] = x0.tolist()
-        self._x0[:] = x0.tolist()
+        self._x0[:] = np.asarray(origin, dtype=np.float64).tolist()
         self._z[:] = np.clip(self.tau * xd0, -1e12, 1e12).tolist()
         self._g[:] = g.tolist()
         self._g0[:] = g0.tolist()
-        self._u = 0.0
-        self._k = 0
+        k = min(int(round(float(phase_u) / self._h)), MAX_TABLE_ROWS)
+        self._k = k
+        self._u = k * self._h
         self._kappa = 1.0
-        self._t = 0.0
-        self._lookup(0.0, 0)
+        self._t = k * self.dt
+        self._lookup(self._u, k)
         self._finish_outputs(self._zeros, init=True)
         out = self.output
         self._lists = (self._x, self._z, self._g, self._g0, self._x0, self._base, out.y,

@@ -19,7 +19,9 @@ at the request), and its ``trigger`` (the topic of the message that caused it) w
   the robot then executes only trajectories adapted to the constraints, never the raw prior
   (an adaptation of the previous primitive that is streaming stays until then);
 - an adapted primitive of the current primitive is streamed if its generation is newer than
-  the streamed adaptation's, else ignored (``adapted_ignored_old``);
+  the streamed adaptation's, else ignored (``adapted_ignored_old``); when it ``continues``
+  the motion (obstacles, constraints) and that motion is streaming (the primitive or an
+  adaptation of it), the decision says so, and the streamer keeps the current phase;
 - an adapted primitive of a primitive received before the current one is dropped
   (``adapted_ignored_stale``);
 - an adapted primitive of a primitive not received yet is held (the newest generation only)
@@ -62,18 +64,25 @@ class Provenance:
         Topic whose message caused the adaptation (``obstacles``, ``goal``, ...).
     trigger_stamp_ns : int
         Header stamp of that message [ns]; 0 when it had none (a new primitive, constraints).
+    continues : bool
+        The adaptation reshapes the running motion (obstacles, constraints): a streamer that
+        streams its source (or an adaptation of it) continues at the current phase instead of
+        restarting the motion; the adapter then did not condition phase 0 on the current
+        state. False (a new primitive, a new goal): the motion restarts from the current state.
     """
 
     source_id: str
     generation: int
     trigger_topic: str = ''
     trigger_stamp_ns: int = 0
+    continues: bool = False
 
     def as_dict(self) -> dict:
         """The ``metadata.adapter`` entries (``source_id``, ``generation``, ``trigger``,
-        ``trigger_stamp_ns``)."""
+        ``trigger_stamp_ns``, ``continues``)."""
         return {'source_id': self.source_id, 'generation': int(self.generation),
-                'trigger': self.trigger_topic, 'trigger_stamp_ns': int(self.trigger_stamp_ns)}
+                'trigger': self.trigger_topic, 'trigger_stamp_ns': int(self.trigger_stamp_ns),
+                'continues': bool(self.continues)}
 
 
 def read_provenance(metadata: Optional[Mapping[str, Any]]) -> Optional[Provenance]:
@@ -102,7 +111,11 @@ def read_provenance(metadata: Optional[Mapping[str, Any]]) -> Optional[Provenanc
     if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0:
         raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.trigger_stamp_ns: '
                                  f'expected a non-negative integer, got {stamp!r}')
-    return Provenance(sid, gen, topic, stamp)
+    continues = adapter.get('continues', False)
+    if not isinstance(continues, bool):
+        raise PrimitiveFileError(f'adapted_primitive.metadata.adapter.continues: expected true '
+                                 f'or false, got {continues!r}')
+    return Provenance(sid, gen, topic, stamp, continues)
 
 
 @dataclass
@@ -115,12 +128,16 @@ class Decision(Generic[Item]):
         Switch this one in now.
     provenance : Provenance or None
         Provenance of ``activate`` when it is an adaptation.
+    continues : bool
+        ``activate`` reshapes the motion being streamed (its provenance ``continues``, and
+        what streams now is its source or an adaptation of it): continue at the current phase.
     ignored : list of (str, str)
         ``(counter, message)`` of every item dropped or held by this offer, for diagnostics.
     """
 
     activate: Optional[Item] = None
     provenance: Optional[Provenance] = None
+    continues: bool = False
     ignored: List[Tuple[str, str]] = field(default_factory=list)
 
 
@@ -137,6 +154,8 @@ class AdaptationSelector(Generic[Item]):
         self.stream_unadapted = stream_unadapted
         self.current_id: Optional[str] = None
         self.streamed: Optional[Provenance] = None  # the adaptation streamed now (if any)
+        #: id of the primitive whose motion streams now (itself or an adaptation of it)
+        self.streaming_source: Optional[str] = None
         self._held: Optional[Tuple[Provenance, Item]] = None
         self._known: List[str] = []
         self.counts = {'adapted_ignored_stale': 0, 'adapted_ignored_old': 0, 'adapted_held': 0,
@@ -167,9 +186,12 @@ class AdaptationSelector(Generic[Item]):
             self._held = None
             if prov.source_id == pid:
                 self.streamed = prov
+                self.streaming_source = pid
                 return Decision(activate=held_item, provenance=prov)
             dec.ignored.append(self._stale(prov))
-        if not self.stream_unadapted:
+        if self.stream_unadapted:
+            self.streaming_source = pid
+        else:
             # nothing is switched in: the adaptation streamed so far stays until this
             # primitive's own adaptation arrives (newer adaptations of the old one are stale)
             self.streamed = still_streamed
@@ -184,7 +206,7 @@ class AdaptationSelector(Generic[Item]):
         """A prepared ``adapted_primitive`` with its provenance (None: unversioned)."""
         if prov is None:
             self.counts['adapted_unversioned'] += 1
-            self.streamed = None
+            self.streamed = self.streaming_source = None
             return Decision(activate=item)
         if prov.source_id == self.current_id:
             if self.streamed is not None and prov.generation <= self.streamed.generation:
@@ -194,7 +216,9 @@ class AdaptationSelector(Generic[Item]):
                     f'adapted_primitive: generation {prov.generation} is not newer than the '
                     f'streamed {self.streamed.generation}; ignored')])
             self.streamed = prov
-            return Decision(activate=item, provenance=prov)
+            continues = prov.continues and self.streaming_source == prov.source_id
+            self.streaming_source = prov.source_id
+            return Decision(activate=item, provenance=prov, continues=continues)
         if prov.source_id in self._known:
             return Decision(ignored=[self._stale(prov)])
         # its source has not arrived yet: hold the newest such adaptation

@@ -274,8 +274,18 @@ class ReferenceStreamer:
             self.active.stepper.set_goal(g)
         return clipped
 
-    def activate(self, prepared: PreparedPrimitive, now: float) -> str:
-        """Switch to a prepared primitive without a jump; returns a description."""
+    def activate(self, prepared: PreparedPrimitive, now: float, continues: bool = False) -> str:
+        """Switch to a prepared primitive without a jump; returns a description.
+
+        ``continues``: the primitive reshapes the motion that is running (an adaptation to
+        obstacles, :class:`~cdmp_ros.core.streaming.selection.Decision`): while running, its
+        stepper starts at the current phase (``DmpStepper.reset(phase_u=...)``) instead of
+        restarting the motion at phase 0, which would replay the whole movement from wherever
+        the arm is.
+        """
+        phase = 0.0
+        if continues and self.state is StreamState.RUNNING and self.active is not None:
+            phase = float(self.active.stepper.output.u)
         self.active = prepared
         if self.state is StreamState.WAITING and self.config.joint_states_timeout == 0:
             self._set_reference(prepared.prim.start_y_, np.zeros(self.n_dims))
@@ -284,12 +294,13 @@ class ReferenceStreamer:
             return f'{prepared.source}: stored; waiting for joint_states to start'
         if self._fresh(now):
             blend = self.state is StreamState.RUNNING and self._last is not prepared
-            jump = self._start_stepper()
+            jump = self._start_stepper(phase)
             if blend:
                 self._begin_blend()
-            return (f'{prepared.source}: switched in at the current reference'
+            at = f' at phase {phase:.3f}' if phase > 0.0 else ''
+            return (f'{prepared.source}: switched in at the current reference{at}'
                     + (f' (start clipped by {jump:.3g} rad to the primitive limits)'
-                       if jump > 0 else ''))
+                       if jump > 1e-9 else ''))
         return f'{prepared.source}: stored; inputs stale ({self.reason})'
 
     # -- the tick -----------------------------------------------------------------------------
@@ -355,13 +366,15 @@ class ReferenceStreamer:
         self.yd[:] = np.asarray(yd, dtype=float).tolist()
         self.ydd[:] = [0.0] * self.n_dims
 
-    def _start_stepper(self) -> float:
-        """Restart the active stepper at the current reference; returns the start clip [rad]."""
+    def _start_stepper(self, phase_u: float = 0.0) -> float:
+        """Restart the active stepper at the current reference (at normalised time
+        ``phase_u``, see :meth:`activate`); returns the start clip [rad]."""
         prep = self.active
         prim = prep.prim
         goal = self.goal_override if self.goal_override is not None else prim.goal_y_
         y = np.asarray(self.y)
-        prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal)
+        prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal,
+                           phase_u=phase_u)
         self._calls = self.config.coupling_decimation  # evaluate at the first step
         self._blend = None
         self._last = prep
