@@ -783,3 +783,34 @@ def test_stepper_reset_at_a_phase_continues_the_integration():
     for bad in (-0.1, float('nan'), float('inf'), 'x'):
         with pytest.raises(ValidationError, match='phase_u'):
             b.reset(phase_u=bad)
+
+
+def test_a_stop_keeps_the_tighter_limits_of_the_active_cdmp():
+    """A stale-input stop from speed next to a primitive limit that is tighter than the
+    robot's (panda_joint2 at 0.39, moving up at 0.8 rad/s, the primitive's limit 0.4) stays
+    inside it; the robot's limits (1.83) would let it run 0.2 rad past it (checked here), and
+    the next start then clipped the reference back in one tick."""
+    from streamer_harness import wide_narrow_cdmp
+    rs, prep = make_streamer(dumps_primitive(wide_narrow_cdmp()), timeout=0.5)
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    t = run(rs, 200, 0.0)
+    assert rs.state is StreamState.RUNNING
+    rs.y[1], rs.yd[1] = 0.39, 0.8
+    wide = SmoothStop(rs.transform, rs.y, rs.yd, rs.config.stop_time)
+    y, yd, ydd = list(rs.y), list(rs.yd), [0.0] * 7
+    while not wide.advance(rs.dt, y, yd, ydd):
+        pass
+    assert y[1] > 0.5                       # the robot's limits: far past the primitive's
+    top = []
+    t += 0.6                                # no joint_states for 0.6 s: stop, then hold
+    for _ in range(600):
+        t += rs.dt
+        rs.advance(1, t)
+        top.append(rs.y[1])
+    assert rs.state is StreamState.HOLDING
+    assert max(top) < 0.4 and max(top) > 0.39
+    # fresh inputs again: the motion restarts from the held reference without a clip
+    rs.note_joint_states(rs.y, t)
+    text = rs.activate(prep, t)
+    assert 'clipped' not in text, text

@@ -111,7 +111,8 @@ class SmoothStop:
     ``xi(t) = xi0 + xid0 * T * H(t / T)``, ``xid(t) = xid0 * h(t / T)`` with
     ``h(s) = 1 - 3 s^2 + 2 s^3``: velocity continuous at the start, zero at the end, zero
     acceleration at both ends, peak deceleration ``1.5 |xid0| / T``. Positions follow from
-    ``y = y_delta tanh(xi) + y_o`` (Eq. 19), so they stay inside the limits of ``transform``.
+    ``y = y_delta tanh(xi) + y_o`` (Eq. 19), so they stay inside the limits of ``transform``,
+    and ``xi`` is held within the transform's clipping margin (``|xi| <= atanh(1 - margin)``).
     """
 
     def __init__(self, transform: TanhTransform, y0: ArrayLike, yd0: ArrayLike,
@@ -124,6 +125,9 @@ class SmoothStop:
         self.ydel = transform.y_delta.tolist()
         self.duration = float(duration)
         self.t = 0.0
+        # no closer to a limit than the transform's own clipping margin: a stepper restarted
+        # from the stopped reference then starts exactly there (no clip, no jump)
+        self.xi_max = min(XI_SAT, math.atanh(1.0 - transform.margin))
 
     def advance(self, dt: float, y: List[float], yd: List[float], ydd: List[float]) -> bool:
         """Advance by dt and write the state into y, yd, ydd; True once at rest."""
@@ -131,9 +135,10 @@ class SmoothStop:
         T = self.duration
         s = min(self.t / T, 1.0)
         H, h, hp = _H(s), _h(s), 6.0 * s * (s - 1.0)
+        xi_max = self.xi_max
         for d, (xi0, v0) in enumerate(zip(self.xi0, self.xid0)):
             xi = xi0 + v0 * T * H
-            xi = XI_SAT if xi > XI_SAT else (-XI_SAT if xi < -XI_SAT else xi)
+            xi = xi_max if xi > xi_max else (-xi_max if xi < -xi_max else xi)
             xid = v0 * h
             xidd = v0 * hp / T
             t = math.tanh(xi)
@@ -400,8 +405,21 @@ class ReferenceStreamer:
     def _begin_stop(self, now: float) -> None:
         self._blend = None
         self.reason = 'stopping: ' + self._stale_reason(now)
-        self._stop = SmoothStop(self.transform, self.y, self.yd, self.config.stop_time)
+        self._stop = SmoothStop(self._stop_transform(), self.y, self.yd, self.config.stop_time)
         self.state = StreamState.STOPPING
+
+    def _stop_transform(self) -> TanhTransform:
+        """The limits a stop keeps: the active CDMP's (the tighter of the primitive's and the
+        robot's), else the streamer's. With the robot's, a stop from speed next to a tighter
+        primitive limit went past it, and the next start clipped the reference back in one
+        tick (0.057 rad seen in a demo)."""
+        prim = self.active.prim if self.active is not None else None
+        transform = getattr(prim, 'transform', None)
+        if getattr(prim, 'kind', None) == 'cdmp' and isinstance(transform, TanhTransform):
+            y = np.asarray(self.y)
+            if np.all(y > prim.y_min) and np.all(y < prim.y_max):
+                return transform
+        return self.transform
 
     def _hold(self) -> None:
         self.reason = self.reason.replace('stopping: ', 'stopped: ')
