@@ -3,10 +3,12 @@
 Reads the bag of a ``cdmp demo`` run (``OUT/bag``) and feeds its ``primitive``,
 ``adapted_primitive``, ``goal`` and ``obstacles`` messages, at their recorded (log) times, to a
 :class:`~cdmp_ros.core.streaming.streamer.ReferenceStreamer` built with the streamer
-parameters of the graph (``--graph``, default ``config/graphs/demo.yaml``: links 4, 6, 7 as
-6 cm capsules, repeller gain 0.03 over 0.25 m; ``stream_unadapted`` false for a ProMP run, as
-``cdmp demo --kind promp`` sets it), choosing what to switch in with the node's
-:class:`~cdmp_ros.core.streaming.selection.AdaptationSelector`, stepping 2 ms ticks from the
+parameters of the graph (``--graph``, default ``config/graphs/demo.yaml``: its top-level,
+``coupling.*``, ``damping.*`` and ``repeller.*`` parameters, the capsules of
+``coupling_capsule_links`` included; ``stream_unadapted`` false for a ProMP run, as ``cdmp demo
+--kind promp`` sets it), choosing what to switch in with the node's
+:class:`~cdmp_ros.core.streaming.selection.AdaptationSelector` (an adaptation that
+``continues`` the motion is switched in at the current phase), stepping 2 ms ticks from the
 first recorded reference; no sim, no ROS graph (the reference is open loop:
 ``joint_states_timeout`` 0). For every
 ``--bound`` (``coupling_max_acceleration``, 0 = unbounded) it prints the largest change of
@@ -45,6 +47,7 @@ from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_couplin
 from cdmp_ros.cli.cmd_bringup import load_graph  # noqa: E402
 from cdmp_ros.ros.robot_model import default_urdf_path  # noqa: E402
 from cdmp_ros.core.kinematics.capsules import collision_capsules  # noqa: E402
+from cdmp_ros.core.coupling.terms import DampingConfig  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
 DT_NS = 2_000_000
@@ -52,7 +55,8 @@ DT_NS = 2_000_000
 REST_TICKS = 500
 
 
-SECTIONS = {'': StreamerConfig, 'coupling': CouplingConfig, 'repeller': RepellerField}
+SECTIONS = {'': StreamerConfig, 'coupling': CouplingConfig, 'damping': DampingConfig,
+            'repeller': RepellerField}
 
 
 def graph_configs(graph_file: str, overrides: dict) -> dict:
@@ -76,8 +80,8 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
                               coupling_max_acceleration=bound)
     capsules = collision_capsules(default_urdf_path(), cfg.coupling_capsule_links)
-    coupling = streamer_coupling(chain, cfg, configs['coupling'], repeller=configs['repeller'],
-                                 capsules=capsules)
+    coupling = streamer_coupling(chain, cfg, configs['coupling'], damping=configs['damping'],
+                                 repeller=configs['repeller'], capsules=capsules)
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
     selection = AdaptationSelector(cfg.stream_unadapted)
     obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,

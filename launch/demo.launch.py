@@ -36,6 +36,7 @@ def generate_launch_description():
             'coupling_capsule_links': ['panda_link3', 'panda_link4', 'panda_link5',
                                        'panda_link6', 'panda_link7', 'panda_hand'],
             'coupling_links': ['panda_link7'],
+            'damping.epsilon': 0.1,
             'coupling.link_radius': 0.06,
             'repeller.gain': 0.03,
             'repeller.influence_distance': 0.25}),
