@@ -174,3 +174,22 @@ def test_streamer_parameter_errors_name_the_parameter(tmp_path):
     with pytest.raises(ValidationError,
                        match=r"coupling_capsule_links: link 'panda_link5'.*" + missing):
         load_collision_capsules('', ['panda_link5'], robot_description=text)
+
+
+def test_more_bad_inputs_are_named(tmp_path):
+    from cdmp_ros.ros.robot_model import load_collision_capsules
+    chain = panda_chain(default_urdf_path())
+    bad = r"coupling_capsule_links\[1\]: 'panda_leftfinger' is not a link of the chain"
+    with pytest.raises(ValidationError, match=bad):
+        load_collision_capsules('', ['panda_hand', 'panda_leftfinger'], chain=chain)
+    with pytest.raises(ValidationError, match=r"links\[1\]: 'panda_hand' is listed twice"):
+        load_collision_capsules('', ['panda_hand', 'panda_hand'])
+    urdf = tmp_path / 'r.urdf'
+    urdf.write_text('<robot name="r"><link name="m"><collision><geometry>'
+                    '<mesh filename="m.obj"/></geometry></collision></link></robot>')
+    (tmp_path / 'm.obj').write_text('v 0 0 0\nv 1 2\nv 1 1 1\n')
+    with pytest.raises(ValidationError, match="line 2: bad vertex 'v 1 2'"):
+        collision_capsules(str(urdf), ['m'])
+    (tmp_path / 'm.obj').write_text('# no vertices\n')
+    with pytest.raises(ValidationError, match='no usable vertices'):
+        collision_capsules(str(urdf), ['m'])

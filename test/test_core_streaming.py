@@ -766,8 +766,8 @@ def test_stepper_reset_at_a_phase_continues_the_integration():
     integration (CDMP and DMP), and bad phases are refused."""
     from cdmp_ros.core.dmp.stepper import DmpStepper, StepInput
     from streamer_harness import reach_dmp
-    for prim in (reach_cdmp(), reach_dmp()):
-        run_a = DmpStepper(prim, 0.002)
+    for prim, vmax in ((reach_cdmp(), None), (reach_dmp(), None), (reach_cdmp(), 10 * VMAX)):
+        run_a = DmpStepper(prim, 0.002, velocity_limits=vmax)   # 10 VMAX: kappa stays 1
         inp = StepInput(7)
         Y = []
         for k in range(900):
@@ -775,12 +775,12 @@ def test_stepper_reset_at_a_phase_continues_the_integration():
             Y.append(list(out.y))
             if k == 299:
                 y, yd, u = list(out.y), list(out.yd), out.u
-        b = DmpStepper(prim, 0.002)
-        b.reset(start_y=y, start_yd=yd, phase_u=u)
+        b = DmpStepper(prim, 0.002, velocity_limits=vmax)
+        b.reset(start_y=y, start_yd=yd, phase_u=np.float64(u))
         assert b.output.u == pytest.approx(u)
         Yb = [list(b.update(inp)[0].y) for _ in range(600)]
         np.testing.assert_allclose(Yb, Y[300:], atol=1e-8)
-    for bad in (-0.1, float('nan'), float('inf'), 'x'):
+    for bad in (-0.1, float('nan'), float('inf'), 'x', True, None):
         with pytest.raises(ValidationError, match='phase_u'):
             b.reset(phase_u=bad)
 
@@ -821,18 +821,20 @@ def _settle(epsilon, seconds=15.0):
     limit_cycle.json) with the demo graph's coupling and ``damping.epsilon``; returns the
     largest joint speed of the last 2 s."""
     import dataclasses
-    import sys
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), '..', 'benchmarks'))
-    from replay_coupling import graph_configs
+    import importlib.util
+    here = os.path.dirname(__file__)
+    spec = importlib.util.spec_from_file_location(
+        'replay_coupling', os.path.join(here, '..', 'benchmarks', 'replay_coupling.py'))
+    replay = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(replay)
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.core.kinematics.capsules import collision_capsules
     from cdmp_ros.core.kinematics.closest import Sphere
     from cdmp_ros.core.streaming.streamer import streamer_coupling
     from cdmp_ros.ros.robot_model import default_urdf_path
-    here = os.path.dirname(__file__)
     with open(os.path.join(here, 'data', 'limit_cycle.json')) as f:
         fix = json.load(f)
-    configs = graph_configs(os.path.join(here, '..', 'config', 'graphs', 'demo.yaml'), {})
+    configs = replay.graph_configs(os.path.join(here, '..', 'config', 'graphs', 'demo.yaml'), {})
     chain = panda_chain(default_urdf_path())
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0)
     damping = dataclasses.replace(configs['damping'], epsilon=epsilon)
@@ -861,4 +863,6 @@ def test_the_demo_coupling_comes_to_rest_beside_the_sphere():
     next to an obstacle comes to rest: with the default 0.02 the demo's reference went round a
     limit cycle for 85 s (a CI run); with the demo graph's 0.1 it rests."""
     assert _settle(0.1) < 1e-3
+    # the default cycles from this state: the defect the demo's setting works around (when
+    # the coupling is made stable for every damping, this line goes)
     assert _settle(0.02) > 0.1

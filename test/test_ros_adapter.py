@@ -121,6 +121,10 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
     h.publish('obstacles', MarkerArray(markers=[h.sphere(centre, 0.05)]))
     d = h.wait_adapted(n0, trigger='obstacles')
     assert d is not None and d['metadata']['adapter']['trigger'] == 'obstacles'
+    # the primitive's motion was published: the obstacle reshapes it (continues), unconditioned
+    # on the robot's state at phase 0 (the use() adaptation was: Q_ROBOT)
+    assert d['metadata']['adapter']['continues'] is True
+    assert np.abs(promp_of(d).mean([0.0])[0] - Q_ROBOT).max() > 0.03
     path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
     assert np.linalg.norm(path - centre, axis=1).min() > 0.05
     m, level, kv = converged_state(h, t0, 'obstacles')
@@ -233,8 +237,9 @@ def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
     assert 'p.obstacle_0_ee' in kv and float(kv['p.obstacle_0_ee'].split()[0]) < 0.99
     assert h.n_adapted() == n0
     h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    # the goal's motion-starting request failed: the next request starts the motion too
     d = h.wait_adapted(n0, trigger='obstacles')
-    assert d is not None and d['metadata']['adapter']['continues'] is True
+    assert d is not None and d['metadata']['adapter']['continues'] is False
     alive(h, proc)
 
 

@@ -33,7 +33,9 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   stream only the newest adaptation of its current primitive. An adaptation to ``obstacles``
   or ``constraints`` ``continues`` the running motion: it is not conditioned on the current
   joint_states at phase 0, and the streamer switches it in at its current phase; one to a new
-  ``primitive`` or goal restarts the motion from the current state (conditioned at phase 0).
+  ``primitive`` or goal restarts the motion from the current state (conditioned at phase 0),
+  and so does any request until such a motion-starting adaptation of the current primitive
+  has been published (a continuing request may supersede a waiting motion-starting one).
 
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
@@ -113,6 +115,11 @@ class AdapterNode(Node):
         self.primitive = None        # dict: kind, d (validated dict), prim, perm
         self.primitive_id = 0
         self._generation = 0         # of the last adaptation (ROS time [ns] at the request)
+        # continuing requests need a motion to continue: the primitive_id whose motion-starting
+        # (phase-0 conditioned) adaptation was published, and the generation of the newest
+        # motion-starting request still to be published (0: none)
+        self._motion_of = 0
+        self._restart_generation = 0
         self.constraint_doc = None
         self.goal_y: Optional[np.ndarray] = None
         self.goal_point: Optional[np.ndarray] = None
@@ -314,13 +321,19 @@ class AdapterNode(Node):
         cfg = self.config
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
         # obstacles and constraints reshape the running motion (the streamer continues it at
-        # its phase); a new primitive or goal starts a motion from the current state
+        # its phase), once a motion of this primitive was published and no motion-starting
+        # request waits (it may be superseded by this one); a new primitive or goal starts a
+        # motion from the current state
+        continues = (topic in CONTINUING_TRIGGERS and self._motion_of == self.primitive_id
+                     and not self._restart_generation)
+        generation = self._next_generation()
+        if not continues:
+            self._restart_generation = generation
         req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
-                           self.goal_y, start, p['limits'],
-                           continues=topic in CONTINUING_TRIGGERS)
+                           self.goal_y, start, p['limits'], continues=continues)
         self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
                                time.monotonic(), self.primitive_id, p['sha1'],
-                               generation=self._next_generation()))
+                               generation=generation))
 
     def _next_generation(self) -> int:
         """Generation of a new adaptation: the ROS time [ns] now, strictly increasing (also
@@ -388,6 +401,8 @@ class AdapterNode(Node):
             self._publish_now()
             return
         if res.outcome == 'converged':
+            if not job.request.continues and job.generation >= self._restart_generation:
+                self._motion_of, self._restart_generation = job.primitive_id, 0
             self.pub.publish(String(data=res.text))
             self._publish_markers(res.path, res.band)
             self.counts['published'] += 1

@@ -53,20 +53,28 @@ def load_panda_chain(urdf_path: str, joint_names: Sequence[str], robot_descripti
     return chain
 
 
-def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = ''):
+def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = '',
+                            chain=None):
     """The capsules fitted around the collision geometry of ``links``
     (:func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`) of the robot of
     :func:`limits_source`. Mesh files of a ``robot_description`` are looked up from the
     working directory (absolute or ``file://`` names always work).
 
+    ``chain``, if given: every link must be one of its links (the ones the coupling moves).
+
     Raises
     ------
     ValidationError
-        Naming ``coupling_capsule_links`` and what is wrong (unknown link, no collision
-        geometry, a mesh that cannot be read).
+        Naming ``coupling_capsule_links`` and what is wrong (unknown link, a link twice, a link
+        not in the chain, no collision geometry, a mesh that cannot be read).
     """
     if not links:
         return []
+    if chain is not None:
+        for i, link in enumerate(links):
+            if link not in chain.attachments:
+                raise ValidationError(f'coupling_capsule_links[{i}]: {link!r} is not a link of '
+                                      f'the chain {list(chain.link_names)}')
     from cdmp_ros.core.kinematics.capsules import collision_capsules
     source = limits_source(urdf_path, robot_description)
     text = robot_description if source == ROBOT_DESCRIPTION else None

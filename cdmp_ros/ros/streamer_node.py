@@ -98,7 +98,7 @@ class StreamerNode(Node):
         self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
         self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
         self.capsules = load_collision_capsules(cfg.urdf_path, cfg.coupling_capsule_links,
-                                                cfg.robot_description)
+                                                cfg.robot_description, self.chain)
         self.coupling = self._make_coupling(self.params.configs)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,

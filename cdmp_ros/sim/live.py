@@ -99,8 +99,8 @@ class SimStats:
     min_obstacle_distance_since_start_m : float
         Smallest value of the above over every :meth:`LiveSim.monitor` call [m].
     closest_pair_since_start : str
-        ``link/obstacle`` of that smallest distance (empty: none yet): which part of the arm
-        came closest, or touched.
+        ``link/obstacle`` of that smallest distance (``robot/link/obstacle`` in a cell of
+        several robots; empty: none yet): which part of the arm came closest, or touched.
     contacts : int
         Link-obstacle pairs, and in a cell link-link pairs of two robots, in contact now
         (distance <= contact_threshold).
@@ -395,7 +395,8 @@ class LiveSim:
                 for (link, obstacle), p in report.pairs.items():
                     if p.distance < best:
                         best = p.distance
-                        best_pair = f'{link}/{obstacle}'
+                        best_pair = (f'{link}/{obstacle}' if len(self.robots) == 1
+                                     else f'{r.name}/{link}/{obstacle}')
                     if p.distance <= cfg.contact_threshold:
                         keys.add((r.name, link, obstacle))
                         pairs.append((link, obstacle, p.distance))

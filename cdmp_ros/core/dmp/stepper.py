@@ -244,11 +244,14 @@ class DmpStepper:
         sy = prim.start_y_ if start_y is None else as_array('start_y', start_y, (n,))
         syd = np.zeros(n) if start_yd is None else as_array('start_yd', start_yd, (n,))
         gy = prim.goal_y_ if goal_y is None else as_array('goal_y', goal_y, (n,))
-        if not (isinstance(phase_u, (int, float)) and math.isfinite(phase_u)
-                and phase_u >= 0.0):
+        try:
+            u_start = float(phase_u) if not isinstance(phase_u, bool) else math.nan
+        except (TypeError, ValueError):
+            u_start = math.nan
+        if not (math.isfinite(u_start) and u_start >= 0.0):
             raise ValidationError(f'phase_u: expected a finite number >= 0, got {phase_u!r}')
         x0, xd0, g, g0 = prim.initial_state(sy, syd, gy, goal_noise)
-        if origin_y is None and phase_u > 0.0:
+        if origin_y is None and u_start > 0.0:
             origin_y = prim.start_y_
         origin = x0 if origin_y is None else prim.to_internal(
             as_array('origin_y', origin_y, (n,)))
@@ -257,7 +260,7 @@ class DmpStepper:
         self._z[:] = np.clip(self.tau * xd0, -1e12, 1e12).tolist()
         self._g[:] = g.tolist()
         self._g0[:] = g0.tolist()
-        k = min(int(round(float(phase_u) / self._h)), MAX_TABLE_ROWS)
+        k = min(int(round(u_start / self._h)), MAX_TABLE_ROWS)
         self._k = k
         self._u = k * self._h
         self._kappa = 1.0

@@ -33,8 +33,6 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize
-from scipy.spatial import ConvexHull, QhullError
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.urdf import rpy_to_matrix
@@ -96,6 +94,8 @@ def fit_capsule(centres: NDArray, radii: Optional[NDArray] = None
     rho = np.zeros(len(X)) if radii is None else np.asarray(radii, dtype=np.float64)
     if rho.shape != (len(X),) or not np.isfinite(rho).all() or (rho < 0).any():
         raise ValidationError(f'radii: expected {len(X)} finite values >= 0')
+    from scipy.optimize import minimize           # only here: not in every importer's start
+    from scipy.spatial import ConvexHull, QhullError
     if len(X) > 4 and np.ptp(rho) == 0.0:
         # equal radii: only the convex hull's vertices can touch the surface
         try:
@@ -151,18 +151,28 @@ def _obj_vertices(path: str, where: str) -> NDArray:
     if not path.lower().endswith('.obj'):
         raise ValidationError(f'{where}: mesh {path!r}: only Wavefront .obj meshes are read '
                               f'for collision capsules')
-    if os.path.getsize(path) > MAX_MESH_BYTES:
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise ValidationError(f'{where}: cannot read mesh {path!r} ({exc})') from None
+    if size > MAX_MESH_BYTES:
         raise ValidationError(f'{where}: mesh {path!r} is larger than {MAX_MESH_BYTES} bytes')
     vertices = []
-    with open(path, encoding='utf-8', errors='replace') as f:
-        for n, line in enumerate(f, 1):
-            if line.startswith('v '):
-                try:
-                    vertices.append([float(v) for v in line.split()[1:4]])
-                except ValueError:
-                    raise ValidationError(f'{where}: mesh {path!r} line {n}: bad vertex '
-                                          f'{line.strip()!r}') from None
-    V = np.asarray(vertices, dtype=np.float64)
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            for n, line in enumerate(f, 1):
+                if line.startswith('v '):
+                    try:
+                        v = [float(x) for x in line.split()[1:4]]
+                    except ValueError:
+                        v = []
+                    if len(v) != 3:
+                        raise ValidationError(f'{where}: mesh {path!r} line {n}: bad vertex '
+                                              f'{line.strip()[:80]!r}')
+                    vertices.append(v)
+    except OSError as exc:
+        raise ValidationError(f'{where}: cannot read mesh {path!r} ({exc})') from None
+    V = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     if V.shape[0] == 0 or V.shape[1:] != (3,) or not np.isfinite(V).all():
         raise ValidationError(f'{where}: mesh {path!r} has no usable vertices')
     return V
@@ -262,6 +272,8 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
     mesh_dir = os.path.dirname(os.path.abspath(path)) if mesh_dir is None else mesh_dir
     out = []
     for i, link in enumerate(links):
+        if link in links[:i]:
+            raise ValidationError(f'links[{i}]: {link!r} is listed twice')
         if link not in by_name:
             raise ValidationError(f'links[{i}]: no link {link!r} in {path!r}')
         centres, radii = collision_balls(by_name[link], mesh_dir, f'link {link!r}')

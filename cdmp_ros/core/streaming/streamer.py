@@ -6,7 +6,9 @@ the obstacle coupling term of the current reference (paper 000, Eq. 7/12 mapped 
 exogenous space, Eq. 21), and guarantees what the node promises:
 
 - *No jump on a switch*: a new primitive, and a resumption after a stop, restart the stepper
-  from the current reference position **and velocity**; a new goal only moves the goal target
+  from the current reference position **and velocity** at phase 0; an adaptation that
+  ``continues`` the running motion (obstacles, constraints) starts at the running phase
+  instead (:meth:`ReferenceStreamer.activate`); a new goal only moves the goal target
   ``g_0``, which the goal state follows smoothly (Eq. 14/22). The acceleration of the new
   stepper at its restart differs from the reference's (another forcing term at phase 0), so a
   primitive switched in while streaming gets, over ``switch_blend_time``, an extra joint
@@ -19,7 +21,8 @@ exogenous space, Eq. 21), and guarantees what the node promises:
 - *Smooth stop on stale inputs*: without fresh ``joint_states`` (``joint_states_timeout``)
   or without a primitive, the reference decelerates to rest along the closed-form profile of
   :class:`SmoothStop` (velocity continuous, zero acceleration at both ends), in the exogenous
-  space of the limits, so the stop itself cannot leave them; then it holds.
+  space of the active CDMP's limits (the tighter of the primitive's and the robot's; else the
+  robot's), so the stop itself cannot leave them; then it holds.
 - *Never outside the limits, never NaN, never the wrong size*: the output lists have a fixed
   length and every published position is checked against ``[lower, upper]`` (a last guard for
   plain DMPs, whose integration has no limits; flagged ``CLAMPED``).
@@ -117,7 +120,10 @@ class SmoothStop:
 
     def __init__(self, transform: TanhTransform, y0: ArrayLike, yd0: ArrayLike,
                  duration: float):
-        xi0 = transform.to_exogenous(y0)
+        # the exact exogenous state (no margin clip: a reference inside the margin band does
+        # not jump on the first stop tick), saturated like the stepper's
+        u = (np.asarray(y0, dtype=float) - transform.y_o) / transform.y_delta
+        xi0 = np.clip(np.arctanh(np.clip(u, -1.0, 1.0)), -XI_SAT, XI_SAT)
         self.xi0 = xi0.tolist()
         self.xid0 = (np.asarray(yd0, dtype=float) / np.maximum(transform.jacobian(xi0),
                                                                1e-300)).tolist()
@@ -125,9 +131,11 @@ class SmoothStop:
         self.ydel = transform.y_delta.tolist()
         self.duration = float(duration)
         self.t = 0.0
-        # no closer to a limit than the transform's own clipping margin: a stepper restarted
-        # from the stopped reference then starts exactly there (no clip, no jump)
-        self.xi_max = min(XI_SAT, math.atanh(1.0 - transform.margin))
+        # it ends no closer to a limit than the transform's own clipping margin (or where it
+        # started, if closer): a stepper restarted from the stopped reference then starts
+        # exactly there (no clip, no jump)
+        edge = math.atanh(1.0 - transform.margin)
+        self.xi_max = [min(XI_SAT, max(edge, abs(x))) for x in self.xi0]
 
     def advance(self, dt: float, y: List[float], yd: List[float], ydd: List[float]) -> bool:
         """Advance by dt and write the state into y, yd, ydd; True once at rest."""
@@ -135,12 +143,14 @@ class SmoothStop:
         T = self.duration
         s = min(self.t / T, 1.0)
         H, h, hp = _H(s), _h(s), 6.0 * s * (s - 1.0)
-        xi_max = self.xi_max
-        for d, (xi0, v0) in enumerate(zip(self.xi0, self.xid0)):
+        for d, (xi0, v0, xi_max) in enumerate(zip(self.xi0, self.xid0, self.xi_max)):
             xi = xi0 + v0 * T * H
-            xi = xi_max if xi > xi_max else (-xi_max if xi < -xi_max else xi)
-            xid = v0 * h
-            xidd = v0 * hp / T
+            if -xi_max <= xi <= xi_max:
+                xid = v0 * h
+                xidd = v0 * hp / T
+            else:  # held at the edge: at rest there
+                xi = xi_max if xi > 0.0 else -xi_max
+                xid = xidd = 0.0
             t = math.tanh(xi)
             de = self.ydel[d]
             sech2 = 1.0 - t * t
@@ -286,11 +296,15 @@ class ReferenceStreamer:
         obstacles, :class:`~cdmp_ros.core.streaming.selection.Decision`): while running, its
         stepper starts at the current phase (``DmpStepper.reset(phase_u=...)``) instead of
         restarting the motion at phase 0, which would replay the whole movement from wherever
-        the arm is.
+        the arm is. The forcing term then scales from the new primitive's own start, so that
+        from the current state the rest of *its* trajectory (the adapted mean the adapter
+        checked) is followed, the difference decaying through the attractor.
         """
         phase = 0.0
-        if continues and self.state is StreamState.RUNNING and self.active is not None:
-            phase = float(self.active.stepper.output.u)
+        if continues and self.state is StreamState.RUNNING and self._last is not None:
+            # the stepper that runs (``active`` may be one stored while inputs were stale);
+            # not running (stopping, holding): the motion restarts at phase 0
+            phase = float(self._last.stepper.output.u)
         self.active = prepared
         if self.state is StreamState.WAITING and self.config.joint_states_timeout == 0:
             self._set_reference(prepared.prim.start_y_, np.zeros(self.n_dims))
