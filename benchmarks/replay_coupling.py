@@ -45,8 +45,7 @@ from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance  # noqa: E402
 from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
 from cdmp_ros.cli.cmd_bringup import load_graph  # noqa: E402
-from cdmp_ros.ros.robot_model import default_urdf_path  # noqa: E402
-from cdmp_ros.core.kinematics.capsules import collision_capsules  # noqa: E402
+from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules  # noqa: E402
 from cdmp_ros.core.coupling.terms import DampingConfig  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
@@ -79,7 +78,7 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     from cdmp_ros.ros.convert import ObstacleSet
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
                               coupling_max_acceleration=bound)
-    capsules = collision_capsules(default_urdf_path(), cfg.coupling_capsule_links)
+    capsules = load_collision_capsules('', cfg.coupling_capsule_links, chain=chain)
     coupling = streamer_coupling(chain, cfg, configs['coupling'], damping=configs['damping'],
                                  repeller=configs['repeller'], capsules=capsules)
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)

@@ -828,10 +828,9 @@ def _settle(epsilon, seconds=15.0):
     replay = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(replay)
     from cdmp_ros.core.kinematics import panda_chain
-    from cdmp_ros.core.kinematics.capsules import collision_capsules
     from cdmp_ros.core.kinematics.closest import Sphere
     from cdmp_ros.core.streaming.streamer import streamer_coupling
-    from cdmp_ros.ros.robot_model import default_urdf_path
+    from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules
     with open(os.path.join(here, 'data', 'limit_cycle.json')) as f:
         fix = json.load(f)
     configs = replay.graph_configs(os.path.join(here, '..', 'config', 'graphs', 'demo.yaml'), {})
@@ -840,7 +839,7 @@ def _settle(epsilon, seconds=15.0):
     damping = dataclasses.replace(configs['damping'], epsilon=epsilon)
     coupling = streamer_coupling(
         chain, cfg, configs['coupling'], damping=damping, repeller=configs['repeller'],
-        capsules=collision_capsules(default_urdf_path(), cfg.coupling_capsule_links))
+        capsules=load_collision_capsules('', cfg.coupling_capsule_links, chain=chain))
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
     prep = prepare_primitive(json.dumps(fix['primitive']), chain.joint_names, cfg.dt,
                              chain.lower, chain.upper, chain.velocity_limits)

@@ -32,8 +32,6 @@ without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kerne
 as the graph.
 """
 import contextlib
-import ctypes
-import ctypes.util
 import os
 import signal
 import subprocess
@@ -46,6 +44,7 @@ from typing import Dict, List, Optional, Sequence
 import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, prctl
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
@@ -303,20 +302,13 @@ class Bringup:
         return False
 
 
-#: prctl option that sends the calling process a signal when its parent dies (linux/prctl.h).
-PR_SET_PDEATHSIG = 1
-
-
 def _terminate_with_parent(parent_pid: int):
     """``preexec_fn`` of a graph's node: SIGTERM to the node when the launching process dies,
     however it dies (SIGKILL, a crash: no ``finally`` runs then, and each node has its own
     session, so nothing else would stop it). Linux only; elsewhere a no-op. If the parent
     already died before the call, the child exits at once."""
     def preexec():
-        try:
-            libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-        except (OSError, AttributeError):
+        if not prctl(PR_SET_PDEATHSIG, signal.SIGTERM):
             return
         if os.getppid() != parent_pid:  # the parent died between fork and prctl
             os._exit(1)

@@ -84,9 +84,9 @@ from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
-#: Diagnostics keys describing the last result (replaced as a whole by the next one).
 #: Triggers whose adaptation reshapes the running motion (Provenance.continues).
 CONTINUING_TRIGGERS = ('obstacles', 'constraints')
+#: Diagnostics keys describing the last result (replaced as a whole by the next one).
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
                'kl', 'iterations', 'outer_iterations', 'obstacles_used', 'obstacles_ignored',
                'latency_ms')

@@ -118,9 +118,9 @@ class DemoDriver(Node):
         caps = collision_capsules(default_urdf_path(), ARM_LINKS)
         fingers = next(seg for seg in self.chain.link_segments() if seg[0] == 'panda_link7')
         caps.append(Capsule(fingers[0], fingers[1], fingers[2], FINGER_RADIUS))
-        self.capsules = caps
         self.capsule_ends = [PointOfInterest(c.link, c.start) for c in caps] + \
             [PointOfInterest(c.link, c.end) for c in caps]
+        self.capsule_radii = np.array([c.radius for c in caps])
         self.ee = [PointOfInterest('ee')]
         self.events = {}
         self.diagnostics = {}
@@ -196,15 +196,15 @@ class DemoDriver(Node):
 
     def _clear_of_arm(self, p) -> bool:
         """A sphere appearing at ``p`` would be clear of the arm: farther than
-        SPAWN_CLEARANCE from every capsule of ``self.capsules`` (they enclose the links'
-        collision meshes and the fingers). The first drop position lies above the path, where
-        the arm may still be; a sphere appearing inside the arm is not this demo's scenario
-        (and made the streamer's coupling jump the reference, a defect of its own)."""
-        n = len(self.capsules)
+        SPAWN_CLEARANCE from the capsules around the collision meshes of ARM_LINKS and around
+        the fingers. The first drop position lies above the path, where the arm may still be;
+        a sphere appearing inside the arm is not this demo's scenario (and made the streamer's
+        coupling jump the reference, a defect of its own)."""
+        n = len(self.capsule_radii)
         ends = self.chain.forward(self.ref[0], self.capsule_ends)
-        _, d, _, _ = segment_sphere(ends[:n], ends[n:], p, self.args.radius)
-        radii = np.array([c.radius for c in self.capsules])
-        return float((d - radii).min()) > SPAWN_CLEARANCE
+        _, d, _, _ = segment_sphere(ends[:n], ends[n:], p, self.args.radius,
+                                    self.capsule_radii)
+        return float(d.min()) > SPAWN_CLEARANCE
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)

@@ -24,8 +24,6 @@ The helpers allocate nothing per period: :meth:`DeadlineSleeper.sleep_until` is 
 ``time.sleep`` (``clock_nanosleep`` on CLOCK_MONOTONIC in CPython >= 3.11) or a timed
 ``Lock.acquire`` (``sem_clockwait`` on CLOCK_MONOTONIC) when a wake-up lock is given.
 """
-import ctypes
-import ctypes.util
 import os
 import threading
 import time
@@ -33,13 +31,10 @@ from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Tuple
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.prctl import PR_SET_TIMERSLACK, prctl
 
-#: prctl option number of PR_SET_TIMERSLACK (linux/prctl.h).
-PR_SET_TIMERSLACK = 29
 #: Highest SCHED_FIFO priority accepted (Linux: 1..99).
 MAX_PRIORITY = 99
-
-_libc = None
 
 
 @dataclass(frozen=True)
@@ -79,18 +74,6 @@ def check_priority(name: str, priority: int) -> int:
         raise ValidationError(f'{name}: expected an int in [0, {MAX_PRIORITY}] '
                               f'(0 = normal scheduling), got {priority!r}')
     return priority
-
-
-def prctl(option: int, arg: int) -> bool:
-    """``prctl(option, arg, 0, 0, 0)`` for the calling thread/process (Linux); False when
-    prctl is unavailable or refuses. Never raises."""
-    global _libc
-    try:
-        if _libc is None:
-            _libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-        return _libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
 
 
 def set_timer_slack(ns: int) -> bool:

@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.closest import segment_sphere
 from cdmp_ros.core.kinematics.urdf import rpy_to_matrix
 
 Vec3 = Tuple[float, float, float]
@@ -58,12 +59,7 @@ class Capsule:
     def distance(self, points: NDArray) -> NDArray:
         """Distance [m] of ``points`` (..., 3), in the link frame, to the capsule's surface
         (negative inside)."""
-        a, b = np.asarray(self.start), np.asarray(self.end)
-        u = b - a
-        uu = float(u @ u)
-        p = np.asarray(points, dtype=np.float64)
-        t = np.zeros(p.shape[:-1]) if uu == 0.0 else np.clip((p - a) @ u / uu, 0.0, 1.0)
-        return np.linalg.norm(p - a - t[..., None] * u, axis=-1) - self.radius
+        return segment_sphere(self.start, self.end, points, 0.0, self.radius)[1]
 
 
 def _enclose(X, rho, axis, c):

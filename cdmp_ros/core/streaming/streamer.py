@@ -428,11 +428,10 @@ class ReferenceStreamer:
         primitive limit went past it, and the next start clipped the reference back in one
         tick (0.057 rad seen in a demo)."""
         prim = self.active.prim if self.active is not None else None
-        transform = getattr(prim, 'transform', None)
-        if getattr(prim, 'kind', None) == 'cdmp' and isinstance(transform, TanhTransform):
+        if prim is not None and prim.kind == 'cdmp':
             y = np.asarray(self.y)
             if np.all(y > prim.y_min) and np.all(y < prim.y_max):
-                return transform
+                return prim.transform
         return self.transform
 
     def _hold(self) -> None:
