@@ -258,3 +258,53 @@ def test_mcap_library_reads_our_files_with_indexes_and_crcs(tmp_path):
         n = sum(1 for r in StreamReader(f, validate_crcs=True).records
                 if type(r).__name__ == 'Message')
     assert n == 55
+
+
+def _write_from_two_threads(bag: str) -> int:
+    """Messages and chunk flushes from one thread while another registers 60 topics (what the
+    recorder does: its take thread writes, its executor thread's discovery adds topics), with
+    the interpreter switching threads every microsecond so that the two interleave."""
+    import threading
+    w = BagWriter(bag, chunk_size=4096, flush_period=0)
+    w.add_topic('/joint_states', 'sensor_msgs/msg/JointState')
+    data = encode_joint_state(1, ['a', 'b'], [0.1, 0.2], [0.0, 0.0])
+    start = threading.Barrier(2)
+
+    def add_topics():
+        start.wait()
+        for i in range(60):
+            w.add_topic(f'/late_{i}', 'std_msgs/msg/String')
+
+    adder = threading.Thread(target=add_topics)
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        adder.start()
+        start.wait()
+        n = 0
+        while adder.is_alive() or n < 2000:
+            w.write('/joint_states', data, 1000 + n)
+            n += 1
+            if n % 7 == 0:
+                w.flush()
+        adder.join()
+    finally:
+        sys.setswitchinterval(old)
+    w.close()
+    return n
+
+
+def test_topics_registered_while_another_thread_writes_keep_the_file_valid(tmp_path):
+    """CI once read a demo bag whose data-section CRC did not match: the recorder's discovery
+    wrote Channel records while its take thread wrote chunks.  The writer's lock serialises
+    them; every CRC, the footer and the message count must hold."""
+    from mcap.stream_reader import StreamReader
+    for k in range(3):
+        bag = str(tmp_path / f'b{k}')
+        n = _write_from_two_threads(bag)
+        infos = BagReader(bag).verify()
+        assert infos['/joint_states'].message_count == n
+        assert len(infos) == 61
+        with open(os.path.join(bag, f'b{k}_0.mcap'), 'rb') as f:
+            assert sum(1 for r in StreamReader(f, validate_crcs=True).records
+                       if type(r).__name__ == 'Message') == n

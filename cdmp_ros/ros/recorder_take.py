@@ -8,9 +8,9 @@ the take or the write, dominates the recorder's CPU (measured in benchmarks/RESU
 ``period`` seconds (default 5 ms, i.e. 200 wake-ups/s whatever the message rate) and takes
 everything queued in the DDS readers with ``take_message(raw=True)``, writing each serialized
 message straight into the :class:`~cdmp_ros.bag.BagWriter`.  Messages wait at most ``period``
-in the DDS reader's history (depth ``queue_depth`` per topic, ~100 messages at 20 kHz), and the
-thread is the only writer of the bag while it runs, so no lock and no per-message queue is
-needed.  The subscriptions belong to a callback group the executor never waits on
+in the DDS reader's history (depth ``queue_depth`` per topic, ~100 messages at 20 kHz), with no
+per-message queue.  The executor thread still registers topics it discovers while this thread
+writes; the :class:`~cdmp_ros.bag.BagWriter`'s lock keeps the two apart.  The subscriptions belong to a callback group the executor never waits on
 (:class:`ThreadTakenGroup`), so the executor does not compete for their messages.
 
 Optionally (``priority`` > 0) the take thread, the main (executor) thread and the process's
@@ -78,7 +78,8 @@ class TakeThread:
     Parameters
     ----------
     writer : cdmp_ros.bag.BagWriter
-        Written only by this thread while it runs (and by :meth:`drain` after :meth:`stop`).
+        Messages are written by this thread while it runs (and by :meth:`drain` after
+        :meth:`stop`); topics are added by the executor thread (the writer locks).
     period : float
         Seconds between two drains (> 0).
     priority : int
