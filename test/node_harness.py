@@ -183,6 +183,7 @@ class NodeHarness:
         self.lock = threading.Lock()
         self.diag_messages: List[Diag] = []
         self.pub: Dict[str, object] = {}
+        self._matched = set()  # topics whose publisher was seen matched (see publish)
         if diagnostics is not None:
             from diagnostic_msgs.msg import DiagnosticArray
             self.node.create_subscription(DiagnosticArray, diagnostics, self._on_diag,
@@ -241,7 +242,14 @@ class NodeHarness:
                            getattr(qos, profile))
 
     def publish(self, topic: str, msg) -> None:
-        self.pub[topic].publish(msg)
+        """Publish on ``topic``; the first time, after the publisher matched a subscription
+        (up to WAIT_S): a one-shot message on a volatile topic published before the node's
+        reader is discovered would be lost, and the test would wait for nothing."""
+        pub = self.pub[topic]
+        if topic not in self._matched:
+            wait_matched(pub)
+            self._matched.add(topic)
+        pub.publish(msg)
 
     def subscribe(self, msg_type, topic: str, callback: Callable, qos=None, raw: bool = False):
         """A subscription (default QoS reliable keep-last 1000: lose nothing)."""

@@ -199,3 +199,25 @@ def test_a_killed_bringup_takes_its_nodes_with_it(tmp_path):
             except ProcessLookupError:
                 pass
     assert not alive and len(gone) == 2, (gone, alive)
+
+
+def test_the_node_preexec_loads_nothing_in_the_child(monkeypatch):
+    """The ``preexec_fn`` runs in the child of a multi-threaded parent (the output pumps),
+    where loading a library may deadlock (``find_library`` even starts ``ldconfig``): the
+    parent loads the C library when it makes the function, so the child only calls prctl."""
+    import cdmp_ros.core.prctl as prctl_mod
+    from cdmp_ros.cli.cmd_bringup import _terminate_with_parent
+    monkeypatch.setattr(prctl_mod, '_libc', None)
+    preexec = _terminate_with_parent(os.getpid())
+    assert prctl_mod._libc and hasattr(prctl_mod._libc, 'prctl')
+    loaded = prctl_mod._libc
+
+    def no_loading(*a, **k):
+        raise AssertionError('a library was loaded in the child')
+    monkeypatch.setattr(prctl_mod.ctypes, 'CDLL', no_loading)
+    monkeypatch.setattr(prctl_mod.ctypes.util, 'find_library', no_loading)
+    assert prctl_mod.load() and prctl_mod._libc is loaded
+    # a real child (fork copies the patched module: loading there would raise in preexec_fn)
+    r = subprocess.run([sys.executable, '-c', 'import os; print(os.getppid())'],
+                       preexec_fn=preexec, capture_output=True, text=True, timeout=WAIT_S)
+    assert r.returncode == 0 and int(r.stdout) == os.getpid(), r

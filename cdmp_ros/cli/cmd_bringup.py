@@ -45,6 +45,7 @@ import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, prctl
+from cdmp_ros.core.prctl import load as prctl_load
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
@@ -306,7 +307,10 @@ def _terminate_with_parent(parent_pid: int):
     """``preexec_fn`` of a graph's node: SIGTERM to the node when the launching process dies,
     however it dies (SIGKILL, a crash: no ``finally`` runs then, and each node has its own
     session, so nothing else would stop it). Linux only; elsewhere a no-op. If the parent
-    already died before the call, the child exits at once."""
+    already died before the call, the child exits at once. The C library is loaded here, in
+    the parent: the child of a multi-threaded parent must not load libraries."""
+    prctl_load()
+
     def preexec():
         if not prctl(PR_SET_PDEATHSIG, signal.SIGTERM):
             return

@@ -276,10 +276,16 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
             if driver.poll() is None:
                 raise CdmpError(f'demo: the driver did not finish within {timeout + 30:.0f} s')
         finally:
-            if driver is not None and driver.poll() is None:
-                driver.terminate()
-                driver.wait(timeout=10)
-            codes = b.stop()
+            try:
+                if driver is not None and driver.poll() is None:
+                    driver.terminate()
+                    try:
+                        driver.wait(timeout=10)
+                    except subprocess.TimeoutExpired:
+                        driver.kill()
+                        driver.wait()
+            finally:
+                codes = b.stop()  # the graph stops whatever happened to the driver
     log.write(f'demo: graph stopped ({codes}); {time.monotonic() - t_start:.1f} s\n')
     if driver.returncode != 0:
         raise CdmpError(f'demo: the scripted run failed (exit code {driver.returncode}); see '

@@ -12,13 +12,31 @@ PR_SET_TIMERSLACK = 29
 _libc = None
 
 
+def load() -> bool:
+    """Load the C library now (idempotent); True if it has ``prctl``.
+
+    Call it in a parent before forking: a ``preexec_fn`` runs in the child of a possibly
+    multi-threaded parent, where loading a library (``find_library`` even starts
+    ``ldconfig``) may deadlock; after this the child only makes the call."""
+    global _libc
+    if _libc is None:
+        try:
+            _libc = ctypes.CDLL('libc.so.6', use_errno=True)
+        except OSError:
+            try:
+                _libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6',
+                                    use_errno=True)
+            except OSError:
+                _libc = False
+    return bool(_libc) and hasattr(_libc, 'prctl')
+
+
 def prctl(option: int, arg: int) -> bool:
     """``prctl(option, arg, 0, 0, 0)`` for the calling thread/process; False when prctl is
     unavailable (not Linux) or refuses. Never raises."""
-    global _libc
     try:
-        if _libc is None:
-            _libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+        if not load():
+            return False
         return _libc.prctl(option, ctypes.c_ulong(arg), 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False

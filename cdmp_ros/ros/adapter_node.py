@@ -451,8 +451,10 @@ class AdapterNode(Node):
         self._publish_now()
 
     def close(self) -> None:
-        """Stop the solver thread; a running solve is cancelled within one evaluation."""
+        """Stop the solver thread; a running solve is cancelled within one evaluation of the
+        Lagrangian, but a problem being built or a sampled verification runs to its end (under
+        a second of CPU; the join allows 10 s for a loaded machine)."""
         self.worker.stop()
-        self.worker.join(timeout=1.0)
-        if self.worker.is_alive():  # still building a problem: a daemon thread, left behind
+        self.worker.join(timeout=10.0)
+        if self.worker.is_alive():  # stuck: a daemon thread, left behind
             print('[adapter] solver thread still busy at shutdown', flush=True)

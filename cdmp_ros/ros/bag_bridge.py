@@ -189,12 +189,16 @@ class RecorderNode(Node):
         if self._closed:
             return
         self._closed = True
+        drain = True
         if self._taker is not None:
-            self._taker.stop()
+            drain = self._taker.stop()
             if self._taker.error is not None:
                 print(f'[recorder] take thread stopped: {self._taker.error!r}', flush=True)
+            if not drain:
+                print('[recorder] take thread still running after 10 s: closing the bag '
+                      'without the final drain', flush=True)
         for topic, sub in self._subs.items():
-            if sub is None:
+            if sub is None or not drain:
                 continue
             try:
                 with sub.handle:
@@ -232,7 +236,9 @@ class PlayerNode(Node):
     wait_for_subscribers : int
         Before playing, wait until every publisher has at least this many subscribers.
     wait_timeout : float
-        Longest wait for those subscribers (s); then play anyway.
+        Longest wait for those subscribers (s), then play anyway; and, after the last
+        message, longest wait for each publisher's reliable subscribers to acknowledge
+        every sample.
     start_delay : float
         Seconds to wait before the first message (lets late subscribers match).
     """
@@ -248,7 +254,8 @@ class PlayerNode(Node):
         self.clock = _describe(self, 'clock', False, 'publish /clock')
         self.wait_subs = _describe(self, 'wait_for_subscribers', 0,
                                    'subscribers each publisher waits for')
-        self.wait_timeout = _describe(self, 'wait_timeout', 10.0, 'subscriber wait limit (s)')
+        self.wait_timeout = _describe(self, 'wait_timeout', 10.0, 'subscriber wait limit, '
+                                      'and acknowledgement wait at the end (s)')
         self.start_delay = _describe(self, 'start_delay', 0.0, 'delay before playing (s)')
         self.exit_code = 0
         self._done = False
@@ -299,6 +306,7 @@ class PlayerNode(Node):
                 self._play_once()
                 if not self.loop or self._stop.is_set():
                     break
+            self._wait_acked()
         except BagError as exc:
             self.get_logger().error(f'playback stopped: {exc}')
             self.exit_code = 1
@@ -308,6 +316,18 @@ class PlayerNode(Node):
                 self.exit_code = 1
         finally:
             self._done = True
+
+    def _wait_acked(self) -> None:
+        """Before the node ends: every reliable subscriber has acknowledged every sample
+        (destroying a writer drops what a slow reader has not received yet), each publisher
+        waiting at most ``wait_timeout``."""
+        from rclpy.duration import Duration
+        for name, pub in self.pubs.items():
+            if self._stop.is_set():
+                return
+            if not pub.wait_for_all_acked(Duration(seconds=self.wait_timeout)):
+                self.get_logger().warning(f'{name}: not every sample was acknowledged within '
+                                          f'{self.wait_timeout} s')
 
     def _wait_for_subscribers(self) -> None:
         if self.wait_subs <= 0:

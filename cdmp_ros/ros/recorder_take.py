@@ -112,11 +112,13 @@ class TakeThread:
     def start(self) -> None:
         self._thread.start()
 
-    def stop(self) -> None:
-        """Stop the thread and wait for it (the caller then drains once more)."""
+    def stop(self) -> bool:
+        """Stop the thread and wait for it (up to 10 s); True when it ended (the caller then
+        drains once more; never while it runs: two drains of one reader reorder messages)."""
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=10.0)
+        return not self._thread.is_alive()
 
     def drain(self) -> int:
         """Take and write every queued message of every subscription; returns the count."""
