@@ -10,8 +10,9 @@ everything queued in the DDS readers with ``take_message(raw=True)``, writing ea
 message straight into the :class:`~cdmp_ros.bag.BagWriter`.  Messages wait at most ``period``
 in the DDS reader's history (depth ``queue_depth`` per topic, ~100 messages at 20 kHz), with no
 per-message queue.  The executor thread still registers topics it discovers while this thread
-writes; the :class:`~cdmp_ros.bag.BagWriter`'s lock keeps the two apart.  The subscriptions belong to a callback group the executor never waits on
-(:class:`ThreadTakenGroup`), so the executor does not compete for their messages.
+writes; the :class:`~cdmp_ros.bag.BagWriter`'s lock keeps the two apart.  The subscriptions
+belong to a callback group the executor never waits on (:class:`ThreadTakenGroup`), so the
+executor does not compete for their messages.
 
 Optionally (``priority`` > 0) the take thread, the main (executor) thread and the process's
 Fast DDS receive threads (``dds.shm.*``, ``dds.udp.*``) run under SCHED_FIFO, through
