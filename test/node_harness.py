@@ -242,12 +242,15 @@ class NodeHarness:
                            getattr(qos, profile))
 
     def publish(self, topic: str, msg) -> None:
-        """Publish on ``topic``; the first time, after the publisher matched a subscription
-        (up to WAIT_S): a one-shot message on a volatile topic published before the node's
-        reader is discovered would be lost, and the test would wait for nothing."""
+        """Publish on ``topic``; on a volatile topic the first time only after the publisher
+        matched a subscription (up to WAIT_S): a one-shot message published before the node's
+        reader is discovered would be lost, and the test would wait for nothing. A
+        transient-local (latched) message reaches late readers anyway: no wait."""
+        from rclpy.qos import DurabilityPolicy
         pub = self.pub[topic]
         if topic not in self._matched:
-            wait_matched(pub)
+            if pub.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL:
+                wait_matched(pub)
             self._matched.add(topic)
         pub.publish(msg)
 
