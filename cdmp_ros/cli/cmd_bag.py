@@ -44,7 +44,9 @@ def add_arguments(parser):
                    help='wait (up to --wait-timeout s) until every topic has N subscribers')
     p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
                    help='longest wait for the subscribers of --wait-for-subscribers, s '
-                        '(default 10); then the player warns and plays anyway')
+                        '(default 10); then the player warns and plays anyway. Also the '
+                        'longest wait after the last message for reliable subscribers to '
+                        'acknowledge every sample')
     p.add_argument('--start-delay', type=float, default=0.0, help='seconds before playing')
     p.set_defaults(_bag=_play)
 
