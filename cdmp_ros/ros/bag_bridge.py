@@ -319,15 +319,19 @@ class PlayerNode(Node):
 
     def _wait_acked(self) -> None:
         """Before the node ends: every reliable subscriber has acknowledged every sample
-        (destroying a writer drops what a slow reader has not received yet), each publisher
-        waiting at most ``wait_timeout``."""
+        (destroying a writer drops what a slow reader has not received yet), all publishers
+        together waiting at most ``wait_timeout``."""
         from rclpy.duration import Duration
+        deadline = time.monotonic() + self.wait_timeout
         for name, pub in self.pubs.items():
-            if self._stop.is_set():
-                return
-            if not pub.wait_for_all_acked(Duration(seconds=self.wait_timeout)):
-                self.get_logger().warning(f'{name}: not every sample was acknowledged within '
-                                          f'{self.wait_timeout} s')
+            # in 0.1 s slices: a stop request (close) is honoured within 0.1 s
+            while not pub.wait_for_all_acked(Duration(seconds=0.1)):
+                if self._stop.is_set():
+                    return
+                if time.monotonic() > deadline:
+                    self.get_logger().warning(f'{name}: not every sample was acknowledged '
+                                              f'within {self.wait_timeout} s')
+                    break
 
     def _wait_for_subscribers(self) -> None:
         if self.wait_subs <= 0:
