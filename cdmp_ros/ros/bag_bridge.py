@@ -237,8 +237,8 @@ class PlayerNode(Node):
         Before playing, wait until every publisher has at least this many subscribers.
     wait_timeout : float
         Longest wait for those subscribers (s), then play anyway; and, after the last
-        message, longest wait for each publisher's reliable subscribers to acknowledge
-        every sample.
+        message, longest wait (all publishers together) for the reliable subscribers to
+        acknowledge every sample.
     start_delay : float
         Seconds to wait before the first message (lets late subscribers match).
     """
