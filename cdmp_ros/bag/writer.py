@@ -129,34 +129,31 @@ class BagWriter:
         ``schema=''`` is passed explicitly.
         """
         with self._lock:
-            return self._add_topic(topic, type_name, qos_profiles, type_description_hash,
-                                   schema)
-
-    def _add_topic(self, topic, type_name, qos_profiles, type_description_hash, schema) -> int:
-        self._check_open()
-        if topic in self._channel:
-            if self._topics[topic].type != normalize_type(type_name):
-                raise BagError(f'topic {topic}: already recorded as {self._topics[topic].type}, '
-                               f'got {type_name}')
-            return self._channel[topic]
-        type_name = normalize_type(type_name)
-        if type_name not in self._schemas:
-            text = schema_text(type_name) if schema is None else schema
-            sid = len(self._schemas) + 1
-            self._mcap.add_schema(sid, type_name, 'ros2msg', text.encode('utf-8'))
-            self._schemas[type_name] = sid
-        qos = list(qos_profiles) if qos_profiles is not None else [qos_dict()]
-        thash = type_description_hash or type_hash(type_name) or ''
-        meta = {'offered_qos_profiles': dump_qos(qos)}
-        if thash:
-            meta['topic_type_hash'] = thash
-        cid = len(self._channel) + 1
-        self._mcap.add_channel(cid, self._schemas[type_name], topic, 'cdr', meta)
-        self._channel[topic] = cid
-        self._seq[cid] = 0
-        self._topics[topic] = TopicInfo(name=topic, type=type_name, offered_qos_profiles=qos,
-                                        type_description_hash=thash)
-        return cid
+            self._check_open()
+            if topic in self._channel:
+                if self._topics[topic].type != normalize_type(type_name):
+                    raise BagError(f'topic {topic}: already recorded as '
+                                   f'{self._topics[topic].type}, got {type_name}')
+                return self._channel[topic]
+            type_name = normalize_type(type_name)
+            if type_name not in self._schemas:
+                text = schema_text(type_name) if schema is None else schema
+                sid = len(self._schemas) + 1
+                self._mcap.add_schema(sid, type_name, 'ros2msg', text.encode('utf-8'))
+                self._schemas[type_name] = sid
+            qos = list(qos_profiles) if qos_profiles is not None else [qos_dict()]
+            thash = type_description_hash or type_hash(type_name) or ''
+            meta = {'offered_qos_profiles': dump_qos(qos)}
+            if thash:
+                meta['topic_type_hash'] = thash
+            cid = len(self._channel) + 1
+            self._mcap.add_channel(cid, self._schemas[type_name], topic, 'cdr', meta)
+            self._channel[topic] = cid
+            self._seq[cid] = 0
+            self._topics[topic] = TopicInfo(name=topic, type=type_name,
+                                            offered_qos_profiles=qos,
+                                            type_description_hash=thash)
+            return cid
 
     @property
     def topics(self) -> Dict[str, TopicInfo]:
@@ -168,30 +165,26 @@ class BagWriter:
               publish_time_ns: Optional[int] = None) -> None:
         """Append one serialized (CDR) message of a registered topic."""
         with self._lock:
-            self._write(topic, data, log_time_ns, publish_time_ns)
-
-    def _write(self, topic: str, data: bytes, log_time_ns: int,
-               publish_time_ns: Optional[int]) -> None:
-        cid = self._channel.get(topic)
-        if cid is None:
-            self._check_open()
-            raise BagError(f'topic: {topic!r} is not registered (call add_topic first)')
-        seq = self._seq[cid] + 1
-        self._seq[cid] = seq
-        self._mcap.add_message(cid, seq, log_time_ns,
-                               log_time_ns if publish_time_ns is None else publish_time_ns, data)
-        self._topics[topic].message_count += 1
-        self._count += 1
-        if self._t_min is None or log_time_ns < self._t_min:
-            self._t_min = log_time_ns
-        if self._t_max is None or log_time_ns > self._t_max:
-            self._t_max = log_time_ns
-        if self.flush_period:
-            now = time.monotonic()
-            if self._chunk_started is None:
-                self._chunk_started = now
-            elif now - self._chunk_started >= self.flush_period:
-                self._flush()
+            cid = self._channel.get(topic)
+            if cid is None:
+                self._check_open()
+                raise BagError(f'topic: {topic!r} is not registered (call add_topic first)')
+            seq = self._seq[cid] + 1
+            self._seq[cid] = seq
+            self._mcap.add_message(cid, seq, log_time_ns, log_time_ns if publish_time_ns is None
+                                   else publish_time_ns, data)
+            self._topics[topic].message_count += 1
+            self._count += 1
+            if self._t_min is None or log_time_ns < self._t_min:
+                self._t_min = log_time_ns
+            if self._t_max is None or log_time_ns > self._t_max:
+                self._t_max = log_time_ns
+            if self.flush_period:
+                now = time.monotonic()
+                if self._chunk_started is None:
+                    self._chunk_started = now
+                elif now - self._chunk_started >= self.flush_period:
+                    self._flush()
 
     def flush(self) -> None:
         """Close the open chunk and hand all written bytes to the kernel (crash safety)."""

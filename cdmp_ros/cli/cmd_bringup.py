@@ -44,8 +44,7 @@ from typing import Dict, List, Optional, Sequence
 import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, prctl
-from cdmp_ros.core.prctl import load as prctl_load
+from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')

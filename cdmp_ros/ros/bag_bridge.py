@@ -22,7 +22,8 @@ from cdmp_ros.bag.schemas import normalize_type
 from cdmp_ros.ros.qos import (RECORDER_DEPTH, adapted_subscription_profile, playback_profile,
                               profile_to_dict)
 from cdmp_ros.ros.realtime import check_priority
-from cdmp_ros.ros.recorder_take import TakeThread, ThreadTakenGroup
+from cdmp_ros.ros.recorder_take import (TakeThread, ThreadTakenGroup, drain_subscription,
+                                        write_taken)
 
 #: Topics left out when recording "all" topics (rclpy's own plumbing).
 HIDDEN_TOPICS = ('/rosout', '/parameter_events')
@@ -165,23 +166,14 @@ class RecorderNode(Node):
         holder: List = []
 
         def on_message(data: bytes, info: dict) -> None:
-            self._record(topic, data, info)
-            sub = holder[0]
-            with sub.handle:  # drain what else is queued: one executor round per batch
-                while True:
-                    taken = sub.handle.take_message(sub.msg_type, True)
-                    if taken is None:
-                        break
-                    self._record(topic, taken[0], taken[1])
+            write_taken(self.writer.write, topic, data, info)
+            # drain what else is queued: one executor round per batch
+            drain_subscription(topic, holder[0], self.writer.write)
 
         sub = self.create_subscription(cls, topic, on_message, qos, raw=True)
         holder.append(sub)
         self._subs[topic] = sub
         self.get_logger().info(f'subscribed to {topic} [{type_name}]')
-
-    def _record(self, topic: str, data: bytes, info: dict) -> None:
-        recv = info.get('received_timestamp') or time.time_ns()
-        self.writer.write(topic, data, recv, info.get('source_timestamp') or recv)
 
     # -- shutdown --------------------------------------------------------------------------
     def close(self) -> None:
@@ -197,16 +189,11 @@ class RecorderNode(Node):
             if not drain:
                 print('[recorder] take thread still running after 10 s: closing the bag '
                       'without the final drain', flush=True)
-        for topic, sub in self._subs.items():
-            if sub is None or not drain:
+        for topic, sub in (self._subs.items() if drain else ()):
+            if sub is None:
                 continue
             try:
-                with sub.handle:
-                    while True:
-                        taken = sub.handle.take_message(sub.msg_type, True)
-                        if taken is None:
-                            break
-                        self._record(topic, taken[0], taken[1])
+                drain_subscription(topic, sub, self.writer.write)
             except Exception:  # context already down: nothing more can be taken
                 pass
         meta = self.writer.close()

@@ -73,6 +73,30 @@ def set_fifo(tids: List[int], priority: int) -> str:
     return f'SCHED_FIFO refused for DDS threads {", ".join(refused)}' if refused else ''
 
 
+def write_taken(write: Callable, topic: str, data: bytes, info: dict) -> None:
+    """``write(topic, data, log_time, publish_time)`` of one taken raw message: log time = its
+    receive time (now if the middleware gives none), publish time = its source time (else the
+    log time)."""
+    recv = info.get('received_timestamp') or time.time_ns()
+    write(topic, data, recv, info.get('source_timestamp') or recv)
+
+
+def drain_subscription(topic: str, sub, write: Callable) -> int:
+    """Take every message queued in raw subscription ``sub`` of ``topic`` and pass each to
+    :func:`write_taken`; returns the count."""
+    handle = sub.handle
+    take = handle.take_message
+    msg_type = sub.msg_type
+    n = 0
+    with handle:
+        while True:
+            taken = take(msg_type, True)
+            if taken is None:
+                return n
+            write_taken(write, topic, taken[0], taken[1])
+            n += 1
+
+
 class TakeThread:
     """Drain raw subscriptions into a bag writer every ``period`` seconds.
 
@@ -123,23 +147,8 @@ class TakeThread:
 
     def drain(self) -> int:
         """Take and write every queued message of every subscription; returns the count."""
-        n = 0
         write = self.writer.write
-        now = time.time_ns
-        for topic, sub in self._subs:
-            handle = sub.handle
-            take = handle.take_message
-            msg_type = sub.msg_type
-            with handle:
-                while True:
-                    taken = take(msg_type, True)
-                    if taken is None:
-                        break
-                    data, info = taken
-                    recv = info.get('received_timestamp') or now()
-                    write(topic, data, recv, info.get('source_timestamp') or recv)
-                    n += 1
-        return n
+        return sum(drain_subscription(topic, sub, write) for topic, sub in self._subs)
 
     def _run(self) -> None:
         if self.priority > 0:
