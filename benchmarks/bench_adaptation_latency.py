@@ -2,18 +2,18 @@
 
 Issue 13 item 1. Starts the adapter (``config/adapter.yaml``) and the streamer
 (``config/streamer.yaml``) as two processes; this process is the user and the robot: it
-publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_states`` at 50 Hz,
-then ``--n`` obstacle events, one at a time: a MarkerArray of ``--spheres`` spheres (default 3,
-radius 5-10 cm; near the prior mean end-effector path, the last near the elbow path, as
-panda_problem), each event placing every sphere N(0, 2 cm) around its place, so the adapter
-re-solves the problem with limits and the spheres on the end effector and panda_link4,
-conditioned on the current joint_states. ``--robot start`` (default): before each event the
-joint_states move to that event's start state, and spheres and start states are exactly the
-events of ``bench_adaptation_solve.py`` (same ``--seed``): the problems do not depend on what
-earlier events did, and the in-process figures of that benchmark are this one's solve part.
-``--robot echo``: the joint_states echo the last ``joint_reference`` (a perfect robot; the
-measurements before 2026-11-24 14:00 UTC), so each event starts where the earlier adaptations
-led and two code versions see different problems.
+publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_states`` at
+``--js-rate`` (50 Hz; the sim publishes 250 Hz), then ``--n`` obstacle events, one at a time: a
+MarkerArray of ``--spheres`` spheres (default 3, radius 5-10 cm; near the prior mean
+end-effector path, the last near the elbow path, as panda_problem), each event placing every
+sphere N(0, 2 cm) around its place, so the adapter re-solves the problem with limits and the
+spheres on the end effector and panda_link4, conditioned on the current joint_states. ``--robot
+start`` (default): before each event the joint_states move to that event's start state, and
+spheres and start states are exactly the events of ``bench_adaptation_solve.py`` (same
+``--seed``): the problems do not depend on what earlier events did, and the in-process figures
+of that benchmark are this one's solve part. ``--robot echo``: the joint_states echo the last
+``joint_reference`` (a perfect robot; the measurements before 2026-11-24 14:00 UTC), so each
+event starts where the earlier adaptations led and two code versions see different problems.
 
 For each event it records the latency from the obstacle stamp (= publish time, same host
 clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
@@ -37,8 +37,10 @@ import argparse
 import os
 import re
 import signal
+import struct
 import subprocess
 import sys
+import threading
 import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -55,24 +57,56 @@ SWITCH_LINE = re.compile(r'\[INFO\] \[(\d+)\.(\d+)\] \[streamer\]: adapted_primi
 
 
 class Robot(User):
-    """bench_adapter's user plus a joint_reference listener that echoes it as joint_states."""
+    """bench_adapter's user plus a joint_reference listener that echoes it as joint_states.
 
-    def __init__(self, domain):
-        super().__init__(domain)
+    The references (500 Hz) are taken by a thread every 10 ms, outside the executor: served
+    by the executor, they took about half a core of this process, which competed with the
+    nodes being measured. Only the stamp is read from each (CDR header); the newest is
+    deserialised when echoing."""
+
+    def __init__(self, domain, js_rate=50.0):
+        super().__init__(domain, js_rate)
+        import copy
         from sensor_msgs.msg import JointState
         from cdmp_ros.ros import qos
+        from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called
         self.refs = {}  # stamp ns -> receive time.monotonic()
         self.echo = True  # joint_states echo the references (--robot echo)
-        self.node.create_subscription(JointState, 'joint_reference', self._on_ref,
-                                      qos.REFERENCE)
+        profile = copy.copy(qos.REFERENCE)
+        profile.depth = 200  # 0.4 s of references between two takes at least
+        self._ref_sub = self.node.create_subscription(
+            JointState, 'joint_reference', never_called, profile,
+            callback_group=ThreadTakenGroup(), raw=True)
+        self._ref_thread = threading.Thread(target=self._take_refs, daemon=True)
+        self._ref_thread.start()
 
-    def _on_ref(self, msg):
-        t = time.monotonic()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        with self.lock:
-            self.refs[stamp] = t
-            if self.echo:
-                self.q = np.array(msg.position)
+    def _take_refs(self):
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import JointState
+        handle = self._ref_sub.handle
+        while not self.stop.wait(0.01):
+            taken = []
+            with handle:
+                while True:
+                    t = handle.take_message(JointState, True)
+                    if t is None:
+                        break
+                    taken.append(t)
+            if not taken:
+                continue
+            now_ns, now = time.time_ns(), time.monotonic()
+            with self.changed:
+                for data, info in taken:
+                    recv = info.get('received_timestamp') or now_ns
+                    self.refs[cdr_stamp_ns(data)] = now - max(0, now_ns - recv) * 1e-9
+                if self.echo:
+                    self.q = np.array(deserialize_message(taken[-1][0], JointState).position)
+                self.changed.notify_all()
+
+    def close(self):
+        self.stop.set()
+        self._ref_thread.join(5)
+        super().close()
 
     def streamer_state(self, since):
         with self.lock:
@@ -86,6 +120,12 @@ class Robot(User):
             m.id = i + 1
             ms.append(m)
         return MarkerArray(markers=ms)
+
+
+def cdr_stamp_ns(data):
+    """header.stamp [ns] of a serialized message whose first field is a std_msgs/Header."""
+    sec, nsec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def start(code, module, params_file, params, domain, log):
@@ -135,7 +175,7 @@ def run(args):
                    alog),
              start(code, 'cdmp_ros.nodes.streamer', 'streamer.yaml',
                    ['diagnostics_period:=0.1'] + args.streamer_param, args.domain, slog)]
-    user = Robot(args.domain)
+    user = Robot(args.domain, args.js_rate)
     rows = []
     try:
         user.q = prior.mean([0.0])[0]
@@ -172,7 +212,7 @@ def run(args):
                 radii = [ob.radius for ob in reqs[k].obstacles]
                 with user.lock:
                     user.q = np.array(reqs[k].start_y)
-                time.sleep(args.gap)  # joint_states (50 Hz) carry the new start to the adapter
+                time.sleep(args.gap)  # joint_states carry the new start to the adapter
             with user.lock:
                 n_a, n_s = len(user.adapted), len(user.states)
             n_sw = len(log_switches(slog_path))
@@ -251,6 +291,9 @@ def main():
     ap.add_argument('--spheres', type=int, default=3,
                     help='spheres per event (the last near the elbow path when > 1)')
     ap.add_argument('--gap', type=float, default=0.5, help='s between events')
+    ap.add_argument('--js-rate', type=float, default=50.0,
+                    help='Hz of the joint_states this process publishes (default 50; the sim '
+                         'publishes 250)')
     ap.add_argument('--robot', choices=('echo', 'start'), default='start',
                     help='joint_states: "start" (default) holds the robot at the start state '
                          'of each event of bench_adaptation_solve (prior mean at a phase in '

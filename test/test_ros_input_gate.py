@@ -141,12 +141,17 @@ class _Node:
     def __init__(self):
         import rclpy.clock
         self.subscriptions = {}
+        self.groups = {}
         self.clock = rclpy.clock.Clock()
         self.logged = []
 
-    def create_subscription(self, msg_type, topic, callback, qos, raw=False):
+    def create_subscription(self, msg_type, topic, callback, qos, raw=False,
+                            callback_group=None):
         assert raw, 'the gate must subscribe serialized messages'
         self.subscriptions[topic] = callback
+        if callback_group is not None:
+            self.groups[topic] = callback_group
+            return _TakenSub()
 
     def get_clock(self):
         return self.clock
@@ -161,6 +166,29 @@ class _Node:
 
     def get_fully_qualified_name(self):
         return '/gate_test'
+
+
+class _TakenSub:
+    """A subscription whose reader holds ``queue``: (serialized message, message info)."""
+
+    last = None
+
+    def __init__(self):
+        self.queue = []
+        self.takes = 0
+        self.handle = self
+        _TakenSub.last = self
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def take_message(self, msg_type, raw):
+        assert raw, 'a polled subscription takes serialized messages'
+        self.takes += 1
+        return self.queue.pop(0) if self.queue else None
 
 
 class _Config:
@@ -243,6 +271,52 @@ def test_gate_checks_stamps_after_deserializing():
     msg.header.stamp.sec = 0
     node.subscriptions['goal'](serialize_message(msg))
     assert len(got) == 1
+
+
+def test_a_polled_subscription_checks_only_the_newest_message_when_polled():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from cdmp_ros.ros.input_gate import joint_names
+    from cdmp_ros.ros.recorder_take import ThreadTakenGroup
+    node, reporter, gate = _gate()
+    got = []
+    poll = gate.subscribe_polled(JointState, 'joint_states', lambda m, t: got.append((m, t)),
+                                 _Qos(5), size=joint_names(lambda: 7), stamped=True)
+    sub = _TakenSub.last
+    # the executor never runs it: its group refuses every execution
+    assert isinstance(node.groups['joint_states'], ThreadTakenGroup)
+    assert not node.groups['joint_states'].can_execute(sub)
+    poll()
+    assert got == [] and gate.values() == {'rejected_total': 0}
+
+    def queued(q, age):
+        info = {'received_timestamp': time.time_ns() - int(age * 1e9)}
+        return serialize_message(joint_state(7, q)), info
+    future = joint_state(7, Q_HOME)
+    future.header.stamp.sec = int(time.time()) + 100
+    sub.queue = [(serialize_message(future), {}), queued(Q_HOME, 0.3), queued(Q_HOME + 0.1, 0.2)]
+    t0 = time.monotonic()
+    poll()
+    # the newest only: the older ones (one with a bad stamp) are superseded, not checked
+    assert len(got) == 1 and np.allclose(got[0][0].position, Q_HOME + 0.1)
+    assert t0 - 0.2 - 0.05 <= got[0][1] <= time.monotonic() - 0.2 + 0.05
+    assert gate.values() == {'rejected_total': 0, 'received_joint_states': 3}
+    # a bad newest message is rejected and reported, and nothing is delivered
+    sub.queue = [queued(Q_HOME, 0.0), (serialize_message(joint_state(10000)), {})]
+    poll()
+    assert len(got) == 1 and gate.by_reason == {'oversize': 1}
+    assert reporter.rejected_count('joint_states') == 1
+    # bounded: a reader that keeps filling is taken at most 4 x depth times per poll
+    sub.queue = [queued(Q_HOME, 0.0)] * 100
+    sub.takes = 0
+    poll()
+    assert sub.takes == 20 and len(got) == 2
+
+
+class _Qos:
+    def __init__(self, depth):
+        self.depth = depth
 
 
 # -- one process test per node -----------------------------------------------------------------

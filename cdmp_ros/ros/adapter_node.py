@@ -41,6 +41,10 @@ Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then 
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
 joint count), then the per-element validation (:mod:`cdmp_ros.ros.convert`,
 :mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``diagnostics``.
+``joint_states`` is polled (:meth:`~cdmp_ros.ros.input_gate.InputGate.subscribe_polled`): the
+newest message is taken and checked when a request is formed and at every diagnostics period,
+so a robot publishing at 1 kHz costs the adapter nothing between requests (served by the
+executor, each message cost about 1 ms of Python, taken from the solver thread).
 
 QoS (:mod:`cdmp_ros.ros.qos`): ``primitive`` subscribed and ``adapted_primitive``
 published transient-local (a restarted adapter gets the latched primitive; a restarted
@@ -151,8 +155,10 @@ class AdapterNode(Node):
                        size=message_bytes(lambda: SMALL_MESSAGE_BYTES), stamped=True)
         gate.subscribe(String, 'constraints', self._on_constraints, qos.COMMAND,
                        size=json_size)
-        gate.subscribe(JointState, 'joint_states', self._on_joint_states, qos.SENSOR,
-                       size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
+        # read when a request is formed and at every diagnostics period, never per message
+        self._poll_joint_states = gate.subscribe_polled(
+            JointState, 'joint_states', self._on_joint_states, qos.SENSOR,
+            size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
         self._results_ready = self.create_guard_condition(self._on_results)
         self.worker = SolveWorker(lambda job: solve_job(job, self.chain, self.worker.stopping),
                                   self._results_ready.trigger)
@@ -172,8 +178,7 @@ class AdapterNode(Node):
                                   f'{list(self.chain.link_names)}')
 
     def _set_rates(self, cfg: AdapterConfig) -> None:
-        rates = {t: cfg.max_input_rate for t in INPUT_TOPICS}
-        self.gate.set_rates(dict(rates, joint_states=cfg.max_joint_states_rate))
+        self.gate.set_rates({t: cfg.max_input_rate for t in INPUT_TOPICS})
 
     def _on_params(self, configs) -> None:
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
@@ -194,7 +199,7 @@ class AdapterNode(Node):
         return self.params['']
 
     # -- subscriptions -----------------------------------------------------------------------
-    def _on_joint_states(self, msg: JointState) -> None:
+    def _on_joint_states(self, msg: JointState, received: float) -> None:
         try:
             q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
         except ValidationError as exc:
@@ -209,7 +214,7 @@ class AdapterNode(Node):
                                              f'the limits [{lo[j]}, {hi[j]}]')
             return
         self.q = np.clip(q, lo, hi)
-        self.q_time = time.monotonic()
+        self.q_time = received
 
     def _on_primitive(self, msg: String) -> None:
         try:
@@ -319,6 +324,7 @@ class AdapterNode(Node):
                 self._retarget_dmp(topic, stamp_ns)
             return
         cfg = self.config
+        self._poll_joint_states()
         start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
         # obstacles and constraints reshape the running motion (the streamer continues it at
         # its phase), once a motion of this primitive was published and no motion-starting
@@ -437,6 +443,7 @@ class AdapterNode(Node):
         if self.obstacles.expire(time.monotonic()):
             self._obstacles_changed('obstacles', 0)
         p = self.primitive
+        self._poll_joint_states()
         age = time.monotonic() - self.q_time
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 primitive=p['kind'] if p else 'none',

@@ -23,7 +23,7 @@ from cdmp_ros.ros.qos import (RECORDER_DEPTH, adapted_subscription_profile, play
                               profile_to_dict)
 from cdmp_ros.ros.realtime import check_priority
 from cdmp_ros.ros.recorder_take import (TakeThread, ThreadTakenGroup, drain_subscription,
-                                        write_taken)
+                                        never_called, write_taken)
 
 #: Topics left out when recording "all" topics (rclpy's own plumbing).
 HIDDEN_TOPICS = ('/rosout', '/parameter_events')
@@ -157,7 +157,7 @@ class RecorderNode(Node):
                               type_description_hash=thash if thash.startswith('RIHS') else None)
         qos = adapted_subscription_profile(offered, self.depth)
         if self._taker is not None:
-            sub = self.create_subscription(cls, topic, _never_called, qos,
+            sub = self.create_subscription(cls, topic, never_called, qos,
                                            callback_group=self._group, raw=True)
             self._taker.add(topic, sub)
             self._subs[topic] = sub
@@ -199,10 +199,6 @@ class RecorderNode(Node):
         meta = self.writer.close()
         print(f'[recorder] closed {self.writer.bag_dir}: {meta.message_count} messages on '
               f'{len(meta.topics)} topics', flush=True)
-
-
-def _never_called(_msg) -> None:  # pragma: no cover - ThreadTakenGroup is never executed
-    raise RuntimeError('a thread-taken subscription was executed by an executor')
 
 
 class PlayerNode(Node):

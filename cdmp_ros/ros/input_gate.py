@@ -32,6 +32,7 @@ from rclpy.serialization import deserialize_message
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
+from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called
 
 #: Reason categories counted on diagnostics as ``rejected_<category>``: first match wins.
 REASONS = (('flooding', ('flooding',)),
@@ -191,27 +192,69 @@ class InputGate:
         """A serialized subscription of ``topic`` whose messages reach ``callback`` only
         through the gate (rate limit, ``size`` check, deserialisation, header stamp when
         ``stamped``). ``topic`` must have a rate (:meth:`set_rates`)."""
-        stamp_name = f'{topic}.header.stamp'
-
         def on_raw(data: bytes) -> None:
             self.received[topic] = self.received.get(topic, 0) + 1
             if not self.admit(topic):
                 return
-            if size is not None:
-                reason = size(topic, data)
-                if reason is not None:
-                    self.reject(topic, reason, 'oversize')
-                    return
-            try:
-                msg = deserialize_message(data, msg_type)
-            except Exception as exc:  # noqa: BLE001 -- a bad payload must not end the node
-                self.reject(topic, f'{topic}: cannot be deserialized ({exc})', 'malformed')
-                return
-            if stamped and not self.stamp_ok(topic, stamp_name, msg.header.stamp):
-                return
-            callback(msg)
+            msg = self._checked(msg_type, topic, data, size, stamped)
+            if msg is not None:
+                callback(msg)
 
         return self.node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
+
+    def subscribe_polled(self, msg_type, topic: str, callback: Callable, qos, size=None,
+                         stamped: bool = False) -> Callable[[], None]:
+        """A serialized subscription of ``topic`` that no executor waits on; returns
+        ``poll()``, which takes what the reader holds (at most the ``qos`` depth, keep-last)
+        and passes the newest message through the checks of :meth:`subscribe` (no rate limit:
+        the work is bounded by how often the node polls) to ``callback(msg, received)``,
+        ``received`` = its receive time in ``time.monotonic()`` seconds.
+
+        For a state the node needs only now and then (the adapter's ``joint_states``, read
+        when it forms a request): a subscription served by the executor would wake it for
+        every message, about 1 ms of Python per wake-up on these machines, taken from the
+        node's other threads through the GIL. Older queued messages are superseded, not
+        checked. Call ``poll()`` from one thread at a time."""
+        sub = self.node.create_subscription(msg_type, topic, never_called, qos,
+                                            callback_group=ThreadTakenGroup(), raw=True)
+        depth = max(1, int(qos.depth))
+
+        def poll() -> None:
+            newest = None
+            with sub.handle:
+                for _ in range(4 * depth):        # bounded even while messages keep coming
+                    taken = sub.handle.take_message(msg_type, True)
+                    if taken is None:
+                        break
+                    newest = taken
+                    self.received[topic] = self.received.get(topic, 0) + 1
+            if newest is None:
+                return
+            data, info = newest
+            age = max(0.0, (time.time_ns() - (info.get('received_timestamp') or time.time_ns()))
+                      * 1e-9)
+            msg = self._checked(msg_type, topic, data, size, stamped)
+            if msg is not None:
+                callback(msg, time.monotonic() - age)
+
+        return poll
+
+    def _checked(self, msg_type, topic: str, data: bytes, size, stamped: bool):
+        """The message of ``data`` if it passes the size check, deserialisation and (when
+        ``stamped``) the stamp check; else None, the rejection reported."""
+        if size is not None:
+            reason = size(topic, data)
+            if reason is not None:
+                self.reject(topic, reason, 'oversize')
+                return None
+        try:
+            msg = deserialize_message(data, msg_type)
+        except Exception as exc:  # noqa: BLE001 -- a bad payload must not end the node
+            self.reject(topic, f'{topic}: cannot be deserialized ({exc})', 'malformed')
+            return None
+        if stamped and not self.stamp_ok(topic, f'{topic}.header.stamp', msg.header.stamp):
+            return None
+        return msg
 
     # -- checks ------------------------------------------------------------------------------
     def admit(self, topic: str, now: Optional[float] = None) -> bool:

@@ -48,6 +48,11 @@ class ThreadTakenGroup(CallbackGroup):
         pass
 
 
+def never_called(_msg) -> None:  # pragma: no cover - ThreadTakenGroup is never executed
+    """The callback of a subscription in a :class:`ThreadTakenGroup`."""
+    raise RuntimeError('a thread-taken subscription was executed by an executor')
+
+
 def dds_receive_threads() -> List[int]:
     """Thread ids of this process's Fast DDS receive threads."""
     tids = []

@@ -301,9 +301,6 @@ class AdapterConfig:
         50.0, 'Messages per second accepted on each of primitive, obstacles, goal, goal_point '
         'and constraints (a 30 Hz obstacle tracker fits); the excess is dropped and reported '
         '(flooding); the solver itself takes the newest request only.', 0.1, 10000.0)
-    max_joint_states_rate: float = _param(
-        2000.0, 'Messages per second accepted on joint_states; the excess is dropped.',
-        1.0, 100000.0)
     max_json_bytes: int = max_json_bytes_param()
     max_obstacles: int = max_obstacles_param()
     max_obstacle_size: float = obstacle_size_param()
