@@ -7,13 +7,14 @@ publishes the 7-DoF Panda ProMP of bench_adapter on ``primitive``, ``joint_state
 MarkerArray of ``--spheres`` spheres (default 3, radius 5-10 cm; near the prior mean
 end-effector path, the last near the elbow path, as panda_problem), each event placing every
 sphere N(0, 2 cm) around its place, so the adapter re-solves the problem with limits and the
-spheres on the end effector and panda_link4, conditioned on the current joint_states. ``--robot
-start`` (default): before each event the joint_states move to that event's start state, and
-spheres and start states are exactly the events of ``bench_adaptation_solve.py`` (same
-``--seed``): the problems do not depend on what earlier events did, and the in-process figures
-of that benchmark are this one's solve part. ``--robot echo``: the joint_states echo the last
-``joint_reference`` (a perfect robot; the measurements before 2026-11-24 14:00 UTC), so each
-event starts where the earlier adaptations led and two code versions see different problems.
+spheres on the end effector and panda_link4, conditioned on the current joint_states.
+``--robot start`` (default): before each event the joint_states move to that event's start
+state, and spheres and start states are exactly the events of ``bench_adaptation_solve.py``
+(same ``--seed``): the problems do not depend on what earlier events did, and the in-process
+figures of that benchmark are this one's solve part. ``--robot echo``: the joint_states echo
+the last ``joint_reference`` (a perfect robot; the measurements before 2026-11-24 14:00 UTC),
+so each event starts where the earlier adaptations led and two code versions see different
+problems.
 
 For each event it records the latency from the obstacle stamp (= publish time, same host
 clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
