@@ -21,7 +21,7 @@ ALLOWED_EVERYWHERE = {
 ALLOWED = {
     ('experiments/exp_promp_tables.py', 'SystemExit'):
         'command-line argument errors of an experiment script end the process with a message',
-    ('ros/bag_bridge.py', 'RuntimeError'):
+    ('ros/recorder_take.py', 'RuntimeError'):
         'internal invariant (a thread-taken subscription is never executed by an executor)',
 }
 

@@ -493,13 +493,15 @@ def test_graph_comparison_detects_a_difference(monkeypatch, tmp_path):
 NODE_CLASSES = {'SimNode': 'sim', 'StreamerNode': 'streamer', 'AdapterNode': 'adapter',
                 'LearnerNode': 'learner', 'RecorderNode': 'recorder', 'PlayerNode': 'player'}
 #: Not product executables: the scripted user of ``cdmp demo``; the input gate's generic
-#: subscription (its callers' ``gate.subscribe(type, topic, callback, qos)`` are read instead).
+#: subscriptions (its callers' ``gate.subscribe(type, topic, callback, qos)`` and
+#: ``gate.subscribe_polled(...)`` are read instead).
 IGNORED_CLASSES = {'DemoDriver', 'InputGate'}
 #: Nodes whose topics are only known at run time (the bag's or the graph's topics); the README
 #: describes their QoS rule in prose.
 DYNAMIC_NODES = {'recorder', 'player'}
 CREATE = {'create_publisher': 'publishes', 'create_subscription': 'subscribes',
-          'subscribe': 'subscribes', 'create_service': 'service'}
+          'subscribe': 'subscribes', 'subscribe_polled': 'subscribes',
+          'create_service': 'service'}
 
 
 def _message_name(cls):
