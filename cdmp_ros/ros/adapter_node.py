@@ -216,6 +216,11 @@ class AdapterNode(Node):
         self.q = np.clip(q, lo, hi)
         self.q_time = received
 
+    def _current_q(self) -> Optional[np.ndarray]:
+        """The newest accepted joint_states position (None before any); polls the reader."""
+        self._poll_joint_states()
+        return self.q
+
     def _on_primitive(self, msg: String) -> None:
         try:
             prim = parse_primitive(msg.data, self.joint_names, self.config.max_json_bytes)
@@ -272,7 +277,7 @@ class AdapterNode(Node):
         """IK seeds: the current joint state, the primitive's goal, the middle of the limits."""
         g = primitive_goal(self.primitive)
         mid = 0.5 * (self.chain.lower + self.chain.upper)
-        return [q for q in (self.q, g, mid) if q is not None]
+        return [q for q in (self._current_q(), g, mid) if q is not None]
 
     def _set_goal(self, topic: str, g: np.ndarray, point, stamp_ns: int) -> None:
         # the limits the primitive is adapted within (the robot's before the first primitive)
@@ -324,8 +329,8 @@ class AdapterNode(Node):
                 self._retarget_dmp(topic, stamp_ns)
             return
         cfg = self.config
-        self._poll_joint_states()
-        start = self.q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
+        q = self._current_q()
+        start = q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
         # obstacles and constraints reshape the running motion (the streamer continues it at
         # its phase), once a motion of this primitive was published and no motion-starting
         # request waits (it may be superseded by this one); a new primitive or goal starts a
@@ -376,7 +381,8 @@ class AdapterNode(Node):
         if p is not None and p['kind'] != 'promp':
             try:
                 prim = primitive_from_dict(d) if d is not None else p['prim']
-                path = rollout_path(prim, p['perm'], self.chain, self.q, self.config.path_points)
+                path = rollout_path(prim, p['perm'], self.chain, self._current_q(),
+                                    self.config.path_points)
             except (CdmpError, ValueError) as exc:  # a primitive that cannot be rolled out
                 self.get_logger().warning(f'visualization: {exc}', throttle_duration_sec=5.0)
         self._publish_markers(path, None)
