@@ -177,6 +177,7 @@ class _TakenSub:
         self.queue = []
         self.takes = 0
         self.handle = self
+        self.msg_type = None
         _TakenSub.last = self
 
     def __enter__(self):

@@ -32,7 +32,7 @@ from rclpy.serialization import deserialize_message
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
-from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called
+from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called, take_newest
 
 #: Reason categories counted on diagnostics as ``rejected_<category>``: first match wins.
 REASONS = (('flooding', ('flooding',)),
@@ -217,19 +217,13 @@ class InputGate:
         checked. Call ``poll()`` from one thread at a time."""
         sub = self.node.create_subscription(msg_type, topic, never_called, qos,
                                             callback_group=ThreadTakenGroup(), raw=True)
-        depth = max(1, int(qos.depth))
+        max_count = 4 * max(1, int(qos.depth))   # bounded even while messages keep coming
 
         def poll() -> None:
-            newest = None
-            with sub.handle:
-                for _ in range(4 * depth):        # bounded even while messages keep coming
-                    taken = sub.handle.take_message(msg_type, True)
-                    if taken is None:
-                        break
-                    newest = taken
-                    self.received[topic] = self.received.get(topic, 0) + 1
+            newest, n = take_newest(sub, max_count)
             if newest is None:
                 return
+            self.received[topic] = self.received.get(topic, 0) + n
             data, info = newest
             age = max(0.0, (time.time_ns() - (info.get('received_timestamp') or time.time_ns()))
                       * 1e-9)

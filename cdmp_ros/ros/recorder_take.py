@@ -102,6 +102,24 @@ def drain_subscription(topic: str, sub, write: Callable) -> int:
             n += 1
 
 
+def take_newest(sub, max_count: int):
+    """The newest ``(data, info)`` queued in raw subscription ``sub`` (None if none), taking
+    at most ``max_count`` messages (bounded while a publisher keeps sending); returns
+    ``(newest, n_taken)``. For a subscription in a :class:`ThreadTakenGroup` that a node
+    reads now and then and of which only the latest message matters."""
+    handle = sub.handle
+    take = handle.take_message
+    msg_type = sub.msg_type
+    newest, n = None, 0
+    with handle:
+        while n < max_count:
+            taken = take(msg_type, True)
+            if taken is None:
+                break
+            newest, n = taken, n + 1
+    return newest, n
+
+
 class TakeThread:
     """Drain raw subscriptions into a bag writer every ``period`` seconds.
 
