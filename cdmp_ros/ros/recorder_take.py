@@ -12,7 +12,10 @@ in the DDS reader's history (depth ``queue_depth`` per topic, ~100 messages at 2
 per-message queue.  The executor thread still registers topics it discovers while this thread
 writes; the :class:`~cdmp_ros.bag.BagWriter`'s lock keeps the two apart.  The subscriptions
 belong to a callback group the executor never waits on (:class:`ThreadTakenGroup`), so the
-executor does not compete for their messages.
+executor does not compete for their messages. The same pieces (:class:`ThreadTakenGroup`,
+:func:`never_called`, :func:`take_newest`) serve the polled subscriptions of
+:meth:`cdmp_ros.ros.input_gate.InputGate.subscribe_polled` (the adapter's ``joint_states``)
+and the demo driver's ``joint_reference``: read now and then, newest message only.
 
 Optionally (``priority`` > 0) the take thread, the main (executor) thread and the process's
 Fast DDS receive threads (``dds.shm.*``, ``dds.udp.*``) run under SCHED_FIFO, through
