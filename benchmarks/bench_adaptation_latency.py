@@ -26,7 +26,8 @@ of an older commit): the switch is then read from the streamer's log line
 ``adapted_primitive: switched in`` (its ROS-time log stamp; the first reference of the new
 primitive is computed in the same tick). The adapter's ``solve_time_ms`` / ``solve_cpu_ms``
 (CPU time of its solver thread: the solve on an idle core) and the load average are printed
-beside every event.
+beside every event. After the events it prints the CPU used over them, in cores, by this
+process, the adapter and the streamer (this process should leave the CPU to the nodes).
 
 Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 Bounded: start-up + n * (at most --timeout) seconds.
@@ -129,6 +130,21 @@ def cdr_stamp_ns(data):
     return sec * 1_000_000_000 + nsec
 
 
+def cpu_seconds(procs):
+    """(monotonic time, CPU seconds of this process, of each child in ``procs``): user +
+    system time, children's from /proc (the measuring process should leave the CPU to them)."""
+    tick = os.sysconf('SC_CLK_TCK')
+    out = [time.monotonic(), sum(os.times()[:2])]
+    for p in procs:
+        try:
+            with open(f'/proc/{p.pid}/stat') as f:
+                fields = f.read().rsplit(')', 1)[1].split()
+            out.append((int(fields[11]) + int(fields[12])) / tick)
+        except (OSError, IndexError, ValueError):
+            out.append(float('nan'))
+    return out
+
+
 def start(code, module, params_file, params, domain, log):
     cmd = [sys.executable, '-m', module, '--ros-args', '--params-file',
            os.path.join(code, 'config', params_file)]
@@ -206,6 +222,7 @@ def run(args):
             from bench_adaptation_solve import events
             _, reqs = events(args.n, args.seed, args.spheres)
             user.echo = False
+        cpu0 = cpu_seconds(procs)
         for k in range(args.n):
             centres = base + rng.normal(0.0, 0.02, base.shape)  # moved around its place
             if args.robot == 'start':
@@ -276,6 +293,11 @@ def run(args):
                   f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms), load '
                   f'{load:.1f}', file=sys.stderr, flush=True)
             time.sleep(args.gap)
+        cpu1 = cpu_seconds(procs)
+        wall = cpu1[0] - cpu0[0]
+        print('CPU over the events, in cores (of ' + str(os.cpu_count()) + '): ' + ', '.join(
+            f'{name} {(b - a) / wall:.2f}' for name, a, b in zip(
+                ('this process', 'adapter', 'streamer'), cpu0[1:], cpu1[1:])))
     finally:
         user.close()
         for p in procs:
