@@ -39,7 +39,6 @@ import argparse
 import os
 import re
 import signal
-import struct
 import subprocess
 import sys
 import threading
@@ -63,8 +62,7 @@ class Robot(User):
 
     The references (500 Hz) are taken by a thread every 10 ms, outside the executor: served
     by the executor, they took about half a core of this process, which competed with the
-    nodes being measured. Only the stamp is read from each (CDR header); the newest is
-    deserialised when echoing."""
+    nodes being measured. They are decoded by the bag's CDR reader, without rclpy."""
 
     def __init__(self, domain, js_rate=50.0):
         super().__init__(domain, js_rate)
@@ -83,27 +81,23 @@ class Robot(User):
         self._ref_thread.start()
 
     def _take_refs(self):
-        from rclpy.serialization import deserialize_message
-        from sensor_msgs.msg import JointState
-        handle = self._ref_sub.handle
+        from cdmp_ros.bag.cdr import decode_joint_state
+        from cdmp_ros.ros.recorder_take import drain_subscription, to_monotonic
+        taken = []
+
+        def keep(topic, data, received_ns, publish_ns):
+            taken.append((decode_joint_state(data), to_monotonic(received_ns)))
         while not self.stop.wait(0.01):
-            taken = []
-            with handle:
-                while True:
-                    t = handle.take_message(JointState, True)
-                    if t is None:
-                        break
-                    taken.append(t)
+            drain_subscription('joint_reference', self._ref_sub, keep)
             if not taken:
                 continue
-            now_ns, now = time.time_ns(), time.monotonic()
             with self.changed:
-                for data, info in taken:
-                    recv = info.get('received_timestamp') or now_ns
-                    self.refs[cdr_stamp_ns(data)] = now - max(0, now_ns - recv) * 1e-9
+                for ref, received in taken:
+                    self.refs[ref.stamp_ns] = received
                 if self.echo:
-                    self.q = np.array(deserialize_message(taken[-1][0], JointState).position)
+                    self.q = np.array(taken[-1][0].position)
                 self.changed.notify_all()
+            taken.clear()
 
     def close(self):
         self.stop.set()
@@ -122,12 +116,6 @@ class Robot(User):
             m.id = i + 1
             ms.append(m)
         return MarkerArray(markers=ms)
-
-
-def cdr_stamp_ns(data):
-    """header.stamp [ns] of a serialized message whose first field is a std_msgs/Header."""
-    sec, nsec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
-    return sec * 1_000_000_000 + nsec
 
 
 def cpu_seconds(procs):

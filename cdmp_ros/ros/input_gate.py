@@ -32,7 +32,8 @@ from rclpy.serialization import deserialize_message
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
-from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called, take_newest
+from cdmp_ros.ros.recorder_take import (ThreadTakenGroup, never_called, take_newest,
+                                        to_monotonic)
 
 #: Reason categories counted on diagnostics as ``rejected_<category>``: first match wins.
 REASONS = (('flooding', ('flooding',)),
@@ -225,11 +226,10 @@ class InputGate:
                 return
             self.received[topic] = self.received.get(topic, 0) + n
             data, info = newest
-            age = max(0.0, (time.time_ns() - (info.get('received_timestamp') or time.time_ns()))
-                      * 1e-9)
+            received = to_monotonic(info.get('received_timestamp') or time.time_ns())
             msg = self._checked(msg_type, topic, data, size, stamped)
             if msg is not None:
-                callback(msg, time.monotonic() - age)
+                callback(msg, received)
 
         return poll
 

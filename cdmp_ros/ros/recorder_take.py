@@ -89,6 +89,12 @@ def write_taken(write: Callable, topic: str, data: bytes, info: dict) -> None:
     write(topic, data, recv, info.get('source_timestamp') or recv)
 
 
+def to_monotonic(system_ns: int) -> float:
+    """A past system-clock time [ns] (a taken message's ``received_timestamp``) in
+    ``time.monotonic()`` seconds."""
+    return time.monotonic() - max(0, time.time_ns() - system_ns) * 1e-9
+
+
 def drain_subscription(topic: str, sub, write: Callable) -> int:
     """Take every message queued in raw subscription ``sub`` of ``topic`` and pass each to
     :func:`write_taken`; returns the count."""
