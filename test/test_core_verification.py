@@ -9,12 +9,13 @@ from scipy.stats import norm
 
 from cdmp_ros.core.adaptation.config import AdaptationConfig, AdaptRequestConfig
 from cdmp_ros.core.adaptation.constraints import (ChainPoint, DofPoint, Hyperplane, JointLimit,
-                                                  Repeller, UnboundWaypoint)
+                                                  NonConvexCorner, Repeller, UnboundWaypoint,
+                                                  Waypoint)
 from cdmp_ros.core.adaptation.guarantee import default_samples
 from cdmp_ros.core.adaptation.solver import adapt
 from cdmp_ros.core.adaptation.verification import clopper_pearson_upper, critical_count, verify
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
+from cdmp_ros.core.kinematics import PointOfInterest, chain_from_urdf, panda_chain, planar_chain
 from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
@@ -100,6 +101,85 @@ def test_known_violations_link_points_and_unbound_waypoints():
     assert got['wall'] == (0.0, 0.0)
     assert v.trajectory_violation == 1.0 and not v.holds
     assert [c.holds for c in v.constraints] == [False, True, True, False, True]
+
+
+def test_screen_bound_holds_for_revolute_and_prismatic_joints(tmp_path):
+    """The screen's lemma (verification._KinematicGroup): |x(q) - x(r)| <= sum_j
+    |J_j(r)| |q_j - r_j|, J_j the Jacobian column of joint j at the reference r; against
+    forward kinematics for random pairs with small and large moves, on the Panda and on a
+    chain with a prismatic joint. Single-joint moves of 1e-4 reach the bound (it is tight)."""
+    import pybullet_data
+    from test_core_kinematics import CUSTOM_URDF
+    urdf = tmp_path / 'mixed.urdf'
+    urdf.write_text(CUSTOM_URDF)
+    chains = [(panda_chain(pybullet_data.getDataPath() + '/franka_panda/panda.urdf'),
+               [PointOfInterest('ee'), PointOfInterest('panda_link4'),
+                PointOfInterest('panda_link6', (0.05, -0.1, 0.02))]),
+              (chain_from_urdf(str(urdf), 'tool'),
+               [PointOfInterest('ee'), PointOfInterest('l3', (0.1, 0.2, 0.3))])]
+    rng = np.random.default_rng(11)
+    for chain, points in chains:
+        lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+        hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
+        for scale in (1e-3, 0.1, 1.0, 3.0):
+            R = rng.uniform(lo, hi, (4000, chain.n_dofs))
+            Q = R + rng.normal(0.0, scale, R.shape)
+            Xr, J = chain.forward_and_jacobian(R, points)
+            bound = np.einsum('bj,bpj->bp', np.abs(Q - R), np.linalg.norm(J, axis=2))
+            moved = np.linalg.norm(chain.forward(Q, points) - Xr, axis=-1)
+            assert np.all(moved <= bound * (1 + 1e-9) + 1e-12), np.max(moved - bound)
+        R = rng.uniform(lo, hi, (200, chain.n_dofs))
+        Xr, J = chain.forward_and_jacobian(R, points)
+        rho = np.linalg.norm(J, axis=2)
+        for j in range(chain.n_dofs):
+            Q = R.copy()
+            Q[:, j] += 1e-4
+            moved = np.linalg.norm(chain.forward(Q, points) - Xr, axis=-1)
+            np.testing.assert_allclose(moved, 1e-4 * rho[:, :, j], rtol=1e-3, atol=1e-12)
+
+
+def test_screen_gives_the_verdicts_of_the_full_kinematics():
+    """verify() with the screen (kinematics only where the mean's points leave a verdict
+    open) reports exactly what it reports without it, on a planar arm whose sampled paths
+    cross spheres, a wall and the limits (so that all three cases occur: certainly
+    satisfied, certainly violated, open); and it did skip work. A point with a constraint
+    that has no screen (a corner) makes its group evaluated in full."""
+    chain = planar_chain([1.0, 0.8, 0.5])
+    M = 6
+    rng = np.random.default_rng(5)
+    mean = np.r_[np.linspace(0.0, 1.2, M), np.linspace(0.3, 0.9, M), np.zeros(M)]
+    A = rng.normal(0.0, 1.0, (3 * M, 3 * M))
+    p = ProMP(3, RbfBasis.uniform(M), mean, 0.0005 * A @ A.T + 1e-4 * np.eye(3 * M))
+    ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
+    elbow = ChainPoint(chain, PointOfInterest('link2'), axes=(0, 1))
+    x = ee.forward(p.mean([0.2, 0.5, 0.8]))
+    xe = elbow.forward(p.mean([0.5]))[0]
+    top = ee.forward(p.mean(np.linspace(0.0, 1.0, 41)))[:, 1].max()
+    cons = [Repeller(ee, x[1], 0.15, alpha=0.99, name='hit'),
+            Waypoint(ee, x[2], 0.3, support=(0.7, 0.9), alpha=0.9, name='near'),
+            UnboundWaypoint(ee, x[0], 0.05, alpha=0.9, name='via'),
+            Hyperplane(ee, [0.0, 1.0], [0.0, top + 0.03], alpha=0.99, name='wall'),
+            Repeller(elbow, xe + [0.05, 0.0], 0.1, alpha=0.99, name='elbow'),
+            JointLimit(2, -0.2, 0.2, alpha=0.99, name='limit')]
+    for seed in range(3):
+        screened = verify(p, cons, 3000, np.random.default_rng(seed), n_steps=41)
+        full = verify(p, cons, 3000, np.random.default_rng(seed), n_steps=41, screen=False)
+        assert screened.constraints == full.constraints
+        assert screened.trajectory_violation == full.trajectory_violation
+        assert 0.0 < screened.kinematics_fraction < 0.9, screened.kinematics_fraction
+        assert full.kinematics_fraction == 1.0
+    got = {c.name: c for c in screened.constraints}
+    # the cases the screen must keep apart all occur: steps violated by some samples only
+    for name in ('hit', 'near', 'elbow', 'limit', 'via'):
+        assert 0.0 < got[name].per_step_max < 1.0, (name, got[name])
+    assert 0.0 < got['wall'].trajectory < 1.0, got['wall']
+    corner = NonConvexCorner(ee, [1.0, 0.0], [5.0, 0.0], [0.0, 1.0], [0.0, 5.0], alpha=0.99,
+                             name='corner')
+    v = verify(p, cons + [corner], 500, np.random.default_rng(0), n_steps=41)
+    ref = verify(p, cons + [corner], 500, np.random.default_rng(0), n_steps=41, screen=False)
+    assert v.constraints == ref.constraints
+    # the end effector's group runs in full; 'near', on its own time grid, is still screened
+    assert screened.kinematics_fraction < v.kinematics_fraction < 1.0
 
 
 def test_per_step_rule_passes_a_calibrated_solution_and_fails_twice_the_level():

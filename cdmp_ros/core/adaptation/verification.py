@@ -139,6 +139,9 @@ class Verification:
     holds: bool
     time_s: float = 0.0
     constraints: List[ConstraintVerification] = field(default_factory=list)
+    #: fraction of the (sample, step) pairs of chain points whose forward kinematics ran;
+    #: the screen decided the others exactly (1.0 without chain points)
+    kinematics_fraction: float = 1.0
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -183,24 +186,93 @@ def _trajectories(promp: ProMP, W: NDArray, phi_t: NDArray) -> NDArray:
         c, promp.n_dims, -1).transpose(0, 2, 1)
 
 
-def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArray,
-                    features: Dict[bytes, NDArray]) -> List[NDArray]:
-    """Violation indicators of every constraint on the samples W: (c, n) or (c,) bool."""
-    Z = {key: _trajectories(promp, W, phi_t)
-         for key, phi_t in features.items()}                    # (c, n, D) per time grid
-    # link points of one chain: one batched FK per (chain, dofs, times)
-    fk_groups: Dict[tuple, list] = {}
+class _KinematicGroup:
+    """The chain points of one chain, ``dofs`` and time grid: one batched forward-kinematics
+    call per chunk of samples.
+
+    The screen: the points of the mean trajectory, ``Xbar``, and their Jacobians are computed
+    once; a sample's point lies within ``sum_j rho_j |z_j - zbar_j|`` of ``Xbar``, with
+    ``rho_j`` the norm of Jacobian column j at the mean (the point's distance from joint j's
+    axis; 1 for a prismatic joint). Why: move the joints from the mean to the sample one at a
+    time, base first. When joint j moves, the joints after it are still at the mean, so the
+    point is at distance ``rho_j`` from joint j's axis (the joints before j move that axis
+    and the point rigidly together), and a rotation by dz moves it along a chord
+    ``2 rho_j sin(|dz| / 2) <= rho_j |dz|``; the triangle inequality sums the steps. Where
+    every constraint on
+    the group's points gives that whole ball the outcome of ``Xbar``
+    (:meth:`~cdmp_ros.core.adaptation.constraints.base.Constraint.decided_near`), ``Xbar``
+    stands in for the sample's point: the verdicts are exactly those of the full
+    kinematics, which runs only on the undecided (sample, step) pairs. A group with a
+    constraint that cannot tell is evaluated in full."""
+
+    def __init__(self, promp: ProMP, members: List[ChainPoint], users: List[List[Constraint]],
+                 times: NDArray, screen: bool = True):
+        p = members[0]
+        self.chain, self.dofs, self.times = p.chain, list(p.dofs), times
+        self.members, self.users = members, users
+        self.pois = [m.point for m in members]
+        self.screen = screen and all(type(c).decided_near is not Constraint.decided_near
+                                     for cs in users for c in cs)
+        if self.screen:
+            self.zbar = promp.mean(times)[:, self.dofs]                    # (n, nd)
+            self.Xbar, J = self.chain.forward_and_jacobian(self.zbar, self.pois)
+            self.rho = np.linalg.norm(J, axis=2)                           # (n, P, nd)
+
+    def positions(self, Zg: NDArray) -> Tuple[NDArray, int]:
+        """World points (c, n, P, 3) of the samples' joint positions Zg (c, n, nd), and the
+        number of (sample, step) pairs whose kinematics ran."""
+        full = Zg.shape[0] * Zg.shape[1]
+        if not self.screen:
+            return self.chain.forward(Zg, self.pois), full
+        R = np.einsum('cnj,npj->cnp', np.abs(Zg - self.zbar), self.rho)     # (c, n, P)
+        todo = np.zeros(R.shape[:2], bool)
+        for i, (m, cs) in enumerate(zip(self.members, self.users)):
+            Xi = self.Xbar[:, i][:, list(m.axes)]
+            for c in cs:
+                todo |= ~c.decided_near(Xi, R[..., i], self.times)
+        if todo.all():
+            return self.chain.forward(Zg, self.pois), full
+        X = np.empty(R.shape[:2] + self.Xbar.shape[1:])
+        X[...] = self.Xbar
+        if todo.any():
+            X[todo] = self.chain.forward(Zg[todo], self.pois)
+        return X, int(np.count_nonzero(todo))
+
+
+def _kinematic_groups(promp: ProMP, constraints: Sequence, grid: NDArray, screen: bool
+                      ) -> List[_KinematicGroup]:
+    """The :class:`_KinematicGroup` of every (chain, dofs, time grid) the constraints use
+    (``screen``: with the screen where the constraints allow it)."""
+    found: Dict[tuple, Tuple[list, list, NDArray]] = {}
     for c in constraints:
         if isinstance(c, Constraint) and type(c.point) is ChainPoint:
             p = c.point
-            key = (id(p.chain), p.dofs, c.times(grid).tobytes())
-            members = fk_groups.setdefault(key, [])
-            if all(m is not p for m in members):
+            times = c.times(grid)
+            members, users, _ = found.setdefault((id(p.chain), p.dofs, times.tobytes()),
+                                                 ([], [], times))
+            i = next((k for k, m in enumerate(members) if m is p), None)
+            if i is None:
                 members.append(p)
+                users.append([])
+                i = len(members) - 1
+            users[i].append(c)
+    return [_KinematicGroup(promp, m, u, t, screen) for m, u, t in found.values()]
+
+
+def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArray,
+                    features: Dict[bytes, NDArray], groups: Sequence[_KinematicGroup]
+                    ) -> Tuple[List[NDArray], int]:
+    """Violation indicators of every constraint on the samples W: (c, n) or (c,) bool; and
+    the number of (sample, step) pairs of the kinematic groups whose kinematics ran."""
+    Z = {key: _trajectories(promp, W, phi_t)
+         for key, phi_t in features.items()}                    # (c, n, D) per time grid
     X_of: Dict[Tuple[int, bytes], NDArray] = {}
-    for (_, dofs, tkey), members in fk_groups.items():
-        X = members[0].chain.forward(Z[tkey][..., list(dofs)], [m.point for m in members])
-        for i, m in enumerate(members):
+    ran = 0
+    for g in groups:
+        tkey = g.times.tobytes()
+        X, n_run = g.positions(Z[tkey][..., g.dofs])
+        ran += n_run
+        for i, m in enumerate(g.members):
             X_of[(id(m), tkey)] = X[..., i, list(m.axes)]
     out = []
     for c in constraints:
@@ -215,12 +287,12 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
             Zc = Z[tkey][..., list(p.dofs)]
             X = Zc if type(p) is DofPoint else p.forward(Zc)
         out.append(~np.asarray(c.satisfied(X, times), bool))
-    return out
+    return out, ran
 
 
 def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.Generator,
-           n_steps: int = 101, guarantee: str = 'per_step', significance: float = 0.01
-           ) -> Verification:
+           n_steps: int = 101, guarantee: str = 'per_step', significance: float = 0.01,
+           screen: bool = True) -> Verification:
     """Monte Carlo check of the constraints on trajectories sampled from ``promp``.
 
     Parameters
@@ -238,6 +310,10 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
         What alpha claims; selects the decision rule (module docstring).
     significance : float
         Family-wise level of the per-step rule, in (0, 1).
+    screen : bool
+        Skip the forward kinematics of (sample, step) pairs whose verdicts the mean
+        trajectory's points already decide (exact; :class:`_KinematicGroup`). False: run it
+        on every pair (the reference the tests compare with).
 
     Returns
     -------
@@ -259,11 +335,15 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
     n_per = max((t.size for t in times.values()), default=1)
     W = promp.sample_weights(n_samples, rng)
     chunk = max(1, _CHUNK_POINTS // n_per)
+    groups = _kinematic_groups(promp, constraints, grid, screen)
+    ran = 0
     step_counts: List[Optional[NDArray]] = [None] * len(constraints)
     traj_counts = np.zeros(len(constraints), dtype=np.int64)
     any_count = 0
     for a in range(0, n_samples, chunk):
-        bad = _evaluate_chunk(promp, constraints, W[a:a + chunk], grid, features)
+        bad, n_run = _evaluate_chunk(promp, constraints, W[a:a + chunk], grid, features,
+                                     groups)
+        ran += n_run
         union = np.zeros(min(chunk, n_samples - a), bool)
         for i, v in enumerate(bad):
             per = np.count_nonzero(v, axis=0)
@@ -293,5 +373,7 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
         holds = all(r.holds for r in reports)
     else:
         holds = (not constraints) or overall_upper <= eps
+    pairs = n_samples * sum(g.times.size for g in groups)
+    kinematics = ran / pairs if pairs else 1.0
     return Verification(n_samples, guarantee, float(overall), overall_upper, bool(holds),
-                        time.perf_counter() - t0, reports)
+                        time.perf_counter() - t0, reports, kinematics)

@@ -15,6 +15,11 @@ from cdmp_ros.core.adaptation.constraints.points import Point
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import check_positive
 
+#: :meth:`Constraint.decided_near` decides only where the margin exceeds the radius by these
+#: relative and absolute amounts (rounding of the reference point and of the distances).
+DECIDED_RTOL = 1e-9
+DECIDED_ATOL = 1e-12
+
 
 def _set_common(c, alpha, lambda0, eta, name) -> None:
     """The confidence, multiplier settings and name every constraint has, checked."""
@@ -109,6 +114,23 @@ class Constraint:
         ndarray of bool, shape (n_samples, n) ('each') or (n_samples,) ('max').
         """
         raise NotImplementedError
+
+    def decided_near(self, X: NDArray, radius: NDArray, times: NDArray
+                     ) -> Optional[NDArray]:
+        """Where :meth:`satisfied` gives every point within ``radius`` of ``X`` the outcome
+        of ``X`` itself (the sampled verification then needs no kinematics there).
+
+        Parameters
+        ----------
+        X : (n, k) reference points at ``times``.
+        radius : (n_samples, n) distances from them.
+
+        Returns
+        -------
+        ndarray of bool (n_samples, n), or None when the constraint cannot tell (the
+        default: every sample is evaluated).
+        """
+        return None
 
     def describe(self) -> dict:
         return {'name': self.name, 'type': self.kind, 'alpha': self.alpha,

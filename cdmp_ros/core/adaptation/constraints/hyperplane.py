@@ -3,7 +3,7 @@ from typing import Optional
 
 import numpy as np
 
-from cdmp_ros.core.adaptation.constraints.base import Constraint
+from cdmp_ros.core.adaptation.constraints.base import DECIDED_ATOL, DECIDED_RTOL, Constraint
 from cdmp_ros.core.adaptation.constraints.points import Point
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
@@ -60,6 +60,11 @@ class Hyperplane(Constraint):
 
     def satisfied(self, X, times):
         return (X - self.offset) @ self.normal <= 0.0
+
+    def decided_near(self, X, radius, times):
+        # the ball of ``radius`` around X lies wholly on one side of the plane
+        gap = np.abs((X - self.offset) @ self.normal) / np.linalg.norm(self.normal)
+        return gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
 
     def describe(self):
         d = super().describe()

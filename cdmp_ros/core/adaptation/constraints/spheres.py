@@ -9,7 +9,7 @@ from typing import Optional
 
 import numpy as np
 
-from cdmp_ros.core.adaptation.constraints.base import Constraint
+from cdmp_ros.core.adaptation.constraints.base import DECIDED_ATOL, DECIDED_RTOL, Constraint
 from cdmp_ros.core.adaptation.constraints.points import DifferencePoint, Point
 from cdmp_ros.core.promp.gaussian import gamma_cdf, quadratic_moments
 from cdmp_ros.core.promp.quadratic_tail import quadratic_form_cdf
@@ -110,6 +110,11 @@ class _Sphere(Constraint):
         dG_dm = -a[:, None] * dE_dm - b[:, None] * dV_dm
         dG_dS = -a[:, None, None] * dE_dS - b[:, None, None] * dV_dS
         return G, dG_dm, dG_dS
+
+    def decided_near(self, X, radius, times):
+        # the ball of ``radius`` around X lies wholly inside or wholly outside the sphere
+        gap = np.abs(np.sqrt(self._dist2(X, times)) - self.radius)
+        return gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
 
     def _dist2(self, X, times):
         d = X - self.centers(times)[None]
