@@ -35,8 +35,6 @@ TAILS = ('auto', 'saddlepoint', 'gamma')
 
 #: Meanings of alpha (constraint-set field ``guarantee``, parameter adaptation.guarantee).
 GUARANTEES = ('per_step', 'trajectory')
-#: Where the optimiser starts (AdaptationConfig.start, parameter adaptation.start).
-STARTS = ('prior', 'linearised')
 #: Largest sampled verification a file or a parameter may ask for.
 MAX_VERIFICATION_SAMPLES = 1_000_000
 
@@ -154,14 +152,6 @@ class AdaptationConfig:
         so that the bound can reach the level.
     max_refinements : int
         ``trajectory``: tightenings of the per-step levels (re-solves) at most.
-    start : {'prior', 'linearised'}
-        Where the L-BFGS starts: at the prior with every multiplier at ``lambda0`` (paper 003,
-        Algorithm 1) or, when every constraint is a joint limit, repeller or wall and the
-        projection converges, at the linearised KL projection with the multipliers it implies
-        (:mod:`cdmp_ros.core.adaptation.linearised`: 10-40 ms, then fewer than half the
-        evaluations for the Panda with spheres; other constraint sets start at the prior). The
-        problem is not convex: the two starts may reach different local optima (KL ratios
-        0.4-1.9 measured, median 1.0; benchmarks/RESULTS.md).
     """
     n_steps: int = 101
     lambda0: float = 20.0
@@ -189,7 +179,6 @@ class AdaptationConfig:
     guarantee: str = 'per_step'
     verification_samples: Optional[int] = None
     max_refinements: int = 6
-    start: str = 'prior'
 
     def __post_init__(self):
         for name, (lo, hi) in RANGES.items():
@@ -214,8 +203,6 @@ class AdaptationConfig:
                                   f'got {self.confidence_margin!r}')
         if self.tail not in TAILS:
             raise ValidationError(f'tail: expected one of {list(TAILS)}, got {self.tail!r}')
-        if self.start not in STARTS:
-            raise ValidationError(f'start: expected one of {list(STARTS)}, got {self.start!r}')
         if not 0.0 < float(self.violation_target) <= 1.0:
             raise ValidationError(f'violation_target: expected a value in (0, 1], '
                                   f'got {self.violation_target!r}')
@@ -268,9 +255,6 @@ class AdaptationReport:
     levels: List[float] = field(default_factory=list)
     #: solves of the optimiser (guarantee ``trajectory``: 1 + refinements of the levels)
     n_solves: int = 1
-    #: where the (last) solve started: 'prior', or 'linearised' with its passes
-    start: str = 'prior'
-    start_passes: int = 0
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -393,12 +377,6 @@ class AdaptRequestConfig:
         0, 'Sampled trajectories of the verification of every solve (0: the default by the '
         'kinematics cost, at most 100,000 forward-kinematics evaluations, 1,000 to 10,000).',
         0, MAX_VERIFICATION_SAMPLES)
-    start: str = _param(
-        'prior', 'Where the optimiser starts: prior (paper 003, Algorithm 1) or linearised '
-        '(the KL projection onto the constraints linearised at the mean, with the multipliers '
-        'it implies: fewer than half the evaluations for the Panda with spheres, but it may '
-        'settle in another local optimum, with a KL up to about 2x larger or smaller).',
-        choices=STARTS)
 
     def __post_init__(self):
         check_fields(self)

@@ -262,18 +262,6 @@ class Problem:
         L0 = self.L0
         return np.concatenate([self.mu0, L0[self.tril], np.log(np.diag(L0))])
 
-    def theta_of(self, mean_w: NDArray, cov_w: NDArray) -> NDArray:
-        """The parameters theta of N(mean_w, cov_w) (whitened or raw, as ``initial_theta``);
-        gamma is clipped to :meth:`gamma_limits`."""
-        n = self.n
-        L = np.linalg.cholesky(cov_w + 1e-12 * np.trace(cov_w) / n * np.eye(n))
-        first = mean_w
-        if self.config.whiten:
-            first = np.linalg.solve(self.L0, mean_w - self.mu0)
-            L = np.linalg.solve(self.L0, L)          # lower triangular, positive diagonal
-        gamma = np.clip(np.log(np.diag(L)), self._glo, self._ghi)
-        return np.concatenate([first, L[self.tril], gamma])
-
     def gamma_limits(self):
         """Box on gamma: the diagonal of L stays within [e^-25, e^5] times the prior's, which
         keeps exp(gamma) finite during line searches. Returns (lo, hi), each (n,)."""

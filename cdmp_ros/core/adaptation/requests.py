@@ -318,7 +318,7 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         constraints += user
     opt = dict(n_steps=int(cfg.n_steps), max_outer=int(cfg.max_outer),
                max_inner=int(cfg.max_inner), lambda0=float(cfg.lambda0),
-               guarantee=cfg.guarantee, start=cfg.start,
+               guarantee=cfg.guarantee,
                verification_samples=int(cfg.verification_samples) or None)
     opt.update(overrides)
     return BuiltProblem(prior, constraints, AdaptationConfig(**opt), notes, used, ignored,
@@ -352,16 +352,15 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
     """Build and solve one request (paper 003, Algorithm 1).
 
     A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
-    only (one outer iteration, at most 50 L-BFGS iterations, from the prior), enough to report
-    the satisfaction probabilities without keeping the solver thread from newer requests.
+    only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
+    satisfaction probabilities without keeping the solver thread from newer requests.
     ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.solver.adapt` (raises
     :class:`~cdmp_ros.core.errors.Cancelled` when it returns True).
     """
     prob = build_problem(req, chain, cfg)
     config = prob.config
     if prob.infeasible:
-        config = dataclasses.replace(config, max_outer=1, max_inner=min(config.max_inner, 50),
-                                     start='prior')
+        config = dataclasses.replace(config, max_outer=1, max_inner=min(config.max_inner, 50))
     adapted, report = adapt(prob.prior, prob.constraints, config, should_stop=should_stop)
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
 

@@ -84,15 +84,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         ``converged`` is True only if every constraint holds at its confidence (within
         ``feasibility_tol``) under the approximation.
     """
-    from cdmp_ros.core.adaptation.linearised import linearised_projection, supported
     config = config or AdaptationConfig()
     t_start = time.perf_counter()
     prob = Problem(prior, constraints, config)
-    start = None
-    if config.start == 'linearised' and prob.constraints and supported(prob.constraints):
-        start = linearised_projection(prior, prob.constraints, prob.grid, config.lambda0)
-        if not start.converged:  # no better than the prior as a start
-            start = None
 
     def fun(theta, lam):
         if should_stop is not None and should_stop():
@@ -102,9 +96,6 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     lam = np.concatenate([np.full(s.stop - s.start, c.lambda0 or config.lambda0)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
-    if start is not None:
-        theta = prob.theta_of(start.promp.mean_w, start.promp.cov_w)
-        lam = np.maximum(lam, start.multipliers)
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
@@ -164,8 +155,6 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         status = 'infeasible_or_unconverged'
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports)
-    if start is not None:
-        report.start, report.start_passes = 'linearised', start.passes
     return adapted, report
 
 
