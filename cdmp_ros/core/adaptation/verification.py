@@ -216,7 +216,7 @@ class _KinematicGroup:
         if self.screen:
             self.zbar = promp.mean(times)[:, self.dofs]                    # (n, nd)
             self.Xbar, J = self.chain.forward_and_jacobian(self.zbar, self.pois)
-            self.rho = np.linalg.norm(J, axis=2)                           # (n, P, nd)
+            self.rho_t = np.linalg.norm(J, axis=2).transpose(0, 2, 1).copy()  # (n, nd, P)
 
     def positions(self, Zg: NDArray) -> Tuple[NDArray, int]:
         """World points (c, n, P, 3) of the samples' joint positions Zg (c, n, nd), and the
@@ -224,7 +224,10 @@ class _KinematicGroup:
         full = Zg.shape[0] * Zg.shape[1]
         if not self.screen:
             return self.chain.forward(Zg, self.pois), full
-        R = np.einsum('cnj,npj->cnp', np.abs(Zg - self.zbar), self.rho)     # (c, n, P)
+        dev = Zg - self.zbar
+        np.abs(dev, out=dev)
+        # R[c, t, i] = sum_j dev[c, t, j] rho[t, i, j], one matrix product per time step
+        R = np.matmul(dev.transpose(1, 0, 2), self.rho_t).transpose(1, 0, 2)  # (c, n, P)
         todo = np.zeros(R.shape[:2], bool)
         for i, (m, cs) in enumerate(zip(self.members, self.users)):
             Xi = self.Xbar[:, i][:, list(m.axes)]

@@ -194,9 +194,9 @@ class Chain:
         transcendental function instead of two).
         """
         nb, n = Q.shape
-        F, E, T, T2 = self._workspace(nb, 'frames', lambda: (
-            np.empty((n + 1, 3, nb, 4)), np.empty((n, nb), dtype=np.complex128),
-            np.empty((n, nb)), np.empty((n, nb))))
+        F, E, T, T2 = self._workspace('frames', ((n + 1, 3, nb, 4), np.float64),
+                                      ((n, nb), np.complex128), ((n, nb), np.float64),
+                                      ((n, nb), np.float64))
         F[0] = self.base_transform[:3, None, :]
         np.multiply(Q.T, 0.5, out=T)
         np.tan(T, out=T)
@@ -289,9 +289,9 @@ class Chain:
         nb = X.shape[-1]
         Jt = np.empty((len(frames), 3, n, nb))               # batch last: contiguous rows
         kmax = int(frames.max())
-        Z, org, D, tmp = self._workspace(nb, 'jacobian', lambda: (
-            np.empty((3, n, nb)), np.empty((3, n, nb)), np.empty((3, n, nb)),
-            np.empty((n, nb))))
+        Z, org, D, tmp = self._workspace('jacobian', ((3, n, nb), np.float64),
+                                         ((3, n, nb), np.float64), ((3, n, nb), np.float64),
+                                         ((n, nb), np.float64))
         Z[:, :kmax] = R[1:kmax + 1, :, :, 2].transpose(1, 0, 2)       # (3, k, B) axes
         org[:, :kmax] = p[1:kmax + 1].transpose(1, 0, 2)               # (3, k, B) origins
         for i, k in enumerate(frames.tolist()):
@@ -313,16 +313,23 @@ class Chain:
         J = Jt.transpose(3, 0, 1, 2)
         return Xo.reshape(lead + Xo.shape[1:]), J.reshape(lead + J.shape[1:])
 
-    def _workspace(self, nb: int, name: str, make):
-        """Scratch arrays of the batched path, reused between calls of the same batch size
-        (fresh large arrays cost page faults every call). Not shared between threads."""
-        key = (threading.get_ident(), nb, name)
-        work = self._work.get(key)
-        if work is None:
-            if len(self._work) > 8:
+    def _workspace(self, name: str, *specs) -> List[NDArray]:
+        """Scratch arrays of the batched path: C-contiguous arrays of the ``(shape, dtype)``
+        specs, views of flat buffers kept per thread and name that only grow (to the next
+        power of two of elements), so calls of any batch size reuse them (fresh large arrays
+        cost page faults every call, and the verification's batch size changes from call to
+        call). Valid until the next call of the same name in the same thread."""
+        key = (threading.get_ident(), name)
+        bufs = self._work.get(key)
+        sizes = [int(np.prod(shape)) for shape, _ in specs]
+        if bufs is None or any(b.size < k for b, k in zip(bufs, sizes)):
+            if bufs is None and len(self._work) > 16:
                 self._work.clear()
-            work = self._work[key] = make()
-        return work
+            bufs = [b if bufs is not None and b.size >= k
+                    else np.empty(1 << max(k - 1, 1).bit_length(), dtype=dtype)
+                    for b, k, (_, dtype) in zip(bufs or [None] * len(specs), sizes, specs)]
+            self._work[key] = bufs
+        return [b[:k].reshape(shape) for b, k, (shape, _) in zip(bufs, sizes, specs)]
 
     def link_frames(self, Q: ArrayLike) -> NDArray[np.float64]:
         """World poses (..., n_links, 4, 4) of the URDF frames of ``link_names``."""
