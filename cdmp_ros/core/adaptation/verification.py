@@ -197,11 +197,11 @@ class _KinematicGroup:
     time, base first. When joint j moves, the joints after it are still at the mean, so the
     point is at distance ``rho_j`` from joint j's axis (the joints before j move that axis
     and the point rigidly together), and a rotation by dz moves it along a chord
-    ``2 rho_j sin(|dz| / 2) <= rho_j |dz|``; the triangle inequality sums the steps. Where
-    every constraint on
-    the group's points gives that whole ball the outcome of ``Xbar``
-    (:meth:`~cdmp_ros.core.adaptation.constraints.base.Constraint.decided_near`), ``Xbar``
-    stands in for the sample's point: the verdicts are exactly those of the full
+    ``2 rho_j sin(|dz| / 2) <= rho_j |dz|``; the triangle inequality sums the steps.
+
+    Where every constraint on the group's points gives that whole ball the outcome of
+    ``Xbar`` (:meth:`~cdmp_ros.core.adaptation.constraints.base.Constraint.decided_near`),
+    ``Xbar`` stands in for the sample's point: the verdicts are exactly those of the full
     kinematics, which runs only on the undecided (sample, step) pairs. A group with a
     constraint that cannot tell is evaluated in full."""
 
