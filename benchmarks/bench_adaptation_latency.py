@@ -16,6 +16,14 @@ the last ``joint_reference`` (a perfect robot; the measurements before 2026-11-2
 so each event starts where the earlier adaptations led and two code versions see different
 problems.
 
+``--motion track``: instead of re-placing the spheres, every event moves each sphere by
+``--speed / --rate`` (default 0.2 m/s at 30 Hz: 6.7 mm) along a horizontal line through its
+place, as an obstacle tracker reports a moving obstacle; events follow each other after
+``1 / --rate`` s (the adapter's refinement of a warm solve then mostly gives way to the next
+event). The adapter starts these solves warm (``adaptation.warm_start``; compare with
+``--param adaptation.warm_start:=false``). The start of every published solve (warm / cold,
+diagnostics key ``start``) is printed.
+
 For each event it records the latency from the obstacle stamp (= publish time, same host
 clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
 After the change of issue 13 the streamer reports that stamp on ``diagnostics``
@@ -33,7 +41,8 @@ Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private do
 Bounded: start-up + n * (at most --timeout) seconds.
 
     .venv/bin/python benchmarks/bench_adaptation_latency.py [--n 25] [--seed 0] [--domain 133]
-        [--robot start|echo] [--code DIR --before] [--param adaptation.n_steps:=30 ...]
+        [--robot start|echo] [--motion replace|track] [--speed 0.2] [--rate 30]
+        [--code DIR --before] [--param adaptation.n_steps:=30 ...]
 """
 import argparse
 import os
@@ -210,10 +219,20 @@ def run(args):
             from bench_adaptation_solve import events
             _, reqs = events(args.n, args.seed, args.spheres)
             user.echo = False
+        if args.motion == 'track':  # every sphere crosses its place on a horizontal line
+            step = args.speed / args.rate
+            heading = rng.uniform(0.0, 2 * np.pi, len(base))
+            direction = np.stack([np.cos(heading), np.sin(heading), 0 * heading], axis=1)
+            track0 = (np.array([ob.center for ob in reqs[0].obstacles])
+                      if args.robot == 'start' else base) - direction * step * args.n / 2
         cpu0 = cpu_seconds(procs)
         for k in range(args.n):
             centres = base + rng.normal(0.0, 0.02, base.shape)  # moved around its place
-            if args.robot == 'start':
+            if args.motion == 'track':
+                centres = track0 + direction * step * k
+                if args.robot == 'start':
+                    radii = [ob.radius for ob in reqs[0].obstacles]
+            elif args.robot == 'start':
                 centres = np.array([ob.center for ob in reqs[k].obstacles])
                 radii = [ob.radius for ob in reqs[k].obstacles]
                 with user.lock:
@@ -271,11 +290,13 @@ def run(args):
                         for _, kv in user.states[n_s:]:
                             if kv.get('request_id') == str(meta.get('request_id')) \
                                     and 'solve_cpu_ms' in kv:
-                                return float(kv['solve_time_ms']), float(kv['solve_cpu_ms'])
+                                return (float(kv['solve_time_ms']), float(kv['solve_cpu_ms']),
+                                        kv.get('start', '-'))
                     return None
-                row['solve_ms'], row['solve_cpu_ms'] = user.wait(solve, 5.0) or (None, None)
+                row['solve_ms'], row['solve_cpu_ms'], row['start'] = (user.wait(solve, 5.0)
+                                                                      or (None, None, '-'))
             rows.append(row)
-            print(f'event {k + 1}: {row["outcome"]}, latency '
+            print(f'event {k + 1}: {row["outcome"]} ({row.get("start", "-")} start), latency '
                   f'{row.get("latency_ms", float("nan")):.0f} ms (received '
                   f'{row.get("received_ms", float("nan")):.0f} ms), solve '
                   f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms), load '
@@ -301,7 +322,15 @@ def main():
     ap.add_argument('--timeout', type=float, default=15.0, help='s to wait per event')
     ap.add_argument('--spheres', type=int, default=3,
                     help='spheres per event (the last near the elbow path when > 1)')
-    ap.add_argument('--gap', type=float, default=0.5, help='s between events')
+    ap.add_argument('--gap', type=float, default=None,
+                    help='s between events (default 0.5; --motion track: 1 / --rate)')
+    ap.add_argument('--motion', choices=('replace', 'track'), default='replace',
+                    help='"replace" (default): every event re-places every sphere N(0, 2 cm) '
+                         'around its place; "track": every sphere moves --speed / --rate '
+                         'per event along a horizontal line through its place, as a tracker '
+                         'at --rate would report it (the adapter starts warm)')
+    ap.add_argument('--speed', type=float, default=0.2, help='m/s of --motion track')
+    ap.add_argument('--rate', type=float, default=30.0, help='Hz of --motion track')
     ap.add_argument('--js-rate', type=float, default=50.0,
                     help='Hz of the joint_states this process publishes (default 50; the sim '
                          'publishes 250)')
@@ -320,6 +349,8 @@ def main():
                     help='streamer parameter name:=value (repeatable)')
     ap.add_argument('--logdir', default='', help='directory of the node logs (default /tmp)')
     args = ap.parse_args()
+    if args.gap is None:
+        args.gap = 1.0 / args.rate if args.motion == 'track' else 0.5
     print(f'machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}; code '
           f'{args.code}{" (before)" if args.before else ""}; adapter: config/adapter.yaml '
           f'{" ".join(args.param)}')
@@ -330,6 +361,7 @@ def main():
     over = np.array([r['latency_ms'] - r['solve_ms'] for r in rows
                      if 'latency_ms' in r and r.get('solve_ms') is not None])
     loads = [r['load'] for r in rows]
+    starts = {k: sum(r.get('start') == k for r in rows) for k in ('warm', 'cold')}
 
     def pct(a, q):
         return f'{np.percentile(a, q):.0f}' if a.size else '-'
@@ -342,6 +374,7 @@ def main():
     print(f'| {len(rows)} | {lat.size} | {pct(lat, 50)} / {pct(lat, 95)} / {pct(lat, 100)} | '
           f'{within} | {pct(wall, 50)} | {pct(cpu, 50)} / {pct(cpu, 95)} | '
           f'{pct(over, 50)} / {pct(over, 95)} | {min(loads):.1f}-{max(loads):.1f} |')
+    print(f'starts of the published solves: {starts["warm"]} warm, {starts["cold"]} cold')
 
 
 if __name__ == '__main__':

@@ -145,6 +145,60 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
     assert d['metadata']['adapter']['obstacles_used'] == 0
 
 
+def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
+    """Warm starts (adaptation.warm_start): an obstacle that moved 1 cm is solved from the
+    last solution (metadata and diagnostics say so), then refined cold while the solver is
+    idle (published only if better); with the parameter off, cold."""
+    from visualization_msgs.msg import Marker, MarkerArray
+    h, proc, _ = graph
+    prior = promp_of(use(h, prims, 'promp'))
+    centre = ee(chain, prior.mean([0.5]))[0]
+
+    def move_to(x):
+        n0 = h.n_adapted()
+        h.publish('obstacles', MarkerArray(markers=[h.sphere(x, 0.05)]))
+        d = h.wait_adapted(n0, trigger='obstacles')
+        assert d is not None
+        path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
+        assert np.linalg.norm(path - x, axis=1).min() > 0.05
+        return d['metadata']['adaptation'], d['metadata']['adapter']['request_id']
+
+    def ended(kv):  # refinements started, published, kept warm, cancelled; if all ended
+        n = [int(kv.get(f'refinements_{k}', 0)) for k in
+             ('started', 'published', 'kept_warm', 'cancelled')]
+        return n if sum(n[1:]) == n[0] else None
+
+    try:
+        move_to(centre)
+        t = time.monotonic()  # (a refinement of an earlier warm solve may be running)
+        st = h.wait_state(lambda m, lv, kv: ended(kv) is not None, t, TIMEOUT)
+        assert st is not None, h.states_since(t)[-1:]
+        before = ended(st[2])
+        t0 = time.monotonic()
+        rep, rid = move_to(centre + [0.0, 0.01, 0.0])
+        assert rep['start'] == 'warm', rep
+        assert rep['n_evaluations'] >= 1
+        # the diagnostics of this request (the last one's are repeated every period)
+        st = h.wait_state(lambda m, lv, kv: kv.get('request_id') == str(rid), t0, TIMEOUT)
+        assert st is not None, h.states_since(t0)[-2:]
+        kv = st[2]
+        assert kv['start'] == 'warm' and int(kv['starts_warm']) >= 1, kv
+        # its refinement ran to its end (nothing else was requested): published or dropped
+        st = h.wait_state(lambda m, lv, kv: (ended(kv) or [0])[0] == before[0] + 1, t0,
+                          TIMEOUT)
+        assert st is not None, h.states_since(t0)[-1:]
+        after = ended(st[2])
+        assert after[3] == before[3] and after[1] + after[2] == before[1] + before[2] + 1
+        assert _set_param(h, 'adaptation.warm_start', False).successful
+        rep, _ = move_to(centre + [0.0, 0.02, 0.0])
+        assert rep['start'] == 'cold', rep
+    finally:
+        assert _set_param(h, 'adaptation.warm_start', True).successful
+        n0 = h.n_adapted()
+        h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+        assert h.wait_adapted(n0, trigger='obstacles') is not None
+
+
 def test_box_obstacle_becomes_a_wall(graph, prims, chain):
     from cdmp_ros.core.adaptation.requests import obstacle_distance
     from cdmp_ros.core.kinematics import Box

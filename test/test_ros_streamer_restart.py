@@ -92,9 +92,21 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
         stamps = [r[1] for r in h.refs_since(n0)]
         assert stamps[0] <= first <= stamps[-1], (first, stamps[0], stamps[-1])
         assert any((first - s) % 2_000_000 == 0 for s in stamps), first
+        # a second adaptation answering the same obstacle message (the adapter's refinement of
+        # a warm solve): switched in, not timed again
+        h.publish('adapted_primitive', String(data=adapted_text(GOAL_P2_ADAPTED, p2, 21, stamp)))
+        t1 = time.monotonic()
+        assert h.wait(lambda: '21' in state_value(h, 'adapted_generation', t1), TIMEOUT)
+        n1 = h.n_refs()        # references computed from it, then a report after them
+        assert h.wait(lambda: h.n_refs() > n1 + 5, TIMEOUT)
+        t2 = time.monotonic()
+        assert h.wait(lambda: state_value(h, 'adaptation_latency_n', t2), TIMEOUT)
+        kv = h.last_state()[1]
+        assert kv['adapted_generation'] == '21'
+        assert kv['adaptation_latency_n'] == '1' and int(kv['adapted_reference_stamp_ns']) == first
         assert stop_process(proc) == 0, log.read_text()
 
-        # a restarted streamer gets P2 and its adaptation (latched): streams the adaptation
+        # a restarted streamer gets P2 and its newest adaptation (latched): streams it
         h.robot_q = Q_START.copy()
         n2 = h.n_refs()
         log2 = tmp_path / 'streamer2.log'
@@ -102,7 +114,7 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
                                params_file='config/streamer.yaml')
         procs.append(proc2)
         t2 = time.monotonic()
-        assert h.wait(lambda: '20' in state_value(h, 'adapted_generation', t2)
+        assert h.wait(lambda: '21' in state_value(h, 'adapted_generation', t2)
                       or proc2.poll() is not None, STARTUP), log2.read_text()
         assert converges_to(h, proc2, GOAL_P2_ADAPTED, n2 + 1), log2.read_text()
         assert 'cdmp from adapted_primitive' in state_value(h, 'primitive', t2)

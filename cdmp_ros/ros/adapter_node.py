@@ -16,7 +16,10 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
   ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
-  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms; and
+  evaluations, start (cold / warm, with start_note when a warm solve was replaced),
+  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
+  starts_warm / starts_cold / starts_warm_then_cold, refinements_started / published /
+  kept_warm / cancelled; and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
   the robot's limits came from) and limit_mismatch (every bound on which the primitive's
@@ -26,6 +29,14 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   they bound the joint-limit constraints of a ProMP adaptation and are written as the
   adapted ProMP's ``limits``. A difference is logged as a warning and reported.
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
+- Warm starts (``adaptation.warm_start``, :mod:`cdmp_ros.core.adaptation.warm`): a request
+  whose problem differs from the last converged one only by obstacles that moved at most
+  ``adaptation.warm_start_distance`` starts from that solution and its multipliers; a warm
+  solve that does not converge within ``adaptation.warm_start_max_evaluations`` or whose KL
+  exceeds the guard is followed by a cold solve of the same request. After a published warm
+  solve, with no request waiting, the same request is solved cold as a refinement
+  (``adaptation.warm_start_refine``), published only if its KL is at least 5 % lower, and
+  cancelled by any newer request within one evaluation (or one sampled verification).
 - Every published primitive carries in ``metadata.adapter`` its provenance
   (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
   ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
@@ -52,6 +63,7 @@ streamer gets the latest adapted one); ``visualization`` transient-local (a late
 the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
 ``diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
 """
+import dataclasses
 import json
 import math
 import time
@@ -70,6 +82,7 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, clip_goal, retarget
                                                retarget_primitive_dict, rollout_path,
                                                solve_goal_point)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.adaptation.warm import WarmStarts
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.streaming.selection import Provenance
@@ -92,8 +105,8 @@ INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 CONTINUING_TRIGGERS = ('obstacles', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
-               'kl', 'iterations', 'outer_iterations', 'obstacles_used', 'obstacles_ignored',
-               'latency_ms')
+               'kl', 'iterations', 'outer_iterations', 'evaluations', 'start', 'start_note',
+               'obstacles_used', 'obstacles_ignored', 'latency_ms')
 
 
 class AdapterNode(Node):
@@ -132,7 +145,9 @@ class AdapterNode(Node):
         self._obstacle_items = ()
         self.counts = {'published': 0, 'outcome_converged': 0, 'outcome_infeasible': 0,
                        'outcome_unconverged': 0, 'outcome_rejected': 0,
-                       'requests_outdated': 0}
+                       'requests_outdated': 0, 'refinements_started': 0,
+                       'refinements_published': 0, 'refinements_kept_warm': 0,
+                       'refinements_cancelled': 0}
 
         self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
         self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
@@ -160,8 +175,9 @@ class AdapterNode(Node):
             JointState, 'joint_states', self._on_joint_states, qos.SENSOR,
             size=joint_names(lambda: n + EXTRA_JOINTS), stamped=True)
         self._results_ready = self.create_guard_condition(self._on_results)
-        self.worker = SolveWorker(lambda job: solve_job(job, self.chain, self.worker.stopping),
-                                  self._results_ready.trigger)
+        # used by the solver thread only; its counters are read for diagnostics
+        self.warm = WarmStarts()
+        self.worker = SolveWorker(self._solve, self._results_ready.trigger)
         self.worker.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
@@ -346,6 +362,26 @@ class AdapterNode(Node):
                                time.monotonic(), self.primitive_id, p['sha1'],
                                generation=generation))
 
+    def _solve(self, job: Job) -> JobResult:
+        """Solve ``job`` (in the solver thread); a refinement gives way to any newer request."""
+        worker = self.worker
+        if job.refine_kl is None:
+            return solve_job(job, self.chain, worker.stopping, self.warm)
+        return solve_job(job, self.chain,
+                         lambda: worker.stopping() or worker.has_pending(), self.warm)
+
+    def _refine(self, res: JobResult) -> None:
+        """After a warm solve was published, with the solver idle: solve the same request
+        cold (``adaptation.warm_start_refine``; :mod:`cdmp_ros.core.adaptation.warm`)."""
+        job = res.job
+        if (res.stale or job.refine_kl is not None or res.result.report.start != 'warm'
+                or not job.config.warm_start_refine or self.worker.has_pending()):
+            return
+        self.counts['refinements_started'] += 1
+        self.worker.submit(dataclasses.replace(job, refine_kl=float(res.result.report.kl),
+                                               generation=self._next_generation(),
+                                               received=time.monotonic()))
+
     def _next_generation(self) -> int:
         """Generation of a new adaptation: the ROS time [ns] now, strictly increasing (also
         across adapter restarts, as the clock moves on)."""
@@ -402,6 +438,16 @@ class AdapterNode(Node):
         if job.primitive_id != self.primitive_id:  # adapted a primitive replaced since
             self.counts['requests_outdated'] += 1
             return
+        if job.refine_kl is not None and (res.outcome in ('cancelled', 'kept_warm')
+                                          or res.stale):
+            # a refinement that gave way to a newer request, or found no lower KL: the warm
+            # solution stays published
+            self.counts['refinements_kept_warm' if res.outcome == 'kept_warm'
+                        else 'refinements_cancelled'] += 1
+            self.get_logger().debug(f'refinement {job.id}: {res.outcome}'
+                                    + (' (stale)' if res.stale else ''))
+            self._publish_now()
+            return
         self.counts[f'outcome_{res.outcome}'] += 1
         self.reporter.timing('solve', res.solve_time)
         self._clear_result_values()
@@ -418,12 +464,16 @@ class AdapterNode(Node):
             self.pub.publish(String(data=res.text))
             self._publish_markers(res.path, res.band)
             self.counts['published'] += 1
+            if job.refine_kl is not None:
+                self.counts['refinements_published'] += 1
             latency = time.monotonic() - job.received
             self.reporter.timing('request_to_publish', latency)
             kv['latency_ms'] = f'{latency * 1e3:.1f}'
             self.reporter.set_state(OK, f'request {job.id} ({job.trigger}) converged'
+                                    + (' (refinement)' if job.refine_kl is not None else '')
                                     + (' (stale: a newer request is pending)'
                                        if res.stale else ''), **kv)
+            self._refine(res)
         else:
             bad = '; '.join(res.result.problem.infeasible[:2] + violated(res)[:5])
             level = ERROR if res.outcome == 'infeasible' else WARN
@@ -441,8 +491,10 @@ class AdapterNode(Node):
                                         or k in RESULT_KEYS)}
 
     def _publish_now(self) -> None:
+        starts = {f'starts_{k}': v for k, v in dict(self.warm.counts).items()}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
-                                **self.worker.summary(), **self.counts, **self.gate.values())
+                                **self.worker.summary(), **self.counts, **starts,
+                                **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def _publish_diagnostics(self) -> None:

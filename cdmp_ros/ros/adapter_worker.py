@@ -2,9 +2,11 @@
 
 :class:`SolveWorker` (a :class:`~cdmp_ros.ros.latest_worker.LatestWorker`) runs one request at
 a time; ``submit`` replaces a request that has not started yet (latest request wins: the
-replaced one is counted as *dropped*). A running solve is never interrupted by a newer request;
-only :meth:`SolveWorker.stop` (node shutdown) cancels it, within one evaluation of the
-Lagrangian (``solve_job(job, chain, worker.stopping)``). When a solve finishes while a newer
+replaced one is counted as *dropped*). A running solve is never interrupted by a newer request,
+except a refinement (a cold solve of the last request after a warm one,
+:mod:`cdmp_ros.core.adaptation.warm`), which a waiting request cancels;
+:meth:`SolveWorker.stop` (node shutdown) cancels any solve, within one evaluation of the
+Lagrangian (``solve_job(job, chain, should_stop)``). When a solve finishes while a newer
 request is already waiting, its result is marked *stale*; the node still publishes a stale
 result if it converged (a newer plan follows within one solve time, and publishing avoids
 starving the output while obstacles keep moving), and says so on ``diagnostics``. A result
@@ -22,9 +24,10 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
-                                               promp_message, run_request)
+                                               promp_message, refine_request, run_request)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
-from cdmp_ros.core.errors import CdmpError, ConstraintSetError
+from cdmp_ros.core.adaptation.warm import WarmStarts
+from cdmp_ros.core.errors import Cancelled, CdmpError, ConstraintSetError
 from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.ros.latest_worker import LatestWorker
 
@@ -43,6 +46,7 @@ class Job:
     source_sha1: str = ''         # SHA-1 of that primitive's JSON text (its primitive_id)
     id: int = 0
     generation: int = 0           # adapter ROS time [ns] at the request (issue 13)
+    refine_kl: Optional[float] = None  # a refinement of a warm solve of this KL (else None)
 
 
 @dataclass
@@ -50,7 +54,8 @@ class JobResult:
     """What the executor publishes for a finished job."""
 
     job: Job
-    outcome: str                          # converged / infeasible / unconverged / rejected
+    outcome: str                          # converged / infeasible / unconverged / rejected;
+    #                                       refinements also cancelled / kept_warm
     solve_time: float                     # [s], building + solving (wall clock)
     text: Optional[str] = None            # adapted primitive JSON (all outcomes but rejected)
     result: Optional[AdaptResult] = None
@@ -70,12 +75,25 @@ def job_provenance(job: Job) -> Provenance:
                       int(job.trigger_stamp_ns), bool(job.request.continues))
 
 
-def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None) -> JobResult:
+def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
+              warm: Optional[WarmStarts] = None) -> JobResult:
     """Build, solve and serialise one job (runs in the worker thread); ``should_stop``
-    cancels the solve (:class:`~cdmp_ros.core.errors.Cancelled`, reported as rejected)."""
+    cancels the solve (:class:`~cdmp_ros.core.errors.Cancelled`, reported as rejected);
+    ``warm``: the warm starts of the worker's stream of jobs
+    (:mod:`cdmp_ros.core.adaptation.warm`)."""
     t0, c0 = time.perf_counter(), time.thread_time()
     try:
-        res = run_request(job.request, chain, job.config, should_stop)
+        if job.refine_kl is not None:
+            try:
+                res = refine_request(job.request, chain, job.config, warm, job.refine_kl,
+                                     should_stop)
+            except Cancelled:
+                return JobResult(job, 'cancelled', time.perf_counter() - t0)
+            if res is None:
+                return JobResult(job, 'kept_warm', time.perf_counter() - t0,
+                                 solve_cpu=time.thread_time() - c0)
+        else:
+            res = run_request(job.request, chain, job.config, should_stop, warm)
     except ConstraintSetError as exc:
         return JobResult(job, 'rejected', time.perf_counter() - t0, error=str(exc),
                          error_topic='constraints')
@@ -156,8 +174,11 @@ def result_values(res: JobResult) -> Dict[str, Any]:
         return kv
     rep = res.result.report
     kv.update(kl=f'{rep.kl:.6g}', iterations=rep.n_inner, outer_iterations=rep.n_outer,
+              evaluations=rep.n_evaluations, start=rep.start,
               obstacles_used=res.result.problem.obstacles_used,
               obstacles_ignored=res.result.problem.obstacles_ignored)
+    if rep.start_note:
+        kv['start_note'] = rep.start_note
     for c in rep.constraints:
         kv[f'p.{c.name}'] = f'{c.probability:.6f} (alpha {c.alpha:g})'
     kv.update(verification_values(rep))

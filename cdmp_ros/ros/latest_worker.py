@@ -102,6 +102,11 @@ class LatestWorker(threading.Thread, Generic[Request, Result]):
         with self._cv:
             self._cv.notify()
 
+    def has_pending(self) -> bool:
+        """True while a request waits (read without the lock: a hint for running work that
+        gives way to newer requests, such as the adapter's refinements)."""
+        return bool(self._pending)
+
     def stopping(self) -> bool:
         """True once :meth:`stop` was called (the ``should_stop`` of long work)."""
         return self._stop_event.is_set()

@@ -150,6 +150,7 @@ class StreamerNode(Node):
         self._adapt_latency = LatencyRing('adaptation_latency')
         self._adapt_pending = None  # the switched-in adaptation awaiting its first reference
         self._adapt_first = {}
+        self._timed_trigger_ns = 0  # trigger stamp of the last adaptation timed
         # obstacle message stamp -> publication of the first reference computed with it
         self._obstacle_latency = LatencyRing('obstacle_latency', 4096, (50, 99))
         self._latency_pending_ns = 0
@@ -405,10 +406,11 @@ class StreamerNode(Node):
             self.get_logger().info(text)
         prov = dec.provenance
         # timed only when triggered while this streamer runs (not a latched adaptation from
-        # before a restart)
+        # before a restart), and once per trigger: the adapter's refinement of a warm solve
+        # answers the same obstacle message again
         started = self.schedule.stamp0_ns
         self._adapt_pending = ((chosen, prov) if prov and prov.trigger_stamp_ns > started
-                               else None)
+                               and prov.trigger_stamp_ns != self._timed_trigger_ns else None)
 
     def _note_adapted_reference(self, stamp: int) -> None:
         """The first reference computed from a switched-in adaptation: trigger -> stamp."""
@@ -419,6 +421,7 @@ class StreamerNode(Node):
         if self.streamer.state is not StreamState.RUNNING:
             return  # stored while the inputs are stale: its first reference comes later
         self._adapt_pending = None
+        self._timed_trigger_ns = prov.trigger_stamp_ns
         self._adapt_latency.add((stamp - prov.trigger_stamp_ns) * 1e-6)
         self._adapt_first = {'adapted_reference_stamp_ns': stamp,
                              'adapted_trigger_stamp_ns': prov.trigger_stamp_ns,

@@ -11,6 +11,9 @@ Ranges and descriptions live in the field metadata (used for the parameter descr
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, List, Optional, Tuple
 
+import numpy as np
+from numpy.typing import NDArray
+
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
                                          max_json_bytes_param, max_obstacles_param,
                                          obstacle_distance_param, obstacle_size_param,
@@ -152,6 +155,12 @@ class AdaptationConfig:
         so that the bound can reach the level.
     max_refinements : int
         ``trajectory``: tightenings of the per-step levels (re-solves) at most.
+    max_evaluations : int, optional
+        Evaluations of the Lagrangian at most over the whole solve (None: bounded by
+        ``max_outer`` and ``max_inner`` only); a solve that reaches it ends with status
+        ``evaluation_budget_exhausted``. L-BFGS-B checks it between its iterations, so the
+        evaluations of one line search may run over it. The adapter's warm starts use it
+        (:mod:`cdmp_ros.core.adaptation.warm`).
     """
     n_steps: int = 101
     lambda0: float = 20.0
@@ -179,6 +188,7 @@ class AdaptationConfig:
     guarantee: str = 'per_step'
     verification_samples: Optional[int] = None
     max_refinements: int = 6
+    max_evaluations: Optional[int] = None
 
     def __post_init__(self):
         for name, (lo, hi) in RANGES.items():
@@ -210,9 +220,9 @@ class AdaptationConfig:
             raise ValidationError(f'guarantee: expected one of {list(GUARANTEES)}, got '
                                   f'{self.guarantee!r}')
         for name, lo, hi in (('verification_samples', 1, MAX_VERIFICATION_SAMPLES),
-                             ('max_refinements', 0, 20)):
+                             ('max_refinements', 0, 20), ('max_evaluations', 1, 10 ** 7)):
             v = getattr(self, name)
-            if v is None and name == 'verification_samples':
+            if v is None and name in ('verification_samples', 'max_evaluations'):
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or \
                     not float(v).is_integer() or not lo <= v <= hi:
@@ -223,6 +233,16 @@ class AdaptationConfig:
         if self.tail != 'auto':
             return self.tail
         return 'saddlepoint' if linear else 'gamma'
+
+
+@dataclass(frozen=True)
+class SolverState:
+    """The optimiser's variables at the end of a solve: theta (whitened parameters of
+    :class:`~cdmp_ros.core.adaptation.problem.Problem`, relative to its prior) and the
+    multipliers lambda (one per constraint value). A solve of a problem with the same prior
+    and constraint layout can start from it (``solve_levels(..., start=state)``)."""
+    theta: NDArray[np.float64]
+    lam: NDArray[np.float64]
 
 
 @dataclass
@@ -255,9 +275,18 @@ class AdaptationReport:
     levels: List[float] = field(default_factory=list)
     #: solves of the optimiser (guarantee ``trajectory``: 1 + refinements of the levels)
     n_solves: int = 1
+    #: where the optimiser started: ``cold`` (the prior, multipliers lambda0) or ``warm``
+    #: (an earlier solution; :mod:`cdmp_ros.core.adaptation.warm`), with the reason of a cold
+    #: start that replaced a warm one in ``start_note``
+    start: str = 'cold'
+    start_note: str = ''
+    #: where the optimiser ended (whitened parameters and multipliers), the start of a warm
+    #: solve of the next request; not part of :meth:`as_dict`
+    state: Optional['SolverState'] = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
+        d.pop('state', None)
         d['constraints'] = [dict(c.__dict__) for c in self.constraints]
         d['verification'] = None if self.verification is None else self.verification.as_dict()
         d['levels'] = list(self.levels)
@@ -377,6 +406,24 @@ class AdaptRequestConfig:
         0, 'Sampled trajectories of the verification of every solve (0: the default by the '
         'kinematics cost, at most 100,000 forward-kinematics evaluations, 1,000 to 10,000).',
         0, MAX_VERIFICATION_SAMPLES)
+    warm_start: bool = _param(
+        True, "Start a request's solve from the last converged solution when only obstacles "
+        'moved (same primitive, constraints and settings; every obstacle moved at most '
+        'warm_start_distance): a tracked obstacle costs a few evaluations instead of a full '
+        'solve (cdmp_ros.core.adaptation.warm).')
+    warm_start_distance: float = _param(
+        0.1, 'Largest move of any obstacle [m] between two requests for a warm start.',
+        0.0, 10.0)
+    warm_start_kl_ratio: float = _param(
+        1.25, "A warm solve is kept when its KL is at most this times the last cold solve's "
+        '(+ 1); otherwise the request is solved cold as well and the lower KL kept.',
+        1.0, 100.0)
+    warm_start_max_evaluations: int = _param(
+        40, 'Evaluations of the Lagrangian a warm solve may take before the request is '
+        'solved cold instead.', 1, 10000)
+    warm_start_refine: bool = _param(
+        True, 'When the solver is idle after a warm solve, solve the same request cold and '
+        'publish the result if its KL is at least 5 % lower (a newer request cancels it).')
 
     def __post_init__(self):
         check_fields(self)

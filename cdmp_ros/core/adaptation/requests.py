@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport, adapt
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
+from cdmp_ros.core.adaptation.warm import WarmStarts
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.ik import IkResult, solve_position_ik
 from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
@@ -348,21 +349,42 @@ class AdaptResult:
 
 
 def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
-                should_stop: Optional[Callable[[], bool]] = None) -> AdaptResult:
+                should_stop: Optional[Callable[[], bool]] = None,
+                warm: Optional[WarmStarts] = None) -> AdaptResult:
     """Build and solve one request (paper 003, Algorithm 1).
 
     A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
     only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
     satisfaction probabilities without keeping the solver thread from newer requests.
     ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.solver.adapt` (raises
-    :class:`~cdmp_ros.core.errors.Cancelled` when it returns True).
+    :class:`~cdmp_ros.core.errors.Cancelled` when it returns True). ``warm``: the warm
+    starts of the caller's stream of requests (:mod:`cdmp_ros.core.adaptation.warm`; with
+    ``cfg.warm_start``).
     """
     prob = build_problem(req, chain, cfg)
     config = prob.config
     if prob.infeasible:
         config = dataclasses.replace(config, max_outer=1, max_inner=min(config.max_inner, 50))
-    adapted, report = adapt(prob.prior, prob.constraints, config, should_stop=should_stop)
+    if warm is not None and not prob.infeasible:
+        adapted, report = warm.solve(req, prob, cfg, should_stop)
+    else:
+        if warm is not None:
+            warm.forget()
+        adapted, report = adapt(prob.prior, prob.constraints, config, should_stop=should_stop)
     return AdaptResult(adapted, report, classify(report, prob.infeasible), prob)
+
+
+def refine_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig, warm: WarmStarts,
+                   kl: float, should_stop: Optional[Callable[[], bool]] = None
+                   ) -> Optional[AdaptResult]:
+    """Solve ``req`` again, cold, after a warm solve of KL ``kl``
+    (:meth:`cdmp_ros.core.adaptation.warm.WarmStarts.refine`): the result if its KL is
+    lower by REFINE_GAIN at least, else None. ``should_stop`` cancels it."""
+    prob = build_problem(req, chain, cfg)
+    out = warm.refine(req, prob, kl, should_stop)
+    if out is None:
+        return None
+    return AdaptResult(out[0], out[1], classify(out[1], prob.infeasible), prob)
 
 
 def promp_message(promp: ProMP) -> str:

@@ -12,19 +12,22 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport)
+from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport,
+                                             SolverState)
 from cdmp_ros.core.adaptation.problem import Problem
 from cdmp_ros.core.adaptation.verification import sample_points, verify
-from cdmp_ros.core.errors import Cancelled
+from cdmp_ros.core.errors import Cancelled, ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
-__all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'adapt',
+__all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'SolverState',
+           'adapt',
            'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels']
 
 
 def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
           should_stop: Optional[Callable[[], bool]] = None,
-          rng: Optional[np.random.Generator] = None) -> Tuple[ProMP, AdaptationReport]:
+          rng: Optional[np.random.Generator] = None,
+          start: Optional[SolverState] = None) -> Tuple[ProMP, AdaptationReport]:
     """Adapt ``prior`` to the constraints (Algorithm 1, paper 003) and verify the result.
 
     With ``config.guarantee == 'per_step'`` (the paper's semantics) one solve of
@@ -41,6 +44,9 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     rng : numpy.random.Generator, optional
         Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
         reports).
+    start : SolverState, optional
+        Warm start (:func:`solve_levels`); guarantee ``per_step`` only (the ``trajectory``
+        guarantee re-solves at tightened levels and always starts cold).
 
     Returns
     -------
@@ -54,16 +60,18 @@ def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig
     config = config or AdaptationConfig()
     rng = np.random.default_rng(0) if rng is None else rng
     if config.guarantee == 'trajectory':
+        if start is not None:
+            raise ValidationError('adapt: a warm start needs the per_step guarantee')
         return adapt_trajectory(prior, constraints, config, should_stop, rng)
     t_start = time.perf_counter()
-    adapted, report = solve_levels(prior, constraints, config, should_stop)
+    adapted, report = solve_levels(prior, constraints, config, should_stop, start)
     attach_verification(report, adapted, constraints, config, rng, t_start)
     return adapted, report
 
 
 def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
-                 should_stop: Optional[Callable[[], bool]] = None
-                 ) -> Tuple[ProMP, AdaptationReport]:
+                 should_stop: Optional[Callable[[], bool]] = None,
+                 start: Optional[SolverState] = None) -> Tuple[ProMP, AdaptationReport]:
     """Adapt ``prior`` to the constraints (Algorithm 1, paper 003), each time step of each
     constraint at its confidence under the approximation; no sampled verification.
 
@@ -76,13 +84,23 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         Polled before every evaluation of the Lagrangian; when it returns True the solve is
         abandoned with :class:`~cdmp_ros.core.errors.Cancelled` (a node shutting down stops
         a long solve within one evaluation).
+    start : SolverState, optional
+        Start from these parameters and multipliers (``report.state`` of an earlier solve
+        of a problem with the same prior and constraint layout) instead of the prior and
+        ``lambda0``: a warm start (``report.start == 'warm'``).
 
     Returns
     -------
     adapted : ProMP
     report : AdaptationReport
         ``converged`` is True only if every constraint holds at its confidence (within
-        ``feasibility_tol``) under the approximation.
+        ``feasibility_tol``) under the approximation; ``report.state`` is where the
+        optimiser ended.
+
+    Raises
+    ------
+    ValidationError
+        ``start`` does not fit the problem (sizes of theta or lambda).
     """
     config = config or AdaptationConfig()
     t_start = time.perf_counter()
@@ -96,6 +114,13 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     lam = np.concatenate([np.full(s.stop - s.start, c.lambda0 or config.lambda0)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
+    if start is not None:
+        if start.theta.shape != theta.shape or start.lam.shape != lam.shape:
+            raise ValidationError(f'solve_levels: the warm start has {start.theta.size} '
+                                  f'parameters and {start.lam.size} multipliers, the problem '
+                                  f'{theta.size} and {lam.size}')
+        theta, lam = start.theta.copy(), start.lam.copy()
+    budget = config.max_evaluations
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
@@ -113,9 +138,11 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         if config.lbfgs_ftol_first is not None:
             # inexact early inner loops: the multipliers are still far from their values
             ftol = max(ftol, config.lbfgs_ftol_first * config.lbfgs_ftol_decay ** (n_outer - 1))
-        res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
-                       options={'maxiter': int(config.max_inner), 'ftol': ftol,
-                                'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor})
+        options = {'maxiter': int(config.max_inner), 'ftol': ftol,
+                   'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor}
+        if budget is not None:
+            options['maxfun'] = max(1, int(budget) - prob.n_evaluations)
+        res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B', options=options)
         if np.all(np.isfinite(res.x)):
             theta = res.x
         n_inner += int(res.nit)
@@ -128,6 +155,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         value = float(res.fun)
         if feasible:
             status = 'converged'
+            break
+        if budget is not None and prob.n_evaluations >= budget:
+            status = 'evaluation_budget_exhausted'
             break
         if (not config.relative_step and prev is not None
                 and abs(value - prev) < config.objective_tol):
@@ -154,7 +184,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     if not feasible and status == 'max_outer_reached':
         status = 'infeasible_or_unconverged'
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
-                              prob.n_evaluations, time.perf_counter() - t_start, reports)
+                              prob.n_evaluations, time.perf_counter() - t_start, reports,
+                              start='cold' if start is None else 'warm',
+                              state=SolverState(theta.copy(), lam.copy()))
     return adapted, report
 
 

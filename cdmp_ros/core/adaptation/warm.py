@@ -1,0 +1,209 @@
+"""Warm starts of consecutive adaptation requests (issue 13: an obstacle that moves).
+
+A tracker publishes an obstacle's pose at 30 Hz. Between two requests it moves by millimetres
+to centimetres, so the next problem is nearly the last one, and its solution is nearly the
+last solution. :class:`WarmStarts` remembers where the last converged solve ended (the
+optimiser's :class:`~cdmp_ros.core.adaptation.config.SolverState`) and starts the next solve
+there when
+
+- the built problem has the same prior (mean, covariance and basis) and the same layout: the
+  same constraints by type and name, the same optimiser settings, joint limits and user
+  constraint set;
+- every obstacle moved by at most ``warm_start_distance`` (:func:`obstacle_shift`).
+
+The warm solve is bounded (``warm_start_max_evaluations``) and goes through the same sampled
+verification as any other. It is kept when it converged and its KL is at most
+``warm_start_kl_ratio`` x the KL of the last cold solve + :data:`KL_SLACK`. Otherwise the
+request is solved cold as well and the converged result of lower KL is kept. The report says
+which start was kept (``start``) and why a warm one was replaced (``start_note``).
+
+A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
+pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
+5.0-5.5 and path changes of at most 6 mm per request; cold KL 2.2 or 5.1 by request, with path
+changes of 10-14 cm). So a warm chain can stay in a local optimum worse than the cold one
+within the guard. :meth:`WarmStarts.refine` is the remedy the adapter applies when its solver
+is idle after a warm solve: it solves the same request cold and keeps the result if its KL is
+at least :data:`REFINE_GAIN` lower (the adapter then publishes it; a newer request cancels it).
+
+Measured on the Panda problem of bench_adaptation_solve (3 spheres, limits, 50 steps): a
+sphere moving a few millimetres per request costs 3-4 evaluations warm against 46-168 cold,
+at the same KL (benchmarks/RESULTS.md, "warm starts").
+"""
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Tuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdmp_ros.core.adaptation.config import AdaptationReport, AdaptRequestConfig, SolverState
+from cdmp_ros.core.adaptation.solver import adapt
+from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
+from cdmp_ros.core.promp.promp import ProMP
+
+__all__ = ['KL_SLACK', 'REFINE_GAIN', 'WarmStarts', 'obstacle_shift']
+
+#: Additive slack [nats] of the KL guard: small KLs (an obstacle barely touching the band) may
+#: double between requests without a cold check.
+KL_SLACK = 1.0
+#: A refinement (:meth:`WarmStarts.refine`) replaces the warm solution when its KL is lower by
+#: at least this fraction.
+REFINE_GAIN = 0.05
+
+
+def _corners(ob) -> NDArray[np.float64]:
+    """The 8 corners (8, 3) of a box obstacle."""
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    if isinstance(ob, Box):
+        lo, hi = np.asarray(ob.lower), np.asarray(ob.upper)
+        return 0.5 * (lo + hi) + signs * 0.5 * (hi - lo)
+    R = np.asarray(ob.rotation, float)
+    return np.asarray(ob.center) + (signs * 0.5 * np.asarray(ob.size)) @ R.T
+
+
+def obstacle_shift(a, b) -> float:
+    """How far any point of obstacle ``a`` moved to become ``b`` [m], bounded above:
+    spheres |c_a - c_b| + |r_a - r_b|; boxes the largest move of a corner (a point of a box
+    is an affine combination of its corners, so no point moves farther). Obstacles of
+    different kinds: infinity."""
+    if type(a) is not type(b):
+        return float('inf')
+    if isinstance(a, Sphere):
+        return float(np.linalg.norm(np.subtract(a.center, b.center)) + abs(a.radius - b.radius))
+    if isinstance(a, (Box, OrientedBox)):
+        return float(np.max(np.linalg.norm(_corners(a) - _corners(b), axis=1)))
+    return 0.0 if a == b else float('inf')
+
+
+def _same_prior(a: ProMP, b: ProMP) -> bool:
+    if a is b:
+        return True
+    if (a.n_dims, a.n_basis) != (b.n_dims, b.n_basis):
+        return False
+    grid = np.linspace(0.0, 1.0, 7)
+    return (np.array_equal(a.mean_w, b.mean_w) and np.array_equal(a.cov_w, b.cov_w)
+            and np.array_equal(a.basis.features(grid), b.basis.features(grid)))
+
+
+def _same_limits(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+@dataclass
+class _Memory:
+    """The last converged solve of the stream."""
+    prior: ProMP
+    layout: tuple
+    constraint_doc: Optional[dict]
+    limits: Optional[Tuple[NDArray, NDArray]]
+    obstacles: Tuple
+    state: SolverState
+    anchor_kl: float          # KL of the last cold solve of this layout
+
+
+def _layout(constraints: Sequence, config) -> tuple:
+    return (tuple((type(c).__name__, c.name) for c in constraints), config)
+
+
+class WarmStarts:
+    """Warm starts of a stream of requests (see the module docstring). One instance per
+    solver thread; not thread-safe.
+
+    Attributes
+    ----------
+    counts : dict
+        ``warm`` (warm solves kept), ``cold`` (no warm start possible, or disabled),
+        ``warm_then_cold`` (warm solves that were unconverged or over the KL guard, so the
+        request was solved cold as well), ``refined`` / ``refine_kept_warm`` (refinements that
+        replaced the warm solution / that did not lower the KL by REFINE_GAIN).
+    """
+
+    def __init__(self):
+        self._memory: Optional[_Memory] = None
+        self.counts = {'warm': 0, 'cold': 0, 'warm_then_cold': 0, 'refined': 0,
+                       'refine_kept_warm': 0}
+
+    def forget(self) -> None:
+        """The next request starts cold."""
+        self._memory = None
+
+    def start_for(self, req, built, cfg: AdaptRequestConfig) -> Optional[SolverState]:
+        """The state a solve of ``built`` (the problem of request ``req``) may start from, or
+        None (cold)."""
+        m = self._memory
+        if (m is None or not cfg.warm_start or built.config.guarantee != 'per_step'
+                or built.infeasible):
+            return None
+        if (m.layout != _layout(built.constraints, built.config)
+                or m.constraint_doc != req.constraint_doc
+                or not _same_limits(m.limits, req.limits)
+                or len(m.obstacles) != len(req.obstacles)
+                or not _same_prior(m.prior, built.prior)):
+            return None
+        shift = max((obstacle_shift(a, b) for a, b in zip(m.obstacles, req.obstacles)),
+                    default=0.0)
+        return m.state if shift <= cfg.warm_start_distance else None
+
+    def solve(self, req, built, cfg: AdaptRequestConfig,
+              should_stop: Optional[Callable[[], bool]] = None) -> Tuple[ProMP,
+                                                                         AdaptationReport]:
+        """Adapt ``built`` (the problem of ``req``), warm when :meth:`start_for` allows it;
+        remembers the outcome. Returns ``(adapted, report)`` as
+        :func:`~cdmp_ros.core.adaptation.solver.adapt`."""
+        start = self.start_for(req, built, cfg)
+        note = ''
+        if start is not None:
+            config = dataclasses.replace(built.config,
+                                         max_evaluations=int(cfg.warm_start_max_evaluations))
+            warm = adapt(built.prior, built.constraints, config, should_stop, start=start)
+            rep = warm[1]
+            bound = cfg.warm_start_kl_ratio * self._memory.anchor_kl + KL_SLACK
+            if rep.converged and rep.kl <= bound:
+                self.counts['warm'] += 1
+                self._remember(req, built, rep, self._memory.anchor_kl)
+                return warm
+            self.counts['warm_then_cold'] += 1
+            note = (f'warm start replaced: {rep.status} after {rep.n_evaluations} evaluations'
+                    if not rep.converged else
+                    f'warm start replaced: KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x '
+                    f'{self._memory.anchor_kl:.4g} + {KL_SLACK:g} (last cold solve)')
+        else:
+            self.counts['cold'] += 1
+        cold = adapt(built.prior, built.constraints, built.config, should_stop)
+        cold[1].start_note = note
+        kept = cold
+        if start is not None and warm[1].converged and (
+                not cold[1].converged or warm[1].kl < cold[1].kl):
+            kept = warm    # the cold solve found a worse optimum, or none
+            kept[1].start_note = note + f'; kept: the cold solve gave KL {cold[1].kl:.4g}' + (
+                '' if cold[1].converged else f' ({cold[1].status})')
+        if kept[1].converged:   # the lowest converged KL is the new reference
+            self._remember(req, built, kept[1], kept[1].kl)
+        else:
+            self.forget()
+        return kept
+
+    def refine(self, req, built, kl: float, should_stop: Optional[Callable[[], bool]] = None
+               ) -> Optional[Tuple[ProMP, AdaptationReport]]:
+        """Solve ``built`` (the problem of ``req``, the last request, solved warm with KL
+        ``kl``) cold. Returns ``(adapted, report)`` when it converged with a KL at least
+        :data:`REFINE_GAIN` lower, and remembers it for the next warm start; otherwise None,
+        and the warm solution stays (its KL becomes the guard's reference). ``should_stop``
+        cancels it (:class:`~cdmp_ros.core.errors.Cancelled`)."""
+        adapted, rep = adapt(built.prior, built.constraints, built.config, should_stop)
+        if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:
+            rep.start_note = f'refinement of a warm solve: KL {kl:.4g} -> {rep.kl:.4g}'
+            self.counts['refined'] += 1
+            self._remember(req, built, rep, rep.kl)
+            return adapted, rep
+        self.counts['refine_kept_warm'] += 1
+        if self._memory is not None:
+            self._memory.anchor_kl = float(kl)
+        return None
+
+    def _remember(self, req, built, rep: AdaptationReport, anchor_kl: float) -> None:
+        self._memory = _Memory(built.prior, _layout(built.constraints, built.config),
+                               req.constraint_doc, req.limits, tuple(req.obstacles),
+                               rep.state, float(anchor_kl))

@@ -1,0 +1,200 @@
+"""Warm starts of consecutive adaptation requests (cdmp_ros.core.adaptation.warm, issue 13):
+the obstacle shift bound against closed forms, the solver's start and evaluation budget, and
+the rules of WarmStarts on a 7-DoF Panda ProMP (each result checked against a cold solve of
+the same request)."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from adapter_harness import panda_urdf, reach_promp
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig, SolverState
+from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, ee_path, run_request
+from cdmp_ros.core.adaptation.solver import solve_levels
+from cdmp_ros.core.adaptation.warm import KL_SLACK, WarmStarts, obstacle_shift
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere, panda_chain
+
+CFG = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000)
+
+
+@pytest.fixture(scope='module')
+def chain():
+    return panda_chain(panda_urdf())
+
+
+@pytest.fixture(scope='module')
+def prior():
+    return reach_promp(n_basis=5)
+
+
+@pytest.fixture(scope='module')
+def centre(chain, prior):
+    return ee_path(chain, prior.mean([0.5]))[0]
+
+
+def _request(prior, *centres, radius=0.05):
+    return AdaptRequest(prior, tuple(Sphere(tuple(c), radius) for c in centres), continues=True)
+
+
+# -- obstacle_shift ----------------------------------------------------------------------------
+def test_obstacle_shift_is_the_largest_move_of_a_point(rng):
+    a = Sphere((0.1, 0.2, 0.3), 0.05)
+    assert obstacle_shift(a, Sphere((0.1, 0.2, 0.3), 0.05)) == 0.0
+    assert obstacle_shift(a, Sphere((0.1, 0.23, 0.34), 0.07)) == pytest.approx(0.05 + 0.02)
+    # boxes: the largest corner move, compared with a dense sample of surface points
+    b0 = Box((0.0, 0.0, 0.0), (0.2, 0.1, 0.3))
+    b1 = Box((0.01, -0.02, 0.0), (0.25, 0.1, 0.32))
+    u = rng.uniform(size=(5000, 3))
+    p0 = np.array(b0.lower) + u * (np.array(b0.upper) - np.array(b0.lower))
+    p1 = np.array(b1.lower) + u * (np.array(b1.upper) - np.array(b1.lower))
+    moved = np.linalg.norm(p1 - p0, axis=1).max()
+    assert moved <= obstacle_shift(b0, b1) + 1e-12
+    # per axis the larger of the two faces' moves: x 0.05, y 0.02, z 0.02
+    assert obstacle_shift(b0, b1) == pytest.approx(np.sqrt(0.05 ** 2 + 0.02 ** 2 + 0.02 ** 2))
+    # an oriented box turned by 0.1 rad about z: the corners move 2 r sin(0.05)
+    c, s = np.cos(0.1), np.sin(0.1)
+    o0 = OrientedBox((0.0, 0.0, 0.0), (0.2, 0.2, 0.2))
+    o1 = OrientedBox((0.0, 0.0, 0.0), (0.2, 0.2, 0.2), ((c, -s, 0.0), (s, c, 0.0), (0, 0, 1)))
+    assert obstacle_shift(o0, o1) == pytest.approx(2 * np.hypot(0.1, 0.1) * np.sin(0.05))
+    assert obstacle_shift(a, b0) == float('inf')
+
+
+# -- the solver's start and budget ---------------------------------------------------------------
+def test_solve_from_its_own_solution_and_the_evaluation_budget(chain, prior, centre):
+    built = build_problem(_request(prior, centre), chain, CFG)
+    adapted, rep = solve_levels(built.prior, built.constraints, built.config)
+    assert rep.converged and rep.start == 'cold' and rep.n_evaluations > 10
+    again, rep2 = solve_levels(built.prior, built.constraints, built.config, start=rep.state)
+    assert rep2.converged and rep2.start == 'warm'
+    # the inner loop may take a step or two more (the first inner tolerance is loose)
+    assert rep2.n_evaluations <= 5, rep2.n_evaluations
+    assert rep2.kl == pytest.approx(rep.kl, rel=0.02)
+    np.testing.assert_allclose(again.mean(np.linspace(0, 1, 11)),
+                               adapted.mean(np.linspace(0, 1, 11)), atol=0.01)
+    assert 'state' not in rep2.as_dict() and rep2.as_dict()['start'] == 'warm'
+    with pytest.raises(ValidationError, match='warm start has'):
+        solve_levels(built.prior, built.constraints, built.config,
+                     start=SolverState(rep.state.theta[:-1], rep.state.lam))
+    budget = dataclasses.replace(built.config, max_evaluations=5)
+    _, rep3 = solve_levels(built.prior, built.constraints, budget)
+    assert not rep3.converged and rep3.status == 'evaluation_budget_exhausted'
+    assert rep3.n_evaluations < rep.n_evaluations
+
+
+# -- WarmStarts ----------------------------------------------------------------------------------
+def _cold(chain, req, cfg=CFG):
+    return run_request(req, chain, cfg)
+
+
+def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
+    """A sphere on the mean path, moving 5 mm per request (a 30 Hz tracker of a 0.15 m/s
+    sphere): every request after the first starts warm, converges with fewer evaluations
+    than a cold solve of the same request, passes the sampled verification, stays within the
+    KL guard and changes the planned end-effector path by millimetres. (Cold solves of these
+    requests alternate between passing the sphere on one side or the other, KL 2.2 or 5.1,
+    path changes of 10-14 cm between consecutive requests: not asserted, it depends on the
+    optimiser's path.)"""
+    s = np.linspace(0.0, 1.0, 101)
+    ws = WarmStarts()
+    first = run_request(_request(prior, centre), chain, CFG, warm=ws)
+    assert first.outcome == 'converged' and first.report.start == 'cold'
+    prev = ee_path(chain, first.adapted.mean(s))
+    for k in range(1, 4):
+        req = _request(prior, centre + [0.0, 0.005 * k, 0.0])
+        res = run_request(req, chain, CFG, warm=ws)
+        assert res.outcome == 'converged' and res.report.start == 'warm', res.report.start_note
+        assert res.report.verification.holds
+        assert res.report.n_evaluations < _cold(chain, req).report.n_evaluations
+        assert res.report.kl <= CFG.warm_start_kl_ratio * first.report.kl + KL_SLACK
+        path = ee_path(chain, res.adapted.mean(s))
+        assert np.linalg.norm(path - req.obstacles[0].center, axis=1).min() > 0.05
+        assert np.abs(path - prev).max() < 0.01
+        prev = path
+    assert ws.counts == {'warm': 3, 'cold': 1, 'warm_then_cold': 0, 'refined': 0,
+                         'refine_kept_warm': 0}
+
+
+def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centre):
+    ws = WarmStarts()
+    assert run_request(_request(prior, centre), chain, CFG, warm=ws).outcome == 'converged'
+    far = centre + [0.0, 0.0, CFG.warm_start_distance + 0.01]
+
+    def start_of(req, cfg=CFG):
+        return ws.start_for(req, build_problem(req, chain, cfg), cfg)
+
+    assert start_of(_request(prior, centre + [0.0, 0.0, 0.01])) is not None
+    assert start_of(_request(prior, far)) is None                           # moved too far
+    assert start_of(_request(prior, centre, radius=0.2)) is None            # grew too much
+    assert start_of(_request(prior, centre, centre + [0.0, 0.0, 0.3])) is None  # one more
+    other = prior.copy(prior.mean_w + 1e-3, prior.cov_w)
+    assert start_of(_request(other, centre)) is None                        # another prior
+    assert start_of(dataclasses.replace(_request(prior, centre), continues=False,
+                                        start_y=prior.mean([0.0])[0])) is None  # conditioned
+    off = dataclasses.replace(CFG, warm_start=False)
+    assert start_of(_request(prior, centre), off) is None                   # disabled
+    n = np.arange(7)
+    limits = (np.full(7, -2.5) - 0.01 * n, np.full(7, 2.5))
+    assert start_of(dataclasses.replace(_request(prior, centre), limits=limits)) is None
+    doc = {'constraints': [{'type': 'joint_limit', 'joint': 0, 'lower': -2.0, 'upper': 2.0}]}
+    assert start_of(dataclasses.replace(_request(prior, centre), constraint_doc=doc)) is None
+    res = run_request(_request(prior, far), chain, CFG, warm=ws)
+    assert res.report.start == 'cold' and ws.counts['cold'] == 2
+
+
+def test_a_warm_solve_over_the_guard_or_budget_is_solved_cold_too(chain, prior, centre):
+    ws = WarmStarts()
+    first = run_request(_request(prior, centre), chain, CFG, warm=ws)
+    assert first.outcome == 'converged'
+    # the KL guard: the last cold solve's KL pretended 0, so any warm KL > KL_SLACK fails it
+    assert first.report.kl > KL_SLACK
+    ws._memory.anchor_kl = 0.0
+    req = _request(prior, centre + [0.0, 0.005, 0.0])
+    res = run_request(req, chain, CFG, warm=ws)
+    assert res.outcome == 'converged'
+    assert 'warm start replaced: KL' in res.report.start_note, res.report.start_note
+    assert res.report.kl <= 1.0001 * _cold(chain, req).report.kl
+    assert ws.counts['warm_then_cold'] == 1
+    assert ws._memory.anchor_kl == pytest.approx(res.report.kl)     # the new reference
+    # the budget: the sphere moved onto the adapted mean path (the last solution violates
+    # it), one evaluation allowed
+    path = ee_path(chain, res.adapted.mean(np.linspace(0, 1, 101)))
+    near = path[np.argmin(np.linalg.norm(path - req.obstacles[0].center, axis=1))]
+    one = dataclasses.replace(CFG, warm_start_max_evaluations=1, warm_start_distance=0.5)
+    res = run_request(_request(prior, near), chain, one, warm=ws)
+    assert res.outcome == 'converged' and res.report.start == 'cold'
+    # (L-BFGS-B checks its budget between iterations: one line search may run over it)
+    assert 'warm start replaced: evaluation_budget_exhausted after' in res.report.start_note, \
+        res.report.start_note
+    assert ws.counts['warm_then_cold'] == 2
+
+
+def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, prior, centre):
+    """The sphere on the mean path moved 5 mm: the warm solve keeps the side of the first
+    solution; a cold refinement of the same request that lowers the KL by REFINE_GAIN replaces
+    it (and the next warm start starts from it), one that does not is dropped."""
+    from cdmp_ros.core.adaptation.requests import refine_request
+    from cdmp_ros.core.adaptation.warm import REFINE_GAIN
+    from cdmp_ros.core.errors import Cancelled
+    ws = WarmStarts()
+    run_request(_request(prior, centre), chain, CFG, warm=ws)
+    req = _request(prior, centre + [0.0, 0.005, 0.0])
+    warm = run_request(req, chain, CFG, warm=ws)
+    cold = _cold(chain, req)
+    assert warm.report.start == 'warm'
+    with pytest.raises(Cancelled):
+        refine_request(req, chain, CFG, ws, warm.report.kl, should_stop=lambda: True)
+    # this request's cold solve passes the sphere on the other side (KL 2.2 against 5.2)
+    assert cold.report.kl < (1.0 - REFINE_GAIN) * warm.report.kl
+    refined = refine_request(req, chain, CFG, ws, warm.report.kl)
+    assert refined is not None and refined.outcome == 'converged'
+    assert refined.report.kl == pytest.approx(cold.report.kl)
+    assert 'refinement of a warm solve' in refined.report.start_note
+    assert ws.counts['refined'] == 1 and ws._memory.anchor_kl == refined.report.kl
+    np.testing.assert_array_equal(ws._memory.state.theta, refined.report.state.theta)
+    # refining the refined solution finds nothing better: dropped, the memory stays
+    assert refine_request(req, chain, CFG, ws, refined.report.kl) is None
+    assert ws.counts['refine_kept_warm'] == 1
+    np.testing.assert_array_equal(ws._memory.state.theta, refined.report.state.theta)
+    nxt = run_request(_request(prior, centre + [0.0, 0.01, 0.0]), chain, CFG, warm=ws)
+    assert nxt.report.start == 'warm' and nxt.report.kl < 0.8 * warm.report.kl
