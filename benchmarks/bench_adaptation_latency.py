@@ -304,6 +304,10 @@ def run(args):
             time.sleep(args.gap)
         cpu1 = cpu_seconds(procs)
         wall = cpu1[0] - cpu0[0]
+        with user.lock:
+            last = next((kv for _, kv in reversed(user.states) if 'starts_warm' in kv), {})
+        print('adapter: ' + ', '.join(f'{k} {v}' for k, v in sorted(last.items())
+                                      if k.startswith(('starts_', 'refinements_'))))
         print('CPU over the events, in cores (of ' + str(os.cpu_count()) + '): ' + ', '.join(
             f'{name} {(b - a) / wall:.2f}' for name, a, b in zip(
                 ('this process', 'adapter', 'streamer'), cpu0[1:], cpu1[1:])))

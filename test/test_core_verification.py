@@ -138,12 +138,15 @@ def test_screen_bound_holds_for_revolute_and_prismatic_joints(tmp_path):
             np.testing.assert_allclose(moved, 1e-4 * rho[:, :, j], rtol=1e-3, atol=1e-12)
 
 
-def test_screen_gives_the_verdicts_of_the_full_kinematics():
+def test_screen_gives_the_verdicts_of_the_full_kinematics(monkeypatch):
     """verify() with the screen (kinematics only where the mean's points leave a verdict
     open) reports exactly what it reports without it, on a planar arm whose sampled paths
     cross spheres, a wall and the limits (so that all three cases occur: certainly
     satisfied, certainly violated, open); and it did skip work. A point with a constraint
-    that has no screen (a corner) makes its group evaluated in full."""
+    that has no screen (a corner) makes its group evaluated in full. The chunks evaluated on
+    two threads give the reports of one thread."""
+    import cdmp_ros.core.adaptation.verification as verification
+    monkeypatch.setattr(verification, 'THREADS', 2)
     chain = planar_chain([1.0, 0.8, 0.5])
     M = 6
     rng = np.random.default_rng(5)
@@ -164,7 +167,9 @@ def test_screen_gives_the_verdicts_of_the_full_kinematics():
     for seed in range(3):
         screened = verify(p, cons, 3000, np.random.default_rng(seed), n_steps=41)
         full = verify(p, cons, 3000, np.random.default_rng(seed), n_steps=41, screen=False)
-        assert screened.constraints == full.constraints
+        one = verify(p, cons, 3000, np.random.default_rng(seed), n_steps=41, threads=1)
+        assert screened.constraints == full.constraints == one.constraints
+        assert screened.kinematics_fraction == one.kinematics_fraction
         assert screened.trajectory_violation == full.trajectory_violation
         assert 0.0 < screened.kinematics_fraction < 0.9, screened.kinematics_fraction
         assert full.kinematics_fraction == 1.0

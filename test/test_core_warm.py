@@ -111,8 +111,8 @@ def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
         assert np.linalg.norm(path - req.obstacles[0].center, axis=1).min() > 0.05
         assert np.abs(path - prev).max() < 0.01
         prev = path
-    assert ws.counts == {'warm': 3, 'cold': 1, 'warm_then_cold': 0, 'refined': 0,
-                         'refine_kept_warm': 0}
+    assert ws.counts == {'warm': 3, 'cold': 1, 'warm_then_cold': 0, 'over_guard': 0,
+                         'refined': 0, 'refine_kept_warm': 0}
 
 
 def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centre):
@@ -142,7 +142,9 @@ def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centr
     assert res.report.start == 'cold' and ws.counts['cold'] == 2
 
 
-def test_a_warm_solve_over_the_guard_or_budget_is_solved_cold_too(chain, prior, centre):
+def test_a_warm_solve_over_the_guard_or_budget(chain, prior, centre):
+    """Over the KL guard: the warm result is kept and the next request starts cold. Out of
+    its evaluation budget: the request is solved cold at once."""
     ws = WarmStarts()
     first = run_request(_request(prior, centre), chain, CFG, warm=ws)
     assert first.outcome == 'converged'
@@ -151,22 +153,25 @@ def test_a_warm_solve_over_the_guard_or_budget_is_solved_cold_too(chain, prior, 
     ws._memory.anchor_kl = 0.0
     req = _request(prior, centre + [0.0, 0.005, 0.0])
     res = run_request(req, chain, CFG, warm=ws)
-    assert res.outcome == 'converged'
-    assert 'warm start replaced: KL' in res.report.start_note, res.report.start_note
-    assert res.report.kl <= 1.0001 * _cold(chain, req).report.kl
-    assert ws.counts['warm_then_cold'] == 1
+    assert res.outcome == 'converged' and res.report.start == 'warm'
+    assert 'the next request starts cold' in res.report.start_note, res.report.start_note
+    assert ws.counts['over_guard'] == 1
+    nxt = _request(prior, centre + [0.0, 0.01, 0.0])
+    assert ws.start_for(nxt, build_problem(nxt, chain, CFG), CFG) is None
+    res = run_request(nxt, chain, CFG, warm=ws)
+    assert res.report.start == 'cold' and ws.counts['cold'] == 2
     assert ws._memory.anchor_kl == pytest.approx(res.report.kl)     # the new reference
     # the budget: the sphere moved onto the adapted mean path (the last solution violates
     # it), one evaluation allowed
     path = ee_path(chain, res.adapted.mean(np.linspace(0, 1, 101)))
-    near = path[np.argmin(np.linalg.norm(path - req.obstacles[0].center, axis=1))]
+    near = path[np.argmin(np.linalg.norm(path - nxt.obstacles[0].center, axis=1))]
     one = dataclasses.replace(CFG, warm_start_max_evaluations=1, warm_start_distance=0.5)
     res = run_request(_request(prior, near), chain, one, warm=ws)
     assert res.outcome == 'converged' and res.report.start == 'cold'
     # (L-BFGS-B checks its budget between iterations: one line search may run over it)
     assert 'warm start replaced: evaluation_budget_exhausted after' in res.report.start_note, \
         res.report.start_note
-    assert ws.counts['warm_then_cold'] == 2
+    assert ws.counts['warm_then_cold'] == 1
 
 
 def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, prior, centre):

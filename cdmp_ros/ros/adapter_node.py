@@ -18,7 +18,8 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
   evaluations, start (cold / warm, with start_note when a warm solve was replaced),
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
-  starts_warm / starts_cold / starts_warm_then_cold, refinements_started / published /
+  starts_warm / starts_cold / starts_warm_then_cold / starts_over_guard,
+  refinements_started / published /
   kept_warm / cancelled; and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
@@ -32,11 +33,13 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 - Warm starts (``adaptation.warm_start``, :mod:`cdmp_ros.core.adaptation.warm`): a request
   whose problem differs from the last converged one only by obstacles that moved at most
   ``adaptation.warm_start_distance`` starts from that solution and its multipliers; a warm
-  solve that does not converge within ``adaptation.warm_start_max_evaluations`` or whose KL
-  exceeds the guard is followed by a cold solve of the same request. After a published warm
-  solve, with no request waiting, the same request is solved cold as a refinement
-  (``adaptation.warm_start_refine``), published only if its KL is at least 5 % lower, and
-  cancelled by any newer request within one evaluation (or one sampled verification).
+  solve that does not converge within ``adaptation.warm_start_max_evaluations`` is followed
+  by a cold solve of the same request, and one whose KL exceeds the guard
+  (``adaptation.warm_start_kl_ratio``) by a cold start of the next request. After a
+  published warm solve, with no request waiting, the same request is solved cold as a
+  refinement (``adaptation.warm_start_refine``), published only if its KL is at least 5 %
+  lower, and cancelled by any newer request within one evaluation (or one sampled
+  verification).
 - Every published primitive carries in ``metadata.adapter`` its provenance
   (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
   ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly

@@ -415,8 +415,8 @@ class AdaptRequestConfig:
         0.1, 'Largest move of any obstacle [m] between two requests for a warm start.',
         0.0, 10.0)
     warm_start_kl_ratio: float = _param(
-        1.25, "A warm solve is kept when its KL is at most this times the last cold solve's "
-        '(+ 1); otherwise the request is solved cold as well and the lower KL kept.',
+        1.25, "After a warm solve whose KL exceeds this times the last cold solve's (+ 1), "
+        'the next request starts cold (the warm result is kept).',
         1.0, 100.0)
     warm_start_max_evaluations: int = _param(
         40, 'Evaluations of the Lagrangian a warm solve may take before the request is '

@@ -31,7 +31,10 @@ Monte Carlo noise:
   conservative direction (a solution exactly at the level fails), which is what a guarantee
   needs.
 """
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -50,6 +53,22 @@ __all__ = ['ConstraintVerification', 'Verification', 'GUARANTEES', 'clopper_pear
 
 # (sample, step) pairs evaluated per chunk: bounds the memory of the batched evaluation
 _CHUNK_POINTS = 50_000
+
+#: Threads that evaluate the chunks of samples (:func:`verify`'s ``threads``). numpy releases
+#: the GIL in the batched kinematics and constraint checks, so a second core that is free
+#: shortens the verification; results do not depend on it (counts are summed).
+THREADS = min(2, os.cpu_count() or 1)
+_pool: Optional[ThreadPoolExecutor] = None
+_pool_lock = threading.Lock()
+
+
+def _executor() -> ThreadPoolExecutor:
+    """The verification's worker threads (created at the first threaded verification)."""
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=THREADS, thread_name_prefix='cdmp-verify')
+        return _pool
 
 
 def clopper_pearson_upper(k: NDArray, n: int, confidence: float = 0.95) -> NDArray:
@@ -295,7 +314,7 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
 
 def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.Generator,
            n_steps: int = 101, guarantee: str = 'per_step', significance: float = 0.01,
-           screen: bool = True) -> Verification:
+           screen: bool = True, threads: Optional[int] = None) -> Verification:
     """Monte Carlo check of the constraints on trajectories sampled from ``promp``.
 
     Parameters
@@ -317,6 +336,9 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
         Skip the forward kinematics of (sample, step) pairs whose verdicts the mean
         trajectory's points already decide (exact; :class:`_KinematicGroup`). False: run it
         on every pair (the reference the tests compare with).
+    threads : int, optional
+        Chunks of samples evaluated at once (default :data:`THREADS`, at most 2; 1: in the
+        calling thread). The samples are split into at least this many chunks.
 
     Returns
     -------
@@ -337,15 +359,20 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
     features = {key: _trajectory_map(promp, t) for key, t in times.items()}
     n_per = max((t.size for t in times.values()), default=1)
     W = promp.sample_weights(n_samples, rng)
-    chunk = max(1, _CHUNK_POINTS // n_per)
+    threads = max(1, min(int(THREADS if threads is None else threads), THREADS))
+    chunk = max(1, min(_CHUNK_POINTS // n_per, -(-n_samples // threads)))
     groups = _kinematic_groups(promp, constraints, grid, screen)
     ran = 0
     step_counts: List[Optional[NDArray]] = [None] * len(constraints)
     traj_counts = np.zeros(len(constraints), dtype=np.int64)
     any_count = 0
-    for a in range(0, n_samples, chunk):
-        bad, n_run = _evaluate_chunk(promp, constraints, W[a:a + chunk], grid, features,
-                                     groups)
+    starts = range(0, n_samples, chunk)
+
+    def evaluate(a):
+        return _evaluate_chunk(promp, constraints, W[a:a + chunk], grid, features, groups)
+    chunks = (_executor().map(evaluate, starts) if threads > 1 and len(starts) > 1
+              else map(evaluate, starts))
+    for a, (bad, n_run) in zip(starts, chunks):
         ran += n_run
         union = np.zeros(min(chunk, n_samples - a), bool)
         for i, v in enumerate(bad):

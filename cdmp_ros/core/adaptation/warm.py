@@ -12,10 +12,12 @@ there when
 - every obstacle moved by at most ``warm_start_distance`` (:func:`obstacle_shift`).
 
 The warm solve is bounded (``warm_start_max_evaluations``) and goes through the same sampled
-verification as any other. It is kept when it converged and its KL is at most
-``warm_start_kl_ratio`` x the KL of the last cold solve + :data:`KL_SLACK`. Otherwise the
-request is solved cold as well and the converged result of lower KL is kept. The report says
-which start was kept (``start``) and why a warm one was replaced (``start_note``).
+verification as any other. When it does not converge, the request is solved cold as well. When
+it converged it is kept; if its KL exceeds ``warm_start_kl_ratio`` x the KL of the last cold
+solve + :data:`KL_SLACK`, the next request starts cold (a chain of warm starts does not drift
+far from what a cold solve gives without one checking it; the result at hand, converged and
+verified, is not held back for it). The report says which start was kept (``start``) and
+why (``start_note``).
 
 A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
 pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
@@ -101,6 +103,7 @@ class _Memory:
     obstacles: Tuple
     state: SolverState
     anchor_kl: float          # KL of the last cold solve of this layout
+    cold_next: bool = False   # the last warm solve exceeded the KL guard
 
 
 def _layout(constraints: Sequence, config) -> tuple:
@@ -115,15 +118,16 @@ class WarmStarts:
     ----------
     counts : dict
         ``warm`` (warm solves kept), ``cold`` (no warm start possible, or disabled),
-        ``warm_then_cold`` (warm solves that were unconverged or over the KL guard, so the
-        request was solved cold as well), ``refined`` / ``refine_kept_warm`` (refinements that
-        replaced the warm solution / that did not lower the KL by REFINE_GAIN).
+        ``warm_then_cold`` (warm solves that did not converge, so the request was solved cold
+        as well), ``over_guard`` (warm solves kept over the KL guard: the next request starts
+        cold), ``refined`` / ``refine_kept_warm`` (refinements that replaced the warm solution
+        / that did not lower the KL by REFINE_GAIN).
     """
 
     def __init__(self):
         self._memory: Optional[_Memory] = None
-        self.counts = {'warm': 0, 'cold': 0, 'warm_then_cold': 0, 'refined': 0,
-                       'refine_kept_warm': 0}
+        self.counts = {'warm': 0, 'cold': 0, 'warm_then_cold': 0, 'over_guard': 0,
+                       'refined': 0, 'refine_kept_warm': 0}
 
     def forget(self) -> None:
         """The next request starts cold."""
@@ -133,8 +137,8 @@ class WarmStarts:
         """The state a solve of ``built`` (the problem of request ``req``) may start from, or
         None (cold)."""
         m = self._memory
-        if (m is None or not cfg.warm_start or built.config.guarantee != 'per_step'
-                or built.infeasible):
+        if (m is None or m.cold_next or not cfg.warm_start
+                or built.config.guarantee != 'per_step' or built.infeasible):
             return None
         if (m.layout != _layout(built.constraints, built.config)
                 or m.constraint_doc != req.constraint_doc
@@ -159,31 +163,29 @@ class WarmStarts:
                                          max_evaluations=int(cfg.warm_start_max_evaluations))
             warm = adapt(built.prior, built.constraints, config, should_stop, start=start)
             rep = warm[1]
-            bound = cfg.warm_start_kl_ratio * self._memory.anchor_kl + KL_SLACK
-            if rep.converged and rep.kl <= bound:
+            if rep.converged:
                 self.counts['warm'] += 1
-                self._remember(req, built, rep, self._memory.anchor_kl)
+                anchor = self._memory.anchor_kl
+                self._remember(req, built, rep, anchor)
+                bound = cfg.warm_start_kl_ratio * anchor + KL_SLACK
+                if rep.kl > bound:   # kept (converged and verified); the next one is cold
+                    self.counts['over_guard'] += 1
+                    self._memory.cold_next = True
+                    rep.start_note = (f'KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x '
+                                      f'{anchor:.4g} + {KL_SLACK:g} (last cold solve): the '
+                                      f'next request starts cold')
                 return warm
             self.counts['warm_then_cold'] += 1
-            note = (f'warm start replaced: {rep.status} after {rep.n_evaluations} evaluations'
-                    if not rep.converged else
-                    f'warm start replaced: KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x '
-                    f'{self._memory.anchor_kl:.4g} + {KL_SLACK:g} (last cold solve)')
+            note = f'warm start replaced: {rep.status} after {rep.n_evaluations} evaluations'
         else:
             self.counts['cold'] += 1
         cold = adapt(built.prior, built.constraints, built.config, should_stop)
         cold[1].start_note = note
-        kept = cold
-        if start is not None and warm[1].converged and (
-                not cold[1].converged or warm[1].kl < cold[1].kl):
-            kept = warm    # the cold solve found a worse optimum, or none
-            kept[1].start_note = note + f'; kept: the cold solve gave KL {cold[1].kl:.4g}' + (
-                '' if cold[1].converged else f' ({cold[1].status})')
-        if kept[1].converged:   # the lowest converged KL is the new reference
-            self._remember(req, built, kept[1], kept[1].kl)
+        if cold[1].converged:
+            self._remember(req, built, cold[1], cold[1].kl)
         else:
             self.forget()
-        return kept
+        return cold
 
     def refine(self, req, built, kl: float, should_stop: Optional[Callable[[], bool]] = None
                ) -> Optional[Tuple[ProMP, AdaptationReport]]:
@@ -199,8 +201,9 @@ class WarmStarts:
             self._remember(req, built, rep, rep.kl)
             return adapted, rep
         self.counts['refine_kept_warm'] += 1
-        if self._memory is not None:
+        if self._memory is not None:   # checked by a cold solve: the new reference
             self._memory.anchor_kl = float(kl)
+            self._memory.cold_next = False
         return None
 
     def _remember(self, req, built, rep: AdaptationReport, anchor_kl: float) -> None:
