@@ -75,7 +75,7 @@ def test_solve_from_its_own_solution_and_the_evaluation_budget(chain, prior, cen
     assert 'state' not in rep2.as_dict() and rep2.as_dict()['start'] == 'warm'
     with pytest.raises(ValidationError, match='warm start has'):
         solve_levels(built.prior, built.constraints, built.config,
-                     start=SolverState(rep.state.theta[:-1], rep.state.lam))
+                     start=SolverState(rep.state.theta[:-1], rep.state.multipliers))
     budget = dataclasses.replace(built.config, max_evaluations=5)
     _, rep3 = solve_levels(built.prior, built.constraints, budget)
     assert not rep3.converged and rep3.status == 'evaluation_budget_exhausted'
@@ -126,7 +126,6 @@ def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centr
     assert start_of(_request(prior, centre + [0.0, 0.0, 0.01])) is not None
     assert start_of(_request(prior, far)) is None                           # moved too far
     assert start_of(_request(prior, centre, radius=0.2)) is None            # grew too much
-    assert start_of(_request(prior, centre, centre + [0.0, 0.0, 0.3])) is None  # one more
     other = prior.copy(prior.mean_w + 1e-3, prior.cov_w)
     assert start_of(_request(other, centre)) is None                        # another prior
     assert start_of(dataclasses.replace(_request(prior, centre), continues=False,
@@ -203,3 +202,48 @@ def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, pri
     np.testing.assert_array_equal(ws._memory.state.theta, refined.report.state.theta)
     nxt = run_request(_request(prior, centre + [0.0, 0.01, 0.0]), chain, CFG, warm=ws)
     assert nxt.report.start == 'warm' and nxt.report.kl < 0.8 * warm.report.kl
+
+
+def test_an_obstacle_that_comes_or_goes_keeps_the_others_multipliers(chain, prior, centre):
+    """A second sphere enters the problem (within influence_distance of the path) and leaves
+    again: both requests start warm; the first sphere's constraints start from their
+    multipliers, the new sphere's from lambda0, and the results avoid every sphere."""
+    s = np.linspace(0.0, 1.0, 101)
+    ws = WarmStarts()
+    assert run_request(_request(prior, centre), chain, CFG, warm=ws).outcome == 'converged'
+    lam = dict(ws._memory.state.multipliers)
+    assert 'obstacle_0_ee' in lam and 'obstacle_1_ee' not in lam
+    other = ee_path(chain, prior.mean([0.8]))[0] + [0.0, 0.0, 0.08]
+    both = _request(prior, centre + [0.0, 0.005, 0.0], other)
+    built = build_problem(both, chain, CFG)
+    assert built.obstacles_used == 2
+    assert ws.start_for(both, built, CFG) is not None
+    assert 'obstacle_1_ee' in [c.name for c in built.constraints]
+    res = run_request(both, chain, CFG, warm=ws)
+    assert res.outcome == 'converged' and res.report.start == 'warm', res.report.start_note
+    path = ee_path(chain, res.adapted.mean(s))
+    for ob in both.obstacles:
+        assert np.linalg.norm(path - ob.center, axis=1).min() > ob.radius
+    back = run_request(_request(prior, centre + [0.0, 0.01, 0.0]), chain, CFG, warm=ws)
+    assert back.outcome == 'converged' and back.report.start == 'warm'
+    assert 'obstacle_1_ee' not in dict(ws._memory.state.multipliers)
+
+
+def test_the_solver_maps_multipliers_by_constraint_name(chain, prior, centre):
+    """solve_levels(start=...) starts each constraint from the multipliers of its name (when
+    their size fits) and the others from lambda0: with start multipliers of one named
+    constraint changed, only that one's report reflects them after a 1-evaluation solve."""
+    built = build_problem(_request(prior, centre), chain, CFG)
+    _, rep = solve_levels(built.prior, built.constraints, built.config)
+    lam = dict(rep.state.multipliers)
+    lam['limit_panda_joint1'] = np.full(lam['limit_panda_joint1'].size, 1e5)
+    lam['no_such_constraint'] = np.ones(3)
+    lam['obstacle_0_ee'] = np.ones(2)                  # wrong size: lambda0
+    one = dataclasses.replace(built.config, max_evaluations=1, max_outer=1)
+    _, r1 = solve_levels(built.prior, built.constraints, one,
+                         start=SolverState(rep.state.theta, tuple(lam.items())))
+    got = {c.name: c.lagrange_max for c in r1.constraints}
+    assert got['limit_panda_joint1'] == pytest.approx(1e5)
+    assert got['obstacle_0_ee'] == pytest.approx(CFG.lambda0)
+    assert got['limit_panda_joint2'] == pytest.approx(float(np.max(
+        dict(rep.state.multipliers)['limit_panda_joint2'])))

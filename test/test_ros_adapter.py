@@ -163,9 +163,9 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
         assert np.linalg.norm(path - x, axis=1).min() > 0.05
         return d['metadata']['adaptation'], d['metadata']['adapter']['request_id']
 
-    def ended(kv):  # refinements started, published, kept warm, cancelled; if all ended
-        n = [int(kv.get(f'refinements_{k}', 0)) for k in
-             ('started', 'published', 'kept_warm', 'cancelled')]
+    def ended(kv):  # refinements started, published, kept warm, cancelled, failed; if all
+        n = [int(kv.get(f'refinements_{k}', 0)) for k in      # ended
+             ('started', 'published', 'kept_warm', 'cancelled', 'failed')]
         return n if sum(n[1:]) == n[0] else None
 
     try:
@@ -188,7 +188,7 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
                           TIMEOUT)
         assert st is not None, h.states_since(t0)[-1:]
         after = ended(st[2])
-        assert after[3] == before[3] and after[1] + after[2] == before[1] + before[2] + 1
+        assert after[3:] == before[3:] and after[1] + after[2] == before[1] + before[2] + 1
         assert _set_param(h, 'adaptation.warm_start', False).successful
         rep, _ = move_to(centre + [0.0, 0.02, 0.0])
         assert rep['start'] == 'cold', rep

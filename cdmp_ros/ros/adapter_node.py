@@ -20,7 +20,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
   starts_warm / starts_cold / starts_warm_then_cold / starts_over_guard,
   refinements_started / published /
-  kept_warm / cancelled; and
+  kept_warm / cancelled / failed; and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
   the robot's limits came from) and limit_mismatch (every bound on which the primitive's
@@ -150,7 +150,7 @@ class AdapterNode(Node):
                        'outcome_unconverged': 0, 'outcome_rejected': 0,
                        'requests_outdated': 0, 'refinements_started': 0,
                        'refinements_published': 0, 'refinements_kept_warm': 0,
-                       'refinements_cancelled': 0}
+                       'refinements_cancelled': 0, 'refinements_failed': 0}
 
         self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
         self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
@@ -438,18 +438,19 @@ class AdapterNode(Node):
 
     def _handle_result(self, res: JobResult) -> None:
         job = res.job
-        if job.primitive_id != self.primitive_id:  # adapted a primitive replaced since
-            self.counts['requests_outdated'] += 1
-            return
-        if job.refine_kl is not None and (res.outcome in ('cancelled', 'kept_warm')
-                                          or res.stale):
-            # a refinement that gave way to a newer request, or found no lower KL: the warm
-            # solution stays published
-            self.counts['refinements_kept_warm' if res.outcome == 'kept_warm'
-                        else 'refinements_cancelled'] += 1
-            self.get_logger().debug(f'refinement {job.id}: {res.outcome}'
-                                    + (' (stale)' if res.stale else ''))
+        outdated = job.primitive_id != self.primitive_id  # adapted a primitive replaced since
+        if job.refine_kl is not None and (outdated or res.stale or res.outcome != 'converged'):
+            # a refinement that gave way to a newer request, found no lower KL or failed: the
+            # warm solution stays published
+            key = ('kept_warm' if res.outcome == 'kept_warm' else 'failed'
+                   if res.outcome == 'rejected' and not (outdated or res.stale) else 'cancelled')
+            self.counts[f'refinements_{key}'] += 1
+            if key == 'failed':
+                self.get_logger().warning(f'refinement {job.id} failed: {res.error}')
             self._publish_now()
+            return
+        if outdated:
+            self.counts['requests_outdated'] += 1
             return
         self.counts[f'outcome_{res.outcome}'] += 1
         self.reporter.timing('solve', res.solve_time)

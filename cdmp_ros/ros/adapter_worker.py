@@ -26,6 +26,7 @@ import numpy as np
 from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_band, ee_path,
                                                promp_message, refine_request, run_request)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
+from cdmp_ros.core.adaptation.verification import worker_cpu_seconds
 from cdmp_ros.core.adaptation.warm import WarmStarts
 from cdmp_ros.core.errors import Cancelled, CdmpError, ConstraintSetError
 from cdmp_ros.core.streaming.selection import Provenance
@@ -65,7 +66,8 @@ class JobResult:
     error_topic: Optional[str] = None
     stale: bool = False
     finished: float = 0.0
-    solve_cpu: float = 0.0                # [s], CPU time of the solver thread (time.thread_time)
+    solve_cpu: float = 0.0                # [s], CPU time of the solver thread and of the
+    #                                       verification's worker threads
 
 
 def job_provenance(job: Job) -> Provenance:
@@ -81,7 +83,7 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
     cancels the solve (:class:`~cdmp_ros.core.errors.Cancelled`, reported as rejected);
     ``warm``: the warm starts of the worker's stream of jobs
     (:mod:`cdmp_ros.core.adaptation.warm`)."""
-    t0, c0 = time.perf_counter(), time.thread_time()
+    t0, c0 = time.perf_counter(), time.thread_time() + worker_cpu_seconds()
     try:
         if job.refine_kl is not None:
             try:
@@ -91,7 +93,7 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
                 return JobResult(job, 'cancelled', time.perf_counter() - t0)
             if res is None:
                 return JobResult(job, 'kept_warm', time.perf_counter() - t0,
-                                 solve_cpu=time.thread_time() - c0)
+                                 solve_cpu=time.thread_time() + worker_cpu_seconds() - c0)
         else:
             res = run_request(job.request, chain, job.config, should_stop, warm)
     except ConstraintSetError as exc:
@@ -100,7 +102,7 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
     except CdmpError as exc:
         return JobResult(job, 'rejected', time.perf_counter() - t0, error=str(exc),
                          error_topic=job.trigger)
-    t_solve, c_solve = time.perf_counter() - t0, time.thread_time() - c0
+    t_solve, c_solve = time.perf_counter() - t0, time.thread_time() + worker_cpu_seconds() - c0
     adapted = res.adapted
     adapted.metadata = dict(job.request.prior.metadata or {})
     if job.request.limits is not None:  # the limits it was adapted within: the file's limits

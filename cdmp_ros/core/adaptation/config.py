@@ -239,10 +239,11 @@ class AdaptationConfig:
 class SolverState:
     """The optimiser's variables at the end of a solve: theta (whitened parameters of
     :class:`~cdmp_ros.core.adaptation.problem.Problem`, relative to its prior) and the
-    multipliers lambda (one per constraint value). A solve of a problem with the same prior
-    and constraint layout can start from it (``solve_levels(..., start=state)``)."""
+    multipliers lambda of each constraint, by name. A solve of a problem with the same prior
+    can start from it (``solve_levels(..., start=state)``): its constraints of the same name
+    and size start from these multipliers, the others from their ``lambda0``."""
     theta: NDArray[np.float64]
-    lam: NDArray[np.float64]
+    multipliers: Tuple[Tuple[str, NDArray[np.float64]], ...]
 
 
 @dataclass

@@ -86,8 +86,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         a long solve within one evaluation).
     start : SolverState, optional
         Start from these parameters and multipliers (``report.state`` of an earlier solve
-        of a problem with the same prior and constraint layout) instead of the prior and
-        ``lambda0``: a warm start (``report.start == 'warm'``).
+        of a problem with the same prior; constraints it does not name start at their
+        ``lambda0``) instead of the prior and ``lambda0``: a warm start
+        (``report.start == 'warm'``).
 
     Returns
     -------
@@ -100,7 +101,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     Raises
     ------
     ValidationError
-        ``start`` does not fit the problem (sizes of theta or lambda).
+        ``start`` does not fit the problem (the size of theta: another prior).
     """
     config = config or AdaptationConfig()
     t_start = time.perf_counter()
@@ -115,11 +116,15 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
     if start is not None:
-        if start.theta.shape != theta.shape or start.lam.shape != lam.shape:
+        if start.theta.shape != theta.shape:
             raise ValidationError(f'solve_levels: the warm start has {start.theta.size} '
-                                  f'parameters and {start.lam.size} multipliers, the problem '
-                                  f'{theta.size} and {lam.size}')
-        theta, lam = start.theta.copy(), start.lam.copy()
+                                  f'parameters, the problem {theta.size}')
+        theta = start.theta.copy()
+        known = dict(start.multipliers)
+        for c, sl in zip(prob.constraints, prob.slices):
+            m = known.get(c.name)
+            if m is not None and m.size == sl.stop - sl.start:
+                lam[sl] = m
     budget = config.max_evaluations
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
@@ -186,7 +191,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports,
                               start='cold' if start is None else 'warm',
-                              state=SolverState(theta.copy(), lam.copy()))
+                              state=SolverState(theta.copy(), tuple(
+                                  (c.name, lam[sl].copy())
+                                  for c, sl in zip(prob.constraints, prob.slices))))
     return adapted, report
 
 

@@ -49,7 +49,7 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['ConstraintVerification', 'Verification', 'GUARANTEES', 'clopper_pearson_upper',
-           'critical_count', 'sample_points', 'verify']
+           'critical_count', 'sample_points', 'verify', 'worker_cpu_seconds']
 
 # (sample, step) pairs evaluated per chunk: bounds the memory of the batched evaluation
 _CHUNK_POINTS = 50_000
@@ -60,6 +60,14 @@ _CHUNK_POINTS = 50_000
 THREADS = min(2, os.cpu_count() or 1)
 _pool: Optional[ThreadPoolExecutor] = None
 _pool_lock = threading.Lock()
+_pool_cpu = [0.0]   # CPU seconds spent in the worker threads (worker_cpu_seconds)
+
+
+def worker_cpu_seconds() -> float:
+    """CPU time [s] the verification's worker threads have used since the process started
+    (a caller adds the difference across a solve to its own thread's CPU time)."""
+    with _pool_lock:
+        return _pool_cpu[0]
 
 
 def _executor() -> ThreadPoolExecutor:
@@ -370,7 +378,14 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
 
     def evaluate(a):
         return _evaluate_chunk(promp, constraints, W[a:a + chunk], grid, features, groups)
-    chunks = (_executor().map(evaluate, starts) if threads > 1 and len(starts) > 1
+
+    def evaluate_timed(a):   # in a worker thread: its CPU time is accounted for
+        c = time.thread_time()
+        out = evaluate(a)
+        with _pool_lock:
+            _pool_cpu[0] += time.thread_time() - c
+        return out
+    chunks = (_executor().map(evaluate_timed, starts) if threads > 1 and len(starts) > 1
               else map(evaluate, starts))
     for a, (bad, n_run) in zip(starts, chunks):
         ran += n_run

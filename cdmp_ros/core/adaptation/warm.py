@@ -6,10 +6,12 @@ last solution. :class:`WarmStarts` remembers where the last converged solve ende
 optimiser's :class:`~cdmp_ros.core.adaptation.config.SolverState`) and starts the next solve
 there when
 
-- the built problem has the same prior (mean, covariance and basis) and the same layout: the
-  same constraints by type and name, the same optimiser settings, joint limits and user
-  constraint set;
-- every obstacle moved by at most ``warm_start_distance`` (:func:`obstacle_shift`).
+- the built problem has the same prior (mean, covariance and basis), optimiser settings,
+  joint limits and user constraint set;
+- every obstacle of both requests (by its place in the list) moved by at most
+  ``warm_start_distance`` (:func:`obstacle_shift`). Obstacles may come and go (a sphere that
+  enters ``influence_distance`` of the path adds its constraints): constraints of the last
+  solve start from its multipliers, new ones from ``lambda0``.
 
 The warm solve is bounded (``warm_start_max_evaluations``) and goes through the same sampled
 verification as any other. When it does not converge, the request is solved cold as well. When
@@ -33,7 +35,7 @@ at the same KL (benchmarks/RESULTS.md, "warm starts").
 """
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -97,17 +99,13 @@ def _same_limits(a, b) -> bool:
 class _Memory:
     """The last converged solve of the stream."""
     prior: ProMP
-    layout: tuple
+    config: object            # the optimiser's AdaptationConfig
     constraint_doc: Optional[dict]
     limits: Optional[Tuple[NDArray, NDArray]]
     obstacles: Tuple
     state: SolverState
     anchor_kl: float          # KL of the last cold solve of this layout
     cold_next: bool = False   # the last warm solve exceeded the KL guard
-
-
-def _layout(constraints: Sequence, config) -> tuple:
-    return (tuple((type(c).__name__, c.name) for c in constraints), config)
 
 
 class WarmStarts:
@@ -140,10 +138,8 @@ class WarmStarts:
         if (m is None or m.cold_next or not cfg.warm_start
                 or built.config.guarantee != 'per_step' or built.infeasible):
             return None
-        if (m.layout != _layout(built.constraints, built.config)
-                or m.constraint_doc != req.constraint_doc
+        if (m.config != built.config or m.constraint_doc != req.constraint_doc
                 or not _same_limits(m.limits, req.limits)
-                or len(m.obstacles) != len(req.obstacles)
                 or not _same_prior(m.prior, built.prior)):
             return None
         shift = max((obstacle_shift(a, b) for a, b in zip(m.obstacles, req.obstacles)),
@@ -207,6 +203,5 @@ class WarmStarts:
         return None
 
     def _remember(self, req, built, rep: AdaptationReport, anchor_kl: float) -> None:
-        self._memory = _Memory(built.prior, _layout(built.constraints, built.config),
-                               req.constraint_doc, req.limits, tuple(req.obstacles),
-                               rep.state, float(anchor_kl))
+        self._memory = _Memory(built.prior, built.config, req.constraint_doc, req.limits,
+                               tuple(req.obstacles), rep.state, float(anchor_kl))
