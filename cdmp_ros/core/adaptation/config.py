@@ -416,11 +416,11 @@ class AdaptRequestConfig:
         0.1, 'Largest move of any obstacle [m] between two requests for a warm start.',
         0.0, 10.0)
     warm_start_kl_ratio: float = _param(
-        1.25, "After a warm solve whose KL exceeds this times the last cold solve's (+ 1), "
+        2.0, "After a warm solve whose KL exceeds this times the last cold solve's (+ 1), "
         'the next request starts cold (the warm result is kept).',
         1.0, 100.0)
     warm_start_max_evaluations: int = _param(
-        40, 'Evaluations of the Lagrangian a warm solve may take before the request is '
+        30, 'Evaluations of the Lagrangian a warm solve may take before the request is '
         'solved cold instead.', 1, 10000)
     warm_start_refine: bool = _param(
         True, 'When the solver is idle after a warm solve, solve the same request cold and '
