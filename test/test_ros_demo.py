@@ -88,3 +88,21 @@ def test_cdmp_demo_promp_moving_obstacle(tmp_path):
     assert s['contacts'] == 0 and s['min_obstacle_distance_m'] > 0.0
     assert s['limit_violations'] == 0 and 0.0 < s['reference_limit_usage'] < 1.0
     assert s['latency_samples'] >= 1  # the streamer's coupling saw the obstacle (inner layer)
+
+
+def test_adaptation_latencies_count_each_answered_obstacle_once(monkeypatch):
+    """summary.json's adaptation_latency_ms: one figure per timed adaptation (its first
+    reference's stamp), not per generation: a refinement switched in after a warm solve
+    carries the same last latency under a new generation."""
+    import cdmp_ros.cli.demo_promp as demo_promp
+    states = [{'adapted_generation': '1', 'adapted_reference_stamp_ns': '100',
+               'adaptation_latency_ms_last': '80.5'},
+              {'adapted_generation': '1', 'adapted_reference_stamp_ns': '100',
+               'adaptation_latency_ms_last': '80.5'},
+              {'adapted_generation': '2', 'adapted_reference_stamp_ns': '100',   # refinement
+               'adaptation_latency_ms_last': '80.5'},
+              {'adapted_generation': '3', 'adapted_reference_stamp_ns': '300',
+               'adaptation_latency_ms_last': '95.0'},
+              {'adapted_generation': 'none', 'adaptation_latency_ms_last': 'nan'}]
+    monkeypatch.setattr(demo_promp, '_diagnostic_values', lambda bag, prefix: states)
+    assert demo_promp.adaptation_latencies('unused.mcap') == [80.5, 95.0]

@@ -15,9 +15,9 @@ streamer follows the adapted mean. From the bag:
   which the end effector or an avoided link origin comes within the sphere's radius plus the
   adapter's ``obstacle_margin`` at any of 100 phases (``trajectory``), and the largest such
   fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
-- ``adaptation_latency_ms``: per switched-in adaptation, the streamer's own figure (the stamp
-  of its first reference computed from the adapted primitive minus the stamp of the obstacle
-  message that triggered it), from its diagnostics in the bag;
+- ``adaptation_latency_ms``: per obstacle message answered, the streamer's own figure (the
+  stamp of its first reference computed from the first adapted primitive answering it minus
+  the stamp of that message), from its diagnostics in the bag;
 - ``promp_paths.png``: the prior's and the last adaptation's mean end-effector paths with
   their 2-sigma bands (linearised through the kinematics Jacobian), and the obstacle.
 """
@@ -90,19 +90,22 @@ def _diagnostic_values(bag: str, prefix: str) -> List[Dict[str, str]]:
 
 
 def adaptation_latencies(bag: str) -> List[float]:
-    """The streamer's obstacle -> first adapted reference latencies [ms], one per switched-in
-    adaptation (its diagnostics carry the last one with the adaptation's generation)."""
+    """The streamer's obstacle -> first adapted reference latencies [ms], one per timed
+    adaptation (its diagnostics carry the last one with the stamp of that first reference,
+    ``adapted_reference_stamp_ns``; a second adaptation answering the same obstacle message,
+    the adapter's refinement of a warm solve, is switched in but not timed)."""
     seen, out = set(), []
     for values in _diagnostic_values(bag, 'streamer'):
-        gen, lat = values.get('adapted_generation'), values.get('adaptation_latency_ms_last')
-        if gen is None or lat is None or gen in seen:
+        ref = values.get('adapted_reference_stamp_ns')
+        lat = values.get('adaptation_latency_ms_last')
+        if ref is None or lat is None or ref in seen:
             continue
         try:
             ms = float(lat)
         except ValueError:
             continue
         if np.isfinite(ms):
-            seen.add(gen)
+            seen.add(ref)
             out.append(ms)
     return out
 
