@@ -166,3 +166,18 @@ def repo_root():
 def rng():
     import numpy as np
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope='session')
+def chain():
+    """The Panda's kinematic chain (pybullet_data's URDF); a module may define its own."""
+    from adapter_harness import panda_urdf
+    from cdmp_ros.core.kinematics import panda_chain
+    return panda_chain(panda_urdf())
+
+
+@pytest.fixture(scope='session')
+def prior():
+    """A 7-DoF reach ProMP of 5 basis functions (adapter_harness.reach_promp)."""
+    from adapter_harness import reach_promp
+    return reach_promp(n_basis=5)

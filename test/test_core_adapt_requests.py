@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from adapter_harness import PANDA_JOINTS, Q_GOAL, Q_START, panda_urdf, reach_cdmp, reach_promp
+from adapter_harness import PANDA_JOINTS, Q_GOAL, Q_START, reach_cdmp
 from cdmp_ros.core.adaptation.requests import (AdaptRequest, box_wall, build_problem, classify,
                                                clip_goal, ee_band, ee_path, obstacle_distance,
                                                reorder_promp, retarget_primitive_dict, run_request,
@@ -15,20 +15,10 @@ from cdmp_ros.core.adaptation.solver import AdaptationReport, monte_carlo_satisf
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.adaptation.constraints import Hyperplane, JointLimit, Repeller, Waypoint
 from cdmp_ros.core.errors import ConstraintSetError, ValidationError
-from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere, panda_chain
+from cdmp_ros.core.kinematics import Box, PointOfInterest, Sphere
 from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
 
 EE = PointOfInterest('ee')
-
-
-@pytest.fixture(scope='module')
-def chain():
-    return panda_chain(panda_urdf())
-
-
-@pytest.fixture(scope='module')
-def prior():
-    return reach_promp(n_basis=5)
 
 
 def test_reorder_promp_keeps_every_joint_distribution(prior, rng):

@@ -7,25 +7,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from adapter_harness import panda_urdf, reach_promp
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, SolverState
 from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, ee_path, run_request
 from cdmp_ros.core.adaptation.solver import solve_levels
 from cdmp_ros.core.adaptation.warm import KL_SLACK, WarmStarts, obstacle_shift
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere, panda_chain
+from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 
 CFG = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000)
-
-
-@pytest.fixture(scope='module')
-def chain():
-    return panda_chain(panda_urdf())
-
-
-@pytest.fixture(scope='module')
-def prior():
-    return reach_promp(n_basis=5)
 
 
 @pytest.fixture(scope='module')

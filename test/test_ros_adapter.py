@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, panda_urdf, reach_cdmp,
+from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, reach_cdmp,
                              reach_promp, start_adapter, stop_process)
 from cdmp_ros.core.primitive_io import dumps_primitive
 
@@ -25,12 +25,6 @@ PARAMS = ['diagnostics_period:=0.2', 'max_input_rate:=20.0', 'max_json_bytes:=30
           'adaptation.n_steps:=20', 'adaptation.alpha:=0.99', 'adaptation.max_outer:=4',
           'adaptation.max_inner:=150']
 Q_ROBOT = Q_START + np.array([0.05, -0.05, 0.05, 0.05, -0.05, 0.05, -0.05])
-
-
-@pytest.fixture(scope='module')
-def chain():
-    from cdmp_ros.core.kinematics import panda_chain
-    return panda_chain(panda_urdf())
 
 
 @pytest.fixture(scope='module')
