@@ -1,14 +1,15 @@
 """The adapter's solver thread (cdmp_ros.ros.adapter_worker.SolveWorker), without ROS: latest
 request wins, a running solve is not interrupted, its result is marked stale when a newer
-request waits, a failing solve becomes a 'rejected' result and the thread survives."""
+request waits, a failing solve becomes a 'rejected' result and the thread survives;
+refinements are not counted among the requests."""
 import threading
 
 from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker
 
 
-def _job(name):
+def _job(name, refine_kl=None):
     return Job(request=None, config=None, node_config=None, trigger=name, trigger_stamp_ns=0,
-               received=0.0)
+               received=0.0, refine_kl=refine_kl)
 
 
 def test_latest_request_wins_and_stale_results_are_marked():
@@ -49,6 +50,23 @@ def test_latest_request_wins_and_stale_results_are_marked():
         c = w.summary()
         assert (c['requests_received'], c['requests_dropped'], c['requests_stale'],
                 c['requests_solved']) == (5, 1, 1, 4)
+        # refinements: one solved, one replaced while waiting (behind a running 'first')
+        w.submit(_job('refine', 1.0))
+        assert notified.acquire(timeout=30.0)
+        assert [r.job.refine_kl for r in w.take()] == [1.0]
+        release.clear()
+        started.clear()
+        w.submit(_job('first'))
+        assert started.wait(30.0)
+        assert w.submit(_job('refine', 2.0)) is None
+        assert w.submit(_job('request')).refine_kl == 2.0     # the waiting refinement gives way
+        release.set()
+        assert notified.acquire(timeout=30.0) and notified.acquire(timeout=30.0)
+        assert [r.job.trigger for r in w.take()] == ['first', 'request']
+        c = w.summary()
+        assert (c['requests_received'], c['requests_dropped'], c['requests_stale'],
+                c['requests_solved']) == (7, 1, 2, 6)
+        assert w.counts['received'] == 9 and w.counts['superseded'] == 2
     finally:
         w.stop()
         w.join(5.0)

@@ -19,8 +19,8 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   evaluations, start (cold / warm, with start_note when a warm solve was replaced),
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
   starts_warm / starts_cold / starts_warm_then_cold / starts_over_guard,
-  refinements_started / published /
-  kept_warm / cancelled / failed; and
+  refinements_started / published / kept_warm / cancelled / failed (not counted among the
+  requests); and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
   the robot's limits came from) and limit_mismatch (every bound on which the primitive's
@@ -361,9 +361,11 @@ class AdapterNode(Node):
             self._restart_generation = generation
         req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
                            self.goal_y, start, p['limits'], continues=continues)
-        self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
-                               time.monotonic(), self.primitive_id, p['sha1'],
-                               generation=generation))
+        replaced = self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
+                                          time.monotonic(), self.primitive_id, p['sha1'],
+                                          generation=generation))
+        if replaced is not None and replaced.refine_kl is not None:
+            self.counts['refinements_cancelled'] += 1   # not started yet: it gives way
 
     def _solve(self, job: Job) -> JobResult:
         """Solve ``job`` (in the solver thread); a refinement gives way to any newer request."""
@@ -377,8 +379,11 @@ class AdapterNode(Node):
         """After a warm solve was published, with the solver idle: solve the same request
         cold (``adaptation.warm_start_refine``; :mod:`cdmp_ros.core.adaptation.warm`)."""
         job = res.job
+        # only with the solver idle: a refinement must run before any newer request (its
+        # generation is newer than theirs), which then cancels it
         if (res.stale or job.refine_kl is not None or res.result.report.start != 'warm'
-                or not job.config.warm_start_refine or self.worker.has_pending()):
+                or not job.config.warm_start_refine or self.worker.busy
+                or self.worker.has_pending()):
             return
         self.counts['refinements_started'] += 1
         self.worker.submit(dataclasses.replace(job, refine_kl=float(res.result.report.kl),
@@ -495,7 +500,9 @@ class AdapterNode(Node):
                                         or k in RESULT_KEYS)}
 
     def _publish_now(self) -> None:
-        starts = {f'starts_{k}': v for k, v in dict(self.warm.counts).items()}
+        counts = dict(self.warm.counts)   # (refinements: the node's own counters)
+        starts = {f'starts_{k}': counts[k] for k in ('warm', 'cold', 'warm_then_cold',
+                                                     'over_guard')}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 **self.worker.summary(), **self.counts, **starts,
                                 **self.gate.values())

@@ -140,6 +140,16 @@ class SolveWorker(LatestWorker):
 
     def __init__(self, solve: Callable[[Job], JobResult], notify: Callable[[], None]):
         super().__init__(solve, _failed, name='adapter-solver', notify=notify)
+        # the refinements among ``counts`` (the node reports them apart)
+        self._refinements = {'received': 0, 'superseded': 0, 'done': 0, 'stale': 0}
+
+    def submit(self, job: Job) -> Optional[Job]:
+        replaced = super().submit(job)
+        with self._cv:
+            self._refinements['received'] += job.refine_kl is not None
+            self._refinements['superseded'] += (replaced is not None
+                                                and replaced.refine_kl is not None)
+        return replaced
 
     def _accepted(self, job: Job, number: int) -> None:
         job.id = number
@@ -147,12 +157,16 @@ class SolveWorker(LatestWorker):
     def _finished(self, job: Job, res: JobResult, stale: bool) -> JobResult:
         res.finished = time.monotonic()
         res.stale = stale
+        if job.refine_kl is not None:   # (under the lock)
+            self._refinements['done'] += 1
+            self._refinements['stale'] += stale
         return res
 
     def summary(self) -> Dict[str, Any]:
-        """The request counters (diagnostics names) and whether a solve is running."""
+        """The request counters (diagnostics names), refinements not included, and whether a
+        solve (or a refinement) is running."""
         with self._cv:
-            c = dict(self.counts)
+            c = {k: v - self._refinements[k] for k, v in self.counts.items()}
             busy = self.busy
         return {'requests_received': c['received'], 'requests_dropped': c['superseded'],
                 'requests_stale': c['stale'], 'requests_solved': c['done'],

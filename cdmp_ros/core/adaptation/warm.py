@@ -104,7 +104,7 @@ class _Memory:
     limits: Optional[Tuple[NDArray, NDArray]]
     obstacles: Tuple
     state: SolverState
-    anchor_kl: float          # KL of the last cold solve of this layout
+    anchor_kl: float          # KL of the last cold solve (or of a warm one it confirmed)
     cold_next: bool = False   # the last warm solve exceeded the KL guard
 
 
