@@ -9,7 +9,7 @@ import pytest
 
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, SolverState
 from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, ee_path, run_request
-from cdmp_ros.core.adaptation.solver import solve_levels
+from cdmp_ros.core.adaptation.solver import adapt, solve_levels
 from cdmp_ros.core.adaptation.warm import KL_SLACK, WarmStarts, obstacle_shift
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
@@ -65,6 +65,9 @@ def test_solve_from_its_own_solution_and_the_evaluation_budget(chain, prior, cen
     with pytest.raises(ValidationError, match='warm start has'):
         solve_levels(built.prior, built.constraints, built.config,
                      start=SolverState(rep.state.theta[:-1], rep.state.multipliers))
+    with pytest.raises(ValidationError, match='a warm start needs the per_step guarantee'):
+        adapt(built.prior, built.constraints,
+              dataclasses.replace(built.config, guarantee='trajectory'), start=rep.state)
     budget = dataclasses.replace(built.config, max_evaluations=5)
     _, rep3 = solve_levels(built.prior, built.constraints, budget)
     assert not rep3.converged and rep3.status == 'evaluation_budget_exhausted'

@@ -145,14 +145,14 @@ class SolveWorker(LatestWorker):
 
     def submit(self, job: Job) -> Optional[Job]:
         replaced = super().submit(job)
-        with self._cv:
-            self._refinements['received'] += job.refine_kl is not None
-            self._refinements['superseded'] += (replaced is not None
-                                                and replaced.refine_kl is not None)
+        if replaced is not None and replaced.refine_kl is not None:
+            with self._cv:
+                self._refinements['superseded'] += 1
         return replaced
 
     def _accepted(self, job: Job, number: int) -> None:
         job.id = number
+        self._refinements['received'] += job.refine_kl is not None   # (under the lock)
 
     def _finished(self, job: Job, res: JobResult, stale: bool) -> JobResult:
         res.finished = time.monotonic()
