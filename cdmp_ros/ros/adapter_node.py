@@ -16,7 +16,8 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
   ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
-  evaluations, start (cold / warm, with start_note when a warm solve was replaced),
+  evaluations, start (cold / warm; start_note says why a warm solve was replaced, exceeded
+  the KL guard or was refined),
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
   starts_warm / starts_cold / starts_warm_then_cold / starts_over_guard,
   refinements_started / published / kept_warm / cancelled / failed (not counted among the
@@ -447,8 +448,12 @@ class AdapterNode(Node):
         if job.refine_kl is not None and (outdated or res.stale or res.outcome != 'converged'):
             # a refinement that gave way to a newer request, found no lower KL or failed: the
             # warm solution stays published
-            key = ('kept_warm' if res.outcome == 'kept_warm' else 'failed'
-                   if res.outcome == 'rejected' and not (outdated or res.stale) else 'cancelled')
+            if res.outcome == 'kept_warm':
+                key = 'kept_warm'
+            elif res.outcome == 'rejected' and not (outdated or res.stale):
+                key = 'failed'
+            else:
+                key = 'cancelled'
             self.counts[f'refinements_{key}'] += 1
             if key == 'failed':
                 self.get_logger().warning(f'refinement {job.id} failed: {res.error}')

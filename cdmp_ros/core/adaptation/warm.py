@@ -40,7 +40,8 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.adaptation.config import AdaptationReport, AdaptRequestConfig, SolverState
+from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport,
+                                             AdaptRequestConfig, SolverState)
 from cdmp_ros.core.adaptation.solver import adapt
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 from cdmp_ros.core.promp.promp import ProMP
@@ -99,7 +100,7 @@ def _same_limits(a, b) -> bool:
 class _Memory:
     """The last converged solve of the stream."""
     prior: ProMP
-    config: object            # the optimiser's AdaptationConfig
+    config: AdaptationConfig
     constraint_doc: Optional[dict]
     limits: Optional[Tuple[NDArray, NDArray]]
     obstacles: Tuple
