@@ -173,6 +173,23 @@ def test_screen_gives_the_verdicts_of_the_full_kinematics(monkeypatch):
         assert screened.trajectory_violation == full.trajectory_violation
         assert 0.0 < screened.kinematics_fraction < 0.9, screened.kinematics_fraction
         assert full.kinematics_fraction == 1.0
+    # without the unbound waypoint every group holds per step: its constraints are evaluated
+    # on the undecided (sample, step) pairs only (_KinematicGroup.violations)
+    # a sphere that moves along the elbow's mean path: each pair is evaluated at its own time
+    moving = Repeller(elbow, lambda t: elbow.forward(p.mean(t)) + [0.04, 0.0], 0.06,
+                      alpha=0.99, name='moving')
+    per_step = [c for c in cons if c.name != 'via'] + [moving]
+    groups = verification._kinematic_groups(p, per_step, np.linspace(0.0, 1.0, 41), True)
+    assert groups and all(g.pairs for g in groups)
+    assert not all(g.pairs for g in verification._kinematic_groups(
+        p, cons, np.linspace(0.0, 1.0, 41), True))
+    for seed in range(2):
+        pairs = verify(p, per_step, 3000, np.random.default_rng(seed), n_steps=41)
+        full = verify(p, per_step, 3000, np.random.default_rng(seed), n_steps=41, screen=False)
+        assert pairs.constraints == full.constraints
+        assert pairs.trajectory_violation == full.trajectory_violation
+        assert 0.0 < pairs.kinematics_fraction < 0.9, pairs.kinematics_fraction
+        assert 0.0 < pairs.constraints[-1].per_step_max < 1.0, pairs.constraints[-1]
     got = {c.name: c for c in screened.constraints}
     # the cases the screen must keep apart all occur: steps violated by some samples only
     for name in ('hit', 'near', 'elbow', 'limit', 'via'):

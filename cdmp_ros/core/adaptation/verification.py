@@ -31,6 +31,7 @@ Monte Carlo noise:
   conservative direction (a solution exactly at the level fails), which is what a guarantee
   needs.
 """
+import functools
 import os
 import threading
 import time
@@ -103,8 +104,10 @@ def clopper_pearson_upper(k: NDArray, n: int, confidence: float = 0.95) -> NDArr
     return out
 
 
+@functools.lru_cache(maxsize=256)
 def critical_count(n: int, p: float, level: float) -> int:
-    """Largest count c with P(Bin(n, p) > c) <= ``level`` (counts above c reject p)."""
+    """Largest count c with P(Bin(n, p) > c) <= ``level`` (counts above c reject p); cached
+    (a stream of adaptations asks for the same few, 0.15 ms each)."""
     return int(binom.isf(level, n, p))
 
 
@@ -230,7 +233,14 @@ class _KinematicGroup:
     ``Xbar`` (:meth:`~cdmp_ros.core.adaptation.constraints.base.Constraint.decided_near`),
     ``Xbar`` stands in for the sample's point: the verdicts are exactly those of the full
     kinematics, which runs only on the undecided (sample, step) pairs. A group with a
-    constraint that cannot tell is evaluated in full."""
+    constraint that cannot tell is evaluated in full.
+
+    When every constraint of a screened group holds per step (``reduce == 'each'``),
+    :meth:`violations` evaluates the constraints themselves only on the undecided pairs too
+    (each pair as one point at its own time); the decided pairs take the verdict of
+    ``Xbar`` at their step, computed once. No (sample, step) array of points is built: on the
+    Panda problem of the adapter (2,000 samples) the verification's CPU time fell from 42 to
+    36 ms on one thread, and from 52 to 44 ms on two."""
 
     def __init__(self, promp: ProMP, members: List[ChainPoint], users: List[List[Constraint]],
                  times: NDArray, screen: bool = True):
@@ -240,10 +250,55 @@ class _KinematicGroup:
         self.pois = [m.point for m in members]
         self.screen = screen and all(type(c).decided_near is not Constraint.decided_near
                                      for cs in users for c in cs)
+        self.pairs = self.screen and all(c.reduce == 'each' for cs in users for c in cs)
         if self.screen:
             self.zbar = promp.mean(times)[:, self.dofs]                    # (n, nd)
             self.Xbar, J = self.chain.forward_and_jacobian(self.zbar, self.pois)
             self.rho_t = np.linalg.norm(J, axis=2).transpose(0, 2, 1).copy()  # (n, nd, P)
+            # the verdict of every constraint at Xbar, per step (what a decided pair gets)
+            self.bar_violated = {}
+            for i, cs in enumerate(users):
+                Xi = self._axes(self.Xbar, i)[None]                         # (1, n, k)
+                for c in cs:
+                    self.bar_violated[id(c)] = ~np.asarray(c.satisfied(Xi, times), bool)[0]
+
+    def _axes(self, X: NDArray, i: int) -> NDArray:
+        """Member i's coordinates of the points X (..., P, 3)."""
+        axes = self.members[i].axes
+        return X[..., i, :] if tuple(axes) == (0, 1, 2) else X[..., i, list(axes)]
+
+    def _undecided(self, Zg: NDArray) -> NDArray:
+        """(c, n) bool: the (sample, step) pairs of Zg (c, n, nd) whose verdict the screen
+        leaves open for some constraint of the group."""
+        dev = Zg - self.zbar
+        np.abs(dev, out=dev)
+        # R[c, t, i] = sum_j dev[c, t, j] rho[t, i, j], one matrix product per time step
+        R = np.matmul(dev.transpose(1, 0, 2), self.rho_t).transpose(1, 0, 2)  # (c, n, P)
+        todo = np.zeros(R.shape[:2], bool)
+        for i, cs in enumerate(self.users):
+            Xi = self._axes(self.Xbar, i)
+            for c in cs:
+                todo |= ~c.decided_near(Xi, R[..., i], self.times)
+        return todo
+
+    def violations(self, Zg: NDArray) -> Tuple[Dict[int, NDArray], int]:
+        """Group with :attr:`pairs`: the violation indicators (c, n) of every constraint of
+        the group (by ``id``) on the samples' joint positions Zg (c, n, nd), and the number of
+        (sample, step) pairs whose kinematics ran."""
+        todo = self._undecided(Zg)
+        steps = np.nonzero(todo)[1]
+        X = self.chain.forward(Zg[todo], self.pois) if steps.size else None   # (m, P, 3)
+        tp = self.times[steps]
+        out = {}
+        for i, cs in enumerate(self.users):
+            Xi = None if X is None else self._axes(X, i)[None]               # (1, m, k)
+            for c in cs:
+                v = np.empty(todo.shape, bool)
+                v[...] = self.bar_violated[id(c)]
+                if Xi is not None:
+                    v[todo] = ~np.asarray(c.satisfied(Xi, tp), bool)[0]
+                out[id(c)] = v
+        return out, int(steps.size)
 
     def positions(self, Zg: NDArray) -> Tuple[NDArray, int]:
         """World points (c, n, P, 3) of the samples' joint positions Zg (c, n, nd), and the
@@ -251,22 +306,22 @@ class _KinematicGroup:
         full = Zg.shape[0] * Zg.shape[1]
         if not self.screen:
             return self.chain.forward(Zg, self.pois), full
-        dev = Zg - self.zbar
-        np.abs(dev, out=dev)
-        # R[c, t, i] = sum_j dev[c, t, j] rho[t, i, j], one matrix product per time step
-        R = np.matmul(dev.transpose(1, 0, 2), self.rho_t).transpose(1, 0, 2)  # (c, n, P)
-        todo = np.zeros(R.shape[:2], bool)
-        for i, (m, cs) in enumerate(zip(self.members, self.users)):
-            Xi = self.Xbar[:, i][:, list(m.axes)]
-            for c in cs:
-                todo |= ~c.decided_near(Xi, R[..., i], self.times)
+        todo = self._undecided(Zg)
         if todo.all():
             return self.chain.forward(Zg, self.pois), full
-        X = np.empty(R.shape[:2] + self.Xbar.shape[1:])
+        X = np.empty(todo.shape + self.Xbar.shape[1:])
         X[...] = self.Xbar
         if todo.any():
             X[todo] = self.chain.forward(Zg[todo], self.pois)
         return X, int(np.count_nonzero(todo))
+
+
+def _columns(Z: NDArray, dofs: Sequence[int]) -> NDArray:
+    """Z[..., dofs]: a view when ``dofs`` are consecutive (no copy of the samples)."""
+    dofs = list(dofs)
+    if dofs and dofs == list(range(dofs[0], dofs[0] + len(dofs))):
+        return Z[..., dofs[0]:dofs[0] + len(dofs)]
+    return Z[..., dofs]
 
 
 def _kinematic_groups(promp: ProMP, constraints: Sequence, grid: NDArray, screen: bool
@@ -297,24 +352,33 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
     Z = {key: _trajectories(promp, W, phi_t)
          for key, phi_t in features.items()}                    # (c, n, D) per time grid
     X_of: Dict[Tuple[int, bytes], NDArray] = {}
+    violated: Dict[int, NDArray] = {}     # of the constraints of groups with ``pairs``
     ran = 0
     for g in groups:
         tkey = g.times.tobytes()
-        X, n_run = g.positions(Z[tkey][..., g.dofs])
+        Zg = _columns(Z[tkey], g.dofs)
+        if g.pairs:
+            v, n_run = g.violations(Zg)
+            violated.update(v)
+        else:
+            X, n_run = g.positions(Zg)
+            for i, m in enumerate(g.members):
+                X_of[(id(m), tkey)] = g._axes(X, i)
         ran += n_run
-        for i, m in enumerate(g.members):
-            X_of[(id(m), tkey)] = X[..., i, list(m.axes)]
     out = []
     for c in constraints:
         if isinstance(c, WeightConstraint):
             out.append(~np.asarray(c.satisfied_w(W), bool))
+            continue
+        if id(c) in violated:
+            out.append(violated[id(c)])
             continue
         times = c.times(grid)
         tkey = times.tobytes()
         p = c.point
         X = X_of.get((id(p), tkey))
         if X is None:
-            Zc = Z[tkey][..., list(p.dofs)]
+            Zc = _columns(Z[tkey], p.dofs)
             X = Zc if type(p) is DofPoint else p.forward(Zc)
         out.append(~np.asarray(c.satisfied(X, times), bool))
     return out, ran
