@@ -10,7 +10,8 @@ import pytest
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, SolverState
 from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, ee_path, run_request
 from cdmp_ros.core.adaptation.solver import adapt, solve_levels
-from cdmp_ros.core.adaptation.warm import KL_SLACK, WarmStarts, obstacle_shift
+from cdmp_ros.core.adaptation.warm import (KL_SLACK, PREDICT_ATOL, PREDICT_RTOL, WarmStarts,
+                                           obstacle_shift, predict_state)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 
@@ -103,8 +104,10 @@ def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
         assert np.linalg.norm(path - req.obstacles[0].center, axis=1).min() > 0.05
         assert np.abs(path - prev).max() < 0.01
         prev = path
-    assert ws.counts == {'warm': 3, 'cold': 1, 'warm_then_cold': 0, 'over_guard': 0,
-                         'refined': 0, 'refine_kept_warm': 0}
+    # from the third request on the sphere moves as it did before: the predictor's start
+    assert ws.counts == {'warm': 3, 'predicted': 2, 'predicted_missed': 0, 'cold': 1,
+                         'warm_then_cold': 0, 'over_guard': 0, 'refined': 0,
+                         'refine_kept_warm': 0}
 
 
 def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centre):
@@ -238,3 +241,104 @@ def test_the_solver_maps_multipliers_by_constraint_name(chain, prior, centre):
     assert got['obstacle_0_ee'] == pytest.approx(CFG.lambda0)
     assert got['limit_panda_joint2'] == pytest.approx(float(np.max(
         dict(rep.state.multipliers)['limit_panda_joint2'])))
+
+
+# -- the predictor -------------------------------------------------------------------------------
+def test_predict_state_is_the_secant_of_the_last_two_solutions():
+    before = SolverState(np.array([1.0, 2.0, -1.0]),
+                         (('a', np.array([1.0, 1.0, 1.0])), ('gone', np.ones(2))))
+    last = SolverState(np.array([1.5, 1.0, -1.0]),
+                       (('a', np.array([2.0, 1.0, 8.0])), ('new', np.array([3.0]))))
+    got = predict_state(before, last)
+    np.testing.assert_allclose(got.theta, [2.0, 0.0, -1.0])
+    lam = dict(got.multipliers)
+    # growth factors 2, 1, 8 -> clipped to [1/2, 2]; a constraint new in ``last`` keeps its own
+    np.testing.assert_allclose(lam['a'], [4.0, 1.0, 16.0])
+    np.testing.assert_allclose(lam['new'], [3.0])
+    assert set(lam) == {'a', 'new'}
+
+
+def test_steady_motion_rule():
+    from cdmp_ros.core.adaptation.warm import _steady_motion
+
+    def spheres(*centres, r=0.05):
+        return tuple(Sphere(tuple(c), r) for c in centres)
+    a, d = np.array([0.3, 0.1, 0.4]), np.array([0.0, 0.0067, 0.0])
+    b = np.array([0.5, -0.2, 0.3])
+    assert _steady_motion(spheres(a, b), spheres(a + d, b), spheres(a + 2 * d, b))
+    # within the tolerance (relative to the larger move), not twice beyond it
+    tol = PREDICT_RTOL * np.linalg.norm(d) + PREDICT_ATOL
+    assert _steady_motion(spheres(a), spheres(a + d), spheres(a + 2 * d + [0.9 * tol, 0, 0]))
+    assert not _steady_motion(spheres(a), spheres(a + d), spheres(a + 2 * d + [2 * tol, 0, 0]))
+    assert not _steady_motion(spheres(a), spheres(a + d), spheres(a + d - d))      # turned back
+    assert not _steady_motion(spheres(a), spheres(a + d), spheres(a + 2 * d, b))   # one came
+    assert not _steady_motion(spheres(a), spheres(a, r=0.05), spheres(a, r=0.06))  # grew
+    box = [Box(tuple(a + k * d), tuple(a + k * d + 0.1)) for k in range(3)]
+    assert _steady_motion((box[0],), (box[1],), (box[2],))
+    assert not _steady_motion((box[0],), (box[1],), (Box(tuple(a + 2 * d), tuple(a + 0.2)),))
+    assert not _steady_motion(spheres(a), (box[1],), (box[2],))                    # kind
+
+
+def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkeypatch):
+    """A sphere moving 5 mm per request: the third request starts from 2 theta_2 - theta_1
+    (the published solutions of the two before), converges and is verified; a request that
+    breaks the steady motion starts from the last solution. Without the budget to converge,
+    the predicted start is followed by the plain warm start, then the cold solve, and only
+    the kept solve is verified."""
+    import cdmp_ros.core.adaptation.guarantee as guarantee
+    import cdmp_ros.core.adaptation.warm as warm
+    starts, verified, fail = [], [], []
+    real_solve, real_verify = warm.solve_levels, guarantee.verify
+
+    def solve(*args):
+        starts.append(args[4])
+        adapted, rep = real_solve(*args)
+        if fail:     # as if out of evaluations (the control flow, whatever the numerics)
+            rep.converged, rep.status = False, 'evaluation_budget_exhausted'
+        return adapted, rep
+
+    def verify(*args, **kwargs):
+        verified.append(1)
+        return real_verify(*args, **kwargs)
+    monkeypatch.setattr(warm, 'solve_levels', solve)
+    monkeypatch.setattr(guarantee, 'verify', verify)
+    ws = WarmStarts()
+    step = np.array([0.0, 0.005, 0.0])
+    res = [run_request(_request(prior, centre + k * step), chain, CFG, warm=ws)
+           for k in range(3)]
+    assert [r.report.start for r in res] == ['cold', 'warm', 'warm']
+    assert all(r.outcome == 'converged' for r in res)
+    assert len(starts) == 2 and len(verified) == 3
+    np.testing.assert_array_equal(starts[0].theta, res[0].report.state.theta)
+    # the third request: the secant of the first two solutions (the second started warm from
+    # the first)
+    np.testing.assert_allclose(starts[1].theta, 2.0 * res[1].report.state.theta
+                               - res[0].report.state.theta)
+    assert res[2].report.start_note.startswith('started from the prediction')
+    assert res[2].report.verification.holds and ws.counts['predicted'] == 1
+    # the motion turns: the plain warm start
+    turned = run_request(_request(prior, centre + 2 * step + [0.005, 0.0, 0.0]), chain, CFG,
+                         warm=ws)
+    assert turned.outcome == 'converged' and turned.report.start == 'warm'
+    np.testing.assert_array_equal(starts[2].theta, res[2].report.state.theta)
+    assert turned.report.start_note == '' and ws.counts['predicted'] == 1
+    # warm attempts that do not converge: predicted, then plain warm, then cold; one
+    # verification (the cold solve's)
+    ahead = centre + 2 * step + [0.01, 0.0, 0.0]
+    n_starts, n_verified = len(starts), len(verified)
+    fail.append(1)
+    last = run_request(_request(prior, ahead), chain, CFG, warm=ws)
+    fail.clear()
+    assert last.report.start == 'cold' and last.outcome == 'converged'
+    assert last.report.start_note.startswith('warm start replaced: evaluation_budget_exhausted')
+    assert len(starts) == n_starts + 2 and len(verified) == n_verified + 1
+    np.testing.assert_allclose(starts[-2].theta, 2.0 * turned.report.state.theta
+                               - res[2].report.state.theta)
+    np.testing.assert_array_equal(starts[-1].theta, turned.report.state.theta)
+    assert ws.counts['predicted_missed'] == 1 and ws.counts['warm_then_cold'] == 1
+    # switched off: never predicted
+    ws2 = WarmStarts()
+    off = dataclasses.replace(CFG, warm_start_predict=False)
+    for k in range(3):
+        run_request(_request(prior, centre + k * step), chain, off, warm=ws2)
+    assert ws2.counts['warm'] == 2 and ws2.counts['predicted'] == 0
