@@ -105,9 +105,8 @@ def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
         assert np.abs(path - prev).max() < 0.01
         prev = path
     # from the third request on the sphere moves as it did before: the predictor's start
-    assert ws.counts == {'warm': 3, 'predicted': 2, 'predicted_missed': 0, 'cold': 1,
-                         'warm_then_cold': 0, 'over_guard': 0, 'refined': 0,
-                         'refine_kept_warm': 0}
+    assert ws.counts == {'warm': 3, 'predicted': 2, 'cold': 1, 'warm_then_cold': 0,
+                         'over_guard': 0, 'refined': 0, 'refine_kept_warm': 0}
 
 
 def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centre):
@@ -245,17 +244,12 @@ def test_the_solver_maps_multipliers_by_constraint_name(chain, prior, centre):
 
 # -- the predictor -------------------------------------------------------------------------------
 def test_predict_state_is_the_secant_of_the_last_two_solutions():
-    before = SolverState(np.array([1.0, 2.0, -1.0]),
-                         (('a', np.array([1.0, 1.0, 1.0])), ('gone', np.ones(2))))
+    before = SolverState(np.array([1.0, 2.0, -1.0]), (('a', np.array([1.0, 1.0, 1.0])),))
     last = SolverState(np.array([1.5, 1.0, -1.0]),
                        (('a', np.array([2.0, 1.0, 8.0])), ('new', np.array([3.0]))))
     got = predict_state(before, last)
     np.testing.assert_allclose(got.theta, [2.0, 0.0, -1.0])
-    lam = dict(got.multipliers)
-    # growth factors 2, 1, 8 -> clipped to [1/2, 2]; a constraint new in ``last`` keeps its own
-    np.testing.assert_allclose(lam['a'], [4.0, 1.0, 16.0])
-    np.testing.assert_allclose(lam['new'], [3.0])
-    assert set(lam) == {'a', 'new'}
+    assert got.multipliers is last.multipliers      # the last solve's multipliers
 
 
 def test_steady_motion_rule():
@@ -282,9 +276,8 @@ def test_steady_motion_rule():
 def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkeypatch):
     """A sphere moving 5 mm per request: the third request starts from 2 theta_2 - theta_1
     (the published solutions of the two before), converges and is verified; a request that
-    breaks the steady motion starts from the last solution. Without the budget to converge,
-    the predicted start is followed by the plain warm start, then the cold solve, and only
-    the kept solve is verified."""
+    breaks the steady motion starts from the last solution. A predicted solve that does not
+    converge is followed by the cold solve, and only the kept solve is verified."""
     import cdmp_ros.core.adaptation.guarantee as guarantee
     import cdmp_ros.core.adaptation.warm as warm
     starts, verified, fail = [], [], []
@@ -322,20 +315,20 @@ def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkey
     assert turned.outcome == 'converged' and turned.report.start == 'warm'
     np.testing.assert_array_equal(starts[2].theta, res[2].report.state.theta)
     assert turned.report.start_note == '' and ws.counts['predicted'] == 1
-    # warm attempts that do not converge: predicted, then plain warm, then cold; one
-    # verification (the cold solve's)
+    # a predicted solve that does not converge: the cold solve, and one verification (the
+    # cold solve's: the replaced attempt is not verified)
     ahead = centre + 2 * step + [0.01, 0.0, 0.0]
     n_starts, n_verified = len(starts), len(verified)
     fail.append(1)
     last = run_request(_request(prior, ahead), chain, CFG, warm=ws)
     fail.clear()
     assert last.report.start == 'cold' and last.outcome == 'converged'
-    assert last.report.start_note.startswith('warm start replaced: evaluation_budget_exhausted')
-    assert len(starts) == n_starts + 2 and len(verified) == n_verified + 1
-    np.testing.assert_allclose(starts[-2].theta, 2.0 * turned.report.state.theta
+    assert last.report.start_note.startswith(
+        'predicted start replaced: evaluation_budget_exhausted after'), last.report.start_note
+    assert len(starts) == n_starts + 1 and len(verified) == n_verified + 1
+    np.testing.assert_allclose(starts[-1].theta, 2.0 * turned.report.state.theta
                                - res[2].report.state.theta)
-    np.testing.assert_array_equal(starts[-1].theta, turned.report.state.theta)
-    assert ws.counts['predicted_missed'] == 1 and ws.counts['warm_then_cold'] == 1
+    assert ws.counts['warm_then_cold'] == 1 and ws.counts['predicted'] == 1
     # switched off: never predicted
     ws2 = WarmStarts()
     off = dataclasses.replace(CFG, warm_start_predict=False)

@@ -425,7 +425,7 @@ class AdaptRequestConfig:
     warm_start_predict: bool = _param(
         True, 'An obstacle moving by the same displacement as in the last request (constant '
         'velocity): start the warm solve from the secant prediction of the last two warm '
-        'solutions (then from the last one if it does not converge).')
+        'solutions.')
     warm_start_refine: bool = _param(
         True, 'When the solver is idle after a warm solve, solve the same request cold and '
         'publish the result if its KL is at least 5 % lower (a newer request cancels it).')

@@ -18,13 +18,12 @@ message to message, and a chain of warm solutions then moves along a smooth path
 When the last solve was itself started warm from the one before, and every obstacle's
 displacement since the last request equals its previous displacement (within
 :data:`PREDICT_RTOL` of it, plus :data:`PREDICT_ATOL`), the solve starts from the secant
-prediction instead (a predictor-corrector continuation): theta_k + (theta_k - theta_{k-1}),
-and each multiplier lambda_k times lambda_k / lambda_{k-1} (that factor clipped to
-[1/2, 2]). On the Panda problem with three spheres tracked at 0.2 m/s (30 Hz), over three
-headings, it cut the evaluations of all solves by 14-28 % and the median of the warm solves
-from 14 / 9 / 12 to 10 / 8 / 5 (``benchmarks/bench_warm_track.py``; benchmarks/RESULTS.md,
-"predictor"). A predicted solve that does not converge within its budget is followed by the
-plain warm start, then the cold solve (``adaptation.warm_start_predict``).
+prediction theta_k + (theta_k - theta_{k-1}) with the last multipliers (a predictor-corrector
+continuation). On the Panda problem with three spheres tracked at 0.2 m/s (30 Hz), over five
+headings, it cut the evaluations of all solves by 18 % (4,625 -> 3,784) and the median of the
+warm solves from 5-14 to 5-8 per heading (``benchmarks/bench_warm_track.py``;
+benchmarks/RESULTS.md, "predictor"). Like a plain warm solve, a predicted one that does not
+converge within its budget is followed by the cold solve (``adaptation.warm_start_predict``).
 
 The warm solve is bounded (``warm_start_max_evaluations``) and goes through the same sampled
 verification as any other (only a solve that is kept is verified: an attempt that runs out of
@@ -76,8 +75,6 @@ REFINE_GAIN = 0.05
 #: larger of the two moves plus PREDICT_ATOL [m].
 PREDICT_RTOL = 0.25
 PREDICT_ATOL = 5e-4
-#: Clip of the multipliers' extrapolation factor lambda_k / lambda_{k-1}.
-PREDICT_FACTOR = 2.0
 
 
 def _corners(ob) -> NDArray[np.float64]:
@@ -135,17 +132,10 @@ def _steady_motion(before, last, now) -> bool:
 
 def predict_state(before: SolverState, last: SolverState) -> SolverState:
     """The secant prediction of the next solution from the last two of a warm chain:
-    theta = 2 theta_last - theta_before; each multiplier of ``last`` times its growth
-    lambda_last / lambda_before (clipped to [1 / PREDICT_FACTOR, PREDICT_FACTOR]; constraints
-    that ``before`` lacks keep their multipliers)."""
-    old = dict(before.multipliers)
-    mult = []
-    for name, lam in last.multipliers:
-        o = old.get(name)
-        if o is not None and o.shape == lam.shape:
-            lam = lam * np.clip(lam / o, 1.0 / PREDICT_FACTOR, PREDICT_FACTOR)
-        mult.append((name, lam))
-    return SolverState(2.0 * last.theta - before.theta, tuple(mult))
+    theta = 2 theta_last - theta_before, with the multipliers of ``last`` (extrapolating them
+    as well, by their growth factor clipped to [1/2, 2], cost evaluations: 4,243 instead of
+    3,784 over the five streams of ``benchmarks/bench_warm_track.py --headings 1 2 3 4 5``)."""
+    return SolverState(2.0 * last.theta - before.theta, last.multipliers)
 
 
 def _same_prior(a: ProMP, b: ProMP) -> bool:
@@ -187,8 +177,7 @@ class WarmStarts:
     ----------
     counts : dict
         ``warm`` (warm solves kept), ``predicted`` (of those, started from the predictor),
-        ``predicted_missed`` (predicted solves that did not converge within the budget, so
-        the plain warm start followed), ``cold`` (no warm start possible, or disabled),
+        ``cold`` (no warm start possible, or disabled),
         ``warm_then_cold`` (warm solves that did not converge, so the request was solved cold
         as well), ``over_guard`` (warm solves kept over the KL guard: the next request starts
         cold), ``refined`` / ``refine_kept_warm`` (refinements that replaced the warm solution
@@ -197,9 +186,8 @@ class WarmStarts:
 
     def __init__(self):
         self._memory: Optional[_Memory] = None
-        self.counts = {'warm': 0, 'predicted': 0, 'predicted_missed': 0, 'cold': 0,
-                       'warm_then_cold': 0, 'over_guard': 0, 'refined': 0,
-                       'refine_kept_warm': 0}
+        self.counts = {'warm': 0, 'predicted': 0, 'cold': 0, 'warm_then_cold': 0,
+                       'over_guard': 0, 'refined': 0, 'refine_kept_warm': 0}
 
     def forget(self) -> None:
         """The next request starts cold."""
@@ -242,30 +230,20 @@ class WarmStarts:
         if start is not None:
             config = dataclasses.replace(built.config,
                                          max_evaluations=int(cfg.warm_start_max_evaluations))
-            tries = [(start, '')]
             predicted = self.predicted_start(req) if cfg.warm_start_predict else None
-            if predicted is not None:
-                tries.insert(0, (predicted, 'predicted'))
-            evaluations, t0 = 0, time.perf_counter()
-            for state, kind in tries:
-                adapted, rep = solve_levels(built.prior, built.constraints, config,
-                                            should_stop, state)
-                evaluations += rep.n_evaluations
-                if rep.converged:
-                    break
-                if kind:
-                    self.counts['predicted_missed'] += 1
-            rep.n_evaluations = evaluations
-            if rep.converged:
+            t0 = time.perf_counter()
+            adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop,
+                                        start if predicted is None else predicted)
+            if rep.converged:   # verified only now: an attempt that is replaced is not
                 attach_verification(rep, adapted, built.constraints, config,
                                     np.random.default_rng(0), t0)
-            if rep.converged:     # (and verified)
+            if rep.converged:   # (and the verification confirmed it)
                 self.counts['warm'] += 1
-                self.counts['predicted'] += kind == 'predicted'
+                self.counts['predicted'] += predicted is not None
                 anchor = self._memory.anchor_kl
                 self._remember(req, built, rep, anchor, before=(start, self._memory.obstacles))
                 rep.start_note = ('started from the prediction of a steady obstacle motion'
-                                  if kind else '')
+                                  if predicted is not None else '')
                 bound = cfg.warm_start_kl_ratio * anchor + KL_SLACK
                 if rep.kl > bound:   # kept (converged and verified); the next one is cold
                     self.counts['over_guard'] += 1
@@ -275,7 +253,8 @@ class WarmStarts:
                                       f'next request starts cold')
                 return adapted, rep
             self.counts['warm_then_cold'] += 1
-            note = f'warm start replaced: {rep.status} after {evaluations} evaluations'
+            note = (f'{"predicted" if predicted is not None else "warm"} start replaced: '
+                    f'{rep.status} after {rep.n_evaluations} evaluations')
         else:
             self.counts['cold'] += 1
         cold = adapt(built.prior, built.constraints, built.config, should_stop)
