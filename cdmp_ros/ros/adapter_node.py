@@ -33,9 +33,11 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 - Warm starts (``adaptation.warm_start``, :mod:`cdmp_ros.core.adaptation.warm`): a request
   whose problem differs from the last converged one only by obstacles that moved at most
-  ``adaptation.warm_start_distance`` starts from that solution and its multipliers; a warm
-  solve that does not converge within ``adaptation.warm_start_max_evaluations`` is followed
-  by a cold solve of the same request, and one whose KL exceeds the guard
+  ``adaptation.warm_start_distance`` starts from that solution and its multipliers (from
+  the secant prediction of the last two when every obstacle moved as in the last request,
+  ``adaptation.warm_start_predict``); a warm solve that does not converge within
+  ``adaptation.warm_start_max_evaluations`` is followed by a cold solve of the same
+  request, and one whose KL exceeds the guard
   (``adaptation.warm_start_kl_ratio``) by a cold start of the next request. After a
   published warm solve, with no request waiting, the same request is solved cold as a
   refinement (``adaptation.warm_start_refine``), published only if its KL is at least 5 %
