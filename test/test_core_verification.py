@@ -138,9 +138,47 @@ def test_screen_bound_holds_for_revolute_and_prismatic_joints(tmp_path):
             np.testing.assert_allclose(moved, 1e-4 * rho[:, :, j], rtol=1e-3, atol=1e-12)
 
 
+def test_curvature_bound_holds_and_is_not_vacuous(tmp_path):
+    """Chain.curvature_bound (the first-order screen's lemma): |x(q) - x(r) - J(r)(q - r)| <=
+    1/2 sum_jk M_jk |q_j - r_j| |q_k - r_k| against forward kinematics for random pairs with
+    small and large moves, on the Panda (points on the hand, a link and off a link's axis) and
+    on a planar arm; the worst remainder reaches more than half the bound; a chain with a
+    prismatic joint has none."""
+    import pybullet_data
+    from test_core_kinematics import CUSTOM_URDF
+    chains = [(panda_chain(pybullet_data.getDataPath() + '/franka_panda/panda.urdf'),
+               [PointOfInterest('ee'), PointOfInterest('panda_link4'),
+                PointOfInterest('panda_link6', (0.05, -0.1, 0.02))]),
+              (planar_chain([1.0, 0.8, 0.5]), [PointOfInterest('ee'),
+                                               PointOfInterest('link2', (0.1, 0.2, 0.0))])]
+    rng = np.random.default_rng(12)
+    for chain, points in chains:
+        M = chain.curvature_bound(points)
+        assert M.shape == (len(points), chain.n_dofs, chain.n_dofs)
+        np.testing.assert_array_equal(M, M.transpose(0, 2, 1))
+        lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+        hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
+        worst = 0.0
+        for scale in (1e-3, 0.05, 0.3, 1.0, 3.0):
+            R = rng.uniform(lo, hi, (4000, chain.n_dofs))
+            Q = R + rng.normal(0.0, scale, R.shape)
+            Xr, J = chain.forward_and_jacobian(R, points)
+            rem = np.linalg.norm(chain.forward(Q, points) - Xr
+                                 - np.einsum('bpkj,bj->bpk', J, Q - R), axis=-1)
+            a = np.abs(Q - R)
+            bound = 0.5 * np.einsum('bj,pjk,bk->bp', a, M, a)
+            assert np.all(rem <= bound * (1 + 1e-9) + 1e-12), np.max(rem - bound)
+            worst = max(worst, float(np.max(rem / np.maximum(bound, 1e-300))))
+        assert worst > 0.5, worst    # nearly tight (0.98 and 1.0 when written)
+    urdf = tmp_path / 'mixed.urdf'
+    urdf.write_text(CUSTOM_URDF)
+    assert chain_from_urdf(str(urdf), 'tool').curvature_bound([PointOfInterest('ee')]) is None
+
+
 def test_screen_gives_the_verdicts_of_the_full_kinematics(monkeypatch):
-    """verify() with the screen (kinematics only where the mean's points leave a verdict
-    open) reports exactly what it reports without it, on a planar arm whose sampled paths
+    """verify() with the screen (kinematics only where a ball around the mean's points, or
+    around their first-order prediction, leaves a verdict open) reports exactly what it reports
+    without it, with either screen, on a planar arm whose sampled paths
     cross spheres, a wall and the limits (so that all three cases occur: certainly
     satisfied, certainly violated, open); and it did skip work. A point with a constraint
     that has no screen (a corner) makes its group evaluated in full. The chunks evaluated on
@@ -195,6 +233,18 @@ def test_screen_gives_the_verdicts_of_the_full_kinematics(monkeypatch):
     for name in ('hit', 'near', 'elbow', 'limit', 'via'):
         assert 0.0 < got[name].per_step_max < 1.0, (name, got[name])
     assert 0.0 < got['wall'].trajectory < 1.0, got['wall']
+    # the zeroth-order screen (a chain with a prismatic joint has no curvature bound): the
+    # same reports, with more pairs left to the kinematics
+    monkeypatch.setattr(type(chain), 'curvature_bound', lambda self, points: None)
+    zeroth = verify(p, cons, 3000, np.random.default_rng(0), n_steps=41)
+    monkeypatch.undo()
+    monkeypatch.setattr(verification, 'THREADS', 2)
+    first = verify(p, cons, 3000, np.random.default_rng(0), n_steps=41)
+    assert zeroth.constraints == first.constraints
+    assert zeroth.trajectory_violation == first.trajectory_violation
+    assert first.kinematics_fraction < 0.5 * zeroth.kinematics_fraction, (
+        first.kinematics_fraction, zeroth.kinematics_fraction)
+    assert zeroth.kinematics_fraction < 0.9
     corner = NonConvexCorner(ee, [1.0, 0.0], [5.0, 0.0], [0.0, 1.0], [0.0, 5.0], alpha=0.99,
                              name='corner')
     v = verify(p, cons + [corner], 500, np.random.default_rng(0), n_steps=41)

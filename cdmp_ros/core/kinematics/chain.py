@@ -17,7 +17,7 @@ frame ``k`` by a constant transform ``C``; a :class:`PointOfInterest` therefore 
 """
 import threading
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -174,6 +174,35 @@ class Chain:
         raise ValidationError(f'frame: expected 0..{self.n_dofs}, got {frame}')
 
     # ------------------------------------------------------------------ batched
+    def curvature_bound(self, points: Sequence[PointOfInterest]) -> Optional[NDArray]:
+        """Weights ``M`` (n_points, n_dofs, n_dofs) of the second-order remainder of the
+        forward kinematics: for every pair of configurations q, r and every point p,
+
+            |x_p(q) - x_p(r) - J_p(r) (q - r)| <= 1/2 sum_jk M[p, j, k] |q_j - r_j| |q_k - r_k|,
+
+        with ``M[p, j, k] = D_p[max(j, k)]``, ``D_p[k]`` the distance from joint k's origin to
+        the point along the chain's fixed transforms (the sum of their translations beyond
+        joint k, plus the point's offset in its link), 0 for joints after the point's link.
+        None when the chain has a prismatic joint (the distances then change with it).
+
+        Why: with revolute joints, Jacobian column k is ``w_k = z_k x (x - o_k)``; moving an
+        earlier (or the same) joint j rotates ``w_k`` rigidly about axis j, so
+        ``|d2x / dq_j dq_k| = |z_j x w_k| <= |x - o_k| <= D_p[k]`` for j <= k, at every
+        configuration; Taylor's theorem with the integral remainder along the segment from r
+        to q gives the bound."""
+        if self.prismatic.any():
+            return None
+        frames, coords = self.resolve(points)
+        step = np.linalg.norm(self.B[:, :3, 3], axis=1)       # |t(B_m)|
+        n = self.n_dofs
+        later = np.maximum.outer(np.arange(n), np.arange(n))
+        M = np.zeros((len(frames), n, n))
+        for i, (f, c) in enumerate(zip(frames.tolist(), coords)):
+            D = np.array([step[k + 1:f].sum() + np.linalg.norm(c) if k < f else 0.0
+                          for k in range(n)])
+            M[i] = D[later]
+        return M
+
     def _check_q(self, Q: ArrayLike) -> NDArray[np.float64]:
         Q = np.asarray(Q, dtype=np.float64)
         if Q.ndim == 0 or Q.shape[-1] != self.n_dofs:

@@ -122,7 +122,7 @@ class Constraint:
 
         Parameters
         ----------
-        X : (n, k) reference points at ``times``.
+        X : (n, k) reference points at ``times``, or (n_samples, n, k): one per pair.
         radius : (n_samples, n) distances from them.
 
         Returns
@@ -131,6 +131,15 @@ class Constraint:
         default: every sample is evaluated).
         """
         return None
+
+    def screened(self, X: NDArray, radius: NDArray, times: NDArray
+                 ) -> Tuple[Optional[NDArray], NDArray]:
+        """:meth:`decided_near` and the violation at ``X`` in one call, on points ``X``
+        (n_samples, n, k) of their own (the sampled verification's first-order screen):
+        ``(decided, violated)``, both (n_samples, n) bool (decided None: cannot tell).
+        Subclasses may compute both from one distance."""
+        return (self.decided_near(X, radius, times),
+                ~np.asarray(self.satisfied(X, times), bool))
 
     def describe(self) -> dict:
         return {'name': self.name, 'type': self.kind, 'alpha': self.alpha,

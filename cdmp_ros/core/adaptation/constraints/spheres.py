@@ -116,6 +116,17 @@ class _Sphere(Constraint):
         gap = np.abs(np.sqrt(self._dist2(X, times)) - self.radius)
         return gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
 
+    def screened(self, X, radius, times):
+        # per coordinate: X may be a view whose coordinates are planes in memory
+        ctr = self.centers(times)
+        d2 = np.square(X[..., 0] - ctr[:, 0])
+        for k in range(1, X.shape[-1]):
+            d2 += np.square(X[..., k] - ctr[:, k])
+        gap = np.abs(np.sqrt(d2) - self.radius)
+        decided = gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
+        inside = d2 <= self.radius ** 2
+        return decided, (~inside if self.inside else inside)
+
     def _dist2(self, X, times):
         d = X - self.centers(times)[None]
         return np.einsum('...i,...i->...', d, d)
