@@ -53,7 +53,7 @@ __all__ = ['ConstraintVerification', 'Verification', 'GUARANTEES', 'clopper_pear
            'critical_count', 'sample_points', 'verify', 'worker_cpu_seconds']
 
 # (sample, step) pairs evaluated per chunk: bounds the memory of the batched evaluation
-_CHUNK_POINTS = 50000
+_CHUNK_POINTS = 50_000
 
 #: Threads that evaluate the chunks of samples (:func:`verify`'s ``threads``). numpy releases
 #: the GIL in the batched kinematics and constraint checks, so a second core that is free
@@ -243,7 +243,7 @@ class _KinematicGroup:
     centre stands in for the sample's point: the verdicts are exactly those of the full
     kinematics, which runs only on the undecided (sample, step) pairs. A group with a
     constraint that cannot tell is evaluated in full. On the Panda problem of the adapter
-    (2,000 samples, three spheres) the first-order screen leaves 1-7 % of the pairs open,
+    (2,000 samples, three spheres) the first-order screen leaves 2-7 % of the pairs open,
     the zeroth-order one 33-57 %.
 
     When every constraint of a screened group holds per step (``reduce == 'each'``),
