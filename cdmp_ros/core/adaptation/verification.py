@@ -334,8 +334,7 @@ class _KinematicGroup:
             todo, _ = self._undecided(Zg)
             for cs in self.users:
                 for c in cs:
-                    out[id(c)] = np.empty(todo.shape, bool)
-                    out[id(c)][...] = self.bar_violated[id(c)]
+                    out[id(c)] = np.broadcast_to(self.bar_violated[id(c)], todo.shape).copy()
         else:    # the verdicts at the centres, from the distances that decide the pairs
             centres, R = self._balls(Zg)
             todo = np.zeros(R.shape[:2], bool)

@@ -112,24 +112,25 @@ class _Sphere(Constraint):
         return G, dG_dm, dG_dS
 
     def decided_near(self, X, radius, times):
-        # the ball of ``radius`` around X lies wholly inside or wholly outside the sphere
-        gap = np.abs(np.sqrt(self._dist2(X, times)) - self.radius)
-        return gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
+        return self._decided(self._dist2(X, times), radius)
 
     def screened(self, X, radius, times):
-        # per coordinate: X may be a view whose coordinates are planes in memory
+        d2 = self._dist2(X, times)
+        inside = d2 <= self.radius ** 2
+        return self._decided(d2, radius), (~inside if self.inside else inside)
+
+    def _decided(self, d2, radius):
+        # the ball of ``radius`` around the point lies wholly inside or wholly outside the sphere
+        return np.abs(np.sqrt(d2) - self.radius) > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
+
+    def _dist2(self, X, times):
+        # per coordinate: X may be a view whose coordinates are planes in memory (the
+        # verification's first-order screen)
         ctr = self.centers(times)
         d2 = np.square(X[..., 0] - ctr[:, 0])
         for k in range(1, X.shape[-1]):
             d2 += np.square(X[..., k] - ctr[:, k])
-        gap = np.abs(np.sqrt(d2) - self.radius)
-        decided = gap > radius * (1.0 + DECIDED_RTOL) + DECIDED_ATOL
-        inside = d2 <= self.radius ** 2
-        return decided, (~inside if self.inside else inside)
-
-    def _dist2(self, X, times):
-        d = X - self.centers(times)[None]
-        return np.einsum('...i,...i->...', d, d)
+        return d2
 
     def describe(self):
         d = super().describe()
