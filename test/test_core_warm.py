@@ -197,6 +197,38 @@ def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, pri
     assert nxt.report.start == 'warm'
 
 
+def test_a_refinement_runs_the_sampled_verification_only_for_a_result_it_would_keep(
+        chain, prior, centre, monkeypatch):
+    """The refinement verifies its cold solve only when the KL gain would keep it (a newer
+    request cannot interrupt a verification), and a kept candidate that the verification
+    rejects is dropped like one without the gain."""
+    from cdmp_ros.core.adaptation import guarantee
+    from cdmp_ros.core.adaptation.requests import refine_request
+    calls = []
+    real = guarantee.verify
+    fail = [False]
+
+    def counted(*args, **kwargs):
+        ver = real(*args, **kwargs)
+        calls.append(ver)
+        return dataclasses.replace(ver, holds=False) if fail[0] else ver
+    monkeypatch.setattr(guarantee, 'verify', counted)
+    ws = WarmStarts()
+    run_request(_request(prior, centre), chain, CFG, warm=ws)
+    req = _request(prior, centre + [0.0, 0.005, 0.0])
+    assert run_request(req, chain, CFG, warm=ws).report.start == 'warm'
+    n = len(calls)
+    assert refine_request(req, chain, CFG, ws, 1e-3) is None   # no gain: not verified
+    assert len(calls) == n and ws.counts['refine_kept_warm'] == 1
+    fail[0] = True   # the gain, but the sampled verification does not confirm it: dropped
+    assert refine_request(req, chain, CFG, ws, 1e6) is None
+    assert len(calls) == n + 1 and ws.counts['refine_kept_warm'] == 2
+    assert ws.counts['refined'] == 0 and ws._memory.anchor_kl == 1e6
+    fail[0] = False
+    refined = refine_request(req, chain, CFG, ws, 1e6)
+    assert len(calls) == n + 2 and refined.report.verification is calls[-1]
+
+
 def test_an_obstacle_that_comes_or_goes_keeps_the_others_multipliers(chain, prior, centre):
     """A second sphere enters the problem (within influence_distance of the path) and leaves
     again: both requests start warm; the first sphere's constraints start from their

@@ -41,8 +41,9 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   (``adaptation.warm_start_kl_ratio``) by a cold start of the next request. After a
   published warm solve, with no request waiting, the same request is solved cold as a
   refinement (``adaptation.warm_start_refine``), published only if its KL is at least 5 %
-  lower, and cancelled by any newer request within one evaluation (or one sampled
-  verification).
+  lower, and cancelled by any newer request within one evaluation (a refinement runs its
+  sampled verification only when its KL is that much lower, so a newer request rarely waits
+  for one).
 - Every published primitive carries in ``metadata.adapter`` its provenance
   (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
   ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
@@ -72,6 +73,7 @@ the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
 import dataclasses
 import json
 import math
+import sys
 import time
 from typing import Optional
 
@@ -107,6 +109,12 @@ from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
+#: [s] Python's GIL switch interval in the adapter process (default 5 ms): the executor takes a
+#: new request, and the solver thread sees it, within about 1 ms while the other thread runs
+#: Python code (a refinement, a callback). With the default, the wait between an obstacle
+#: callback and the start of its solve reached 13-36 ms in 3 of 4 runs of the tracked latency
+#: benchmark, against at most 6 ms in 2 runs with 1 ms (benchmarks/RESULTS.md, 2026-11-27).
+SWITCH_INTERVAL = 0.001
 #: Triggers whose adaptation reshapes the running motion (Provenance.continues).
 CONTINUING_TRIGGERS = ('obstacles', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
@@ -183,6 +191,7 @@ class AdapterNode(Node):
         self._results_ready = self.create_guard_condition(self._on_results)
         # used by the solver thread only; its counters are read for diagnostics
         self.warm = WarmStarts()
+        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
         self.worker = SolveWorker(self._solve, self._results_ready.trigger)
         self.worker.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
