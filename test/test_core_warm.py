@@ -106,7 +106,8 @@ def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
         prev = path
     # from the third request on the sphere moves as it did before: the predictor's start
     assert ws.counts == {'warm': 3, 'predicted': 2, 'cold': 1, 'warm_then_cold': 0,
-                         'over_guard': 0, 'refined': 0, 'refine_kept_warm': 0}
+                         'cold_then_warm': 0, 'over_guard': 0, 'refined': 0,
+                         'refine_kept_warm': 0}
 
 
 def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centre):
@@ -195,6 +196,52 @@ def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, pri
     np.testing.assert_array_equal(ws._memory.state.theta, refined.report.state.theta)
     nxt = run_request(_request(prior, centre + [0.0, 0.01, 0.0]), chain, CFG, warm=ws)
     assert nxt.report.start == 'warm'
+
+
+def test_a_guard_check_that_fails_cold_keeps_the_warm_chain(chain, prior, centre,
+                                                            monkeypatch):
+    """When the KL guard's cold solve does not converge (events 28-29 of the tracked Panda
+    stream of bench_adaptation_latency, seed 3), the request is solved from the warm start the
+    guard withheld, and its KL becomes the guard's reference. The cold solve's failure is
+    forced here: a cold solve of this problem converges."""
+    from cdmp_ros.core.adaptation import warm as warm_module
+    real = warm_module.adapt
+
+    def failing(*args, **kwargs):
+        adapted, rep = real(*args, **kwargs)
+        rep.converged, rep.status = False, 'infeasible_or_unconverged'
+        return adapted, rep
+    ws = WarmStarts()
+    assert run_request(_request(prior, centre), chain, CFG, warm=ws).outcome == 'converged'
+    ws._memory.cold_next = True   # as after a warm solve over the guard
+    monkeypatch.setattr(warm_module, 'adapt', failing)
+    req = _request(prior, centre + [0.0, 0.005, 0.0])
+    res = run_request(req, chain, CFG, warm=ws)
+    assert res.outcome == 'converged' and res.report.start == 'warm'
+    assert res.report.verification.holds
+    assert ("the KL guard's cold solve ended infeasible_or_unconverged after"
+            in res.report.start_note)
+    assert ws.counts['cold'] == 2 and ws.counts['cold_then_warm'] == 1
+    assert ws._memory.anchor_kl == res.report.kl and not ws._memory.cold_next
+    np.testing.assert_array_equal(ws._memory.state.theta, res.report.state.theta)
+    assert run_request(_request(prior, centre + [0.0, 0.01, 0.0]), chain, CFG,
+                       warm=ws).report.start == 'warm'
+    # without a warm start to fall back on, a failed cold solve is reported as it ended
+    ws.forget()
+    res = run_request(req, chain, CFG, warm=ws)
+    assert res.outcome != 'converged' and ws._memory is None
+    assert ws.counts['cold_then_warm'] == 1
+    # the guard's cold solve is bounded (warm_start_check_max_evaluations); a request that is
+    # cold for want of a warm start is not
+    monkeypatch.setattr(warm_module, 'adapt', real)
+    tight = dataclasses.replace(CFG, warm_start_check_max_evaluations=3)
+    ws = WarmStarts()
+    first = run_request(_request(prior, centre), chain, tight, warm=ws)
+    assert first.outcome == 'converged' and first.report.n_evaluations > 3
+    ws._memory.cold_next = True
+    res = run_request(req, chain, tight, warm=ws)
+    assert res.outcome == 'converged' and res.report.start == 'warm'
+    assert 'ended evaluation_budget_exhausted after' in res.report.start_note
 
 
 def test_a_refinement_runs_the_sampled_verification_only_for_a_result_it_would_keep(

@@ -19,7 +19,8 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   evaluations, start (cold / warm; start_note says why a warm solve was replaced, exceeded
   the KL guard or was refined),
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
-  starts_warm / starts_predicted / starts_cold / starts_warm_then_cold / starts_over_guard,
+  starts_warm / starts_predicted / starts_cold / starts_warm_then_cold / starts_cold_then_warm
+  / starts_over_guard,
   refinements_started / published / kept_warm / cancelled / failed (not counted among the
   requests); and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
@@ -518,7 +519,8 @@ class AdapterNode(Node):
     def _publish_now(self) -> None:
         counts = dict(self.warm.counts)   # (refinements: the node's own counters)
         starts = {f'starts_{k}': counts[k] for k in ('warm', 'predicted', 'cold',
-                                                     'warm_then_cold', 'over_guard')}
+                                                     'warm_then_cold', 'cold_then_warm',
+                                                     'over_guard')}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 **self.worker.summary(), **self.counts, **starts,
                                 **self.gate.values())

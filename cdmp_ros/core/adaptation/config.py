@@ -422,6 +422,9 @@ class AdaptRequestConfig:
     warm_start_max_evaluations: int = _param(
         30, 'Evaluations of the Lagrangian a warm solve may take before the request is '
         'solved cold instead.', 1, 10000)
+    warm_start_check_max_evaluations: int = _param(
+        600, "Evaluations the KL guard's cold solve may take; one that has not converged "
+        'within them gives way to a solve from the warm start the guard withheld.', 1, 100000)
     warm_start_predict: bool = _param(
         True, 'An obstacle moving by the same displacement as in the last request (constant '
         'velocity): start the warm solve from the secant prediction of the last two warm '

@@ -31,8 +31,15 @@ evaluations is not). When it does not converge, the request is solved cold as we
 it converged it is kept; if its KL exceeds ``warm_start_kl_ratio`` x the KL of the last cold
 solve + :data:`KL_SLACK`, the next request starts cold (a chain of warm starts does not drift
 far from what a cold solve gives without one checking it; the result at hand, converged and
-verified, is not held back for it). The report says which start was kept (``start``) and
-why (``start_note``).
+verified, is not held back for it). When that cold solve does not converge (a sphere crossing
+the path can send the cold solve's multipliers off: on the tracked Panda stream of
+``bench_adaptation_latency.py --seed 3 --motion track``, events 28-29 end after ~2,500
+evaluations with KL 7,000-136,000 after 4.8 s, while every warm solve converges), or has not
+converged within ``warm_start_check_max_evaluations`` (600), the request is solved from the
+withheld warm start instead, and that solution's KL becomes the guard's reference:
+a failed check never loses the chain (before, the chain was dropped and the next request
+failed cold as well). The report says which start was kept (``start``) and why
+(``start_note``).
 
 A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
 pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
@@ -177,7 +184,9 @@ class WarmStarts:
     ----------
     counts : dict
         ``warm`` (warm solves kept), ``predicted`` (of those, started from the predictor),
-        ``cold`` (no warm start possible, or disabled),
+        ``cold`` (no warm start possible, or disabled; or the KL guard's check),
+        ``cold_then_warm`` (the guard's cold solve did not converge: solved from the withheld
+        warm start),
         ``warm_then_cold`` (warm solves that did not converge, so the request was solved cold
         as well), ``over_guard`` (warm solves kept over the KL guard: the next request starts
         cold), ``refined`` / ``refine_kept_warm`` (refinements that replaced the warm solution
@@ -187,17 +196,19 @@ class WarmStarts:
     def __init__(self):
         self._memory: Optional[_Memory] = None
         self.counts = {'warm': 0, 'predicted': 0, 'cold': 0, 'warm_then_cold': 0,
-                       'over_guard': 0, 'refined': 0, 'refine_kept_warm': 0}
+                       'cold_then_warm': 0, 'over_guard': 0, 'refined': 0,
+                       'refine_kept_warm': 0}
 
     def forget(self) -> None:
         """The next request starts cold."""
         self._memory = None
 
-    def start_for(self, req, built, cfg: AdaptRequestConfig) -> Optional[SolverState]:
+    def start_for(self, req, built, cfg: AdaptRequestConfig, guard: bool = True
+                  ) -> Optional[SolverState]:
         """The state a solve of ``built`` (the problem of request ``req``) may start from, or
-        None (cold)."""
+        None (cold); ``guard=False``: also when the KL guard asks for a cold solve."""
         m = self._memory
-        if (m is None or m.cold_next or not cfg.warm_start
+        if (m is None or (guard and m.cold_next) or not cfg.warm_start
                 or built.config.guarantee != 'per_step' or built.infeasible):
             return None
         if (m.config != built.config or m.constraint_doc != req.constraint_doc
@@ -226,6 +237,7 @@ class WarmStarts:
         (from the predictor's start first when it applies); remembers the outcome. Returns
         ``(adapted, report)`` as :func:`~cdmp_ros.core.adaptation.solver.adapt`."""
         start = self.start_for(req, built, cfg)
+        withheld = None if start is not None else self.start_for(req, built, cfg, guard=False)
         note = ''
         if start is not None:
             config = dataclasses.replace(built.config,
@@ -257,13 +269,43 @@ class WarmStarts:
                     f'{rep.status} after {rep.n_evaluations} evaluations')
         else:
             self.counts['cold'] += 1
-        cold = adapt(built.prior, built.constraints, built.config, should_stop)
+        config = built.config
+        if withheld is not None:   # the guard's check, bounded: the warm start is at hand
+            config = dataclasses.replace(
+                config, max_evaluations=int(cfg.warm_start_check_max_evaluations))
+        cold = adapt(built.prior, built.constraints, config, should_stop)
         cold[1].start_note = note
         if cold[1].converged:
             self._remember(req, built, cold[1], cold[1].kl)
-        else:
-            self.forget()
+            return cold
+        if withheld is not None:   # only the guard sent it cold: the warm chain stays
+            out = self._after_failed_check(req, built, cfg, should_stop, withheld, cold[1])
+            if out is not None:
+                return out
+        self.forget()
         return cold
+
+    def _after_failed_check(self, req, built, cfg: AdaptRequestConfig,
+                            should_stop: Optional[Callable[[], bool]], start: SolverState,
+                            cold: AdaptationReport) -> Optional[Tuple[ProMP, AdaptationReport]]:
+        """Solve ``built`` warm from ``start`` (the state the KL guard withheld) after its
+        cold solve ended ``cold`` (not converged); the result when it converged and its
+        verification holds (its KL becomes the guard's reference), else None."""
+        config = dataclasses.replace(built.config,
+                                     max_evaluations=int(cfg.warm_start_max_evaluations))
+        t0 = time.perf_counter()
+        adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop, start)
+        if rep.converged:
+            attach_verification(rep, adapted, built.constraints, config,
+                                np.random.default_rng(0), t0)
+        if not rep.converged:
+            return None
+        self.counts['cold_then_warm'] += 1
+        self._remember(req, built, rep, rep.kl, before=(start, self._memory.obstacles))
+        rep.start_note = (f"the KL guard's cold solve ended {cold.status} after "
+                          f'{cold.n_evaluations} evaluations: solved from the warm start '
+                          f"instead (its KL {rep.kl:.4g} is the guard's new reference)")
+        return adapted, rep
 
     def refine(self, req, built, kl: float, should_stop: Optional[Callable[[], bool]] = None
                ) -> Optional[Tuple[ProMP, AdaptationReport]]:
