@@ -112,6 +112,51 @@ def test_promp_dict_round_trip_and_schema(rng, repo_root):
         promp_from_dict({k: v for k, v in d.items() if k != 'cov_w'})
 
 
+def test_the_compact_covariance_is_exact_and_checked_before_decoding(rng, repo_root):
+    """``cov_w_base64`` (the adapter's messages) gives the same matrix bit for bit as
+    ``cov_w``, validates against the schema, and a wrong size, bad characters, a non-finite
+    entry, an asymmetric matrix or both forms at once are refused naming the field."""
+    import base64
+    from cdmp_ros.core.primitive_io import base64_length, validate_primitive_dict
+    p = _random_promp(rng)
+    p.joint_names = ['a', 'b']
+    doc = json.loads(json.dumps(primitive_to_dict(p)))
+    compact = json.loads(json.dumps(dict(doc, promp=promp_body(p, compact=True))))
+    assert 'cov_w' not in compact['promp']
+    text = compact['promp']['cov_w_base64']
+    n = p.cov_w.shape[0]
+    assert len(text) == base64_length(n * n) == 4 * int(np.ceil(8 * n * n / 3))
+    # the schema's own recipe decodes it
+    C = np.frombuffer(base64.b64decode(text), '<f8').reshape(n, n)
+    assert np.array_equal(C, p.cov_w)
+    schema = json.load(open(os.path.join(repo_root, 'msg_schemas', 'primitive.schema.json')))
+    jsonschema.validate(compact, schema)
+    assert np.array_equal(primitive_from_dict(compact).cov_w, p.cov_w)
+    assert np.array_equal(promp_from_dict(compact['promp'], n_dims=2).cov_w, p.cov_w)
+
+    def refused(body_change, match):
+        bad = json.loads(json.dumps(compact))
+        body_change(bad['promp'])
+        with pytest.raises(PrimitiveFileError, match=match):
+            validate_primitive_dict(bad)
+
+    def encode(M):
+        return base64.b64encode(np.ascontiguousarray(M, '<f8').tobytes()).decode()
+    refused(lambda b: b.update(cov_w_base64=text[:-4]),
+            rf'primitive.promp.cov_w_base64: expected {len(text)} characters')
+    refused(lambda b: b.update(cov_w_base64='*' + text[1:]), 'cov_w_base64: not valid base64')
+    nan = p.cov_w.copy()
+    nan[1, 2] = np.inf
+    refused(lambda b: b.update(cov_w_base64=encode(nan)), r'cov_w_base64: entry \[1\]\[2\]')
+    asym = p.cov_w.copy()
+    asym[0, 1] += 1.0
+    refused(lambda b: b.update(cov_w_base64=encode(asym)),
+            r'cov_w_base64 entry \[0\]\[1\] and primitive.promp.cov_w_base64 entry \[1\]\[0\]')
+    refused(lambda b: b.update(cov_w=doc['promp']['cov_w']),
+            r"expected exactly one of the fields \['cov_w', 'cov_w_base64'\]")
+    refused(lambda b: b.pop('cov_w_base64'), 'exactly one of the fields')
+
+
 def test_primitive_file_round_trip_through_primitive_io(rng):
     p = _random_promp(rng)
     p.joint_names = ['a', 'b']

@@ -217,10 +217,12 @@ def _describe(e: jsonschema.ValidationError, root: str) -> Tuple[list, str]:
                                     f'{field_path(root, path + [first])} ({short_repr(item)})')
             seen.append(item)
         return path, f'expected unique items, got {short_repr(inst)}'
-    if v == 'anyOf' and all(isinstance(s, dict) and s.keys() == {'required'} for s in vv):
+    if v in ('anyOf', 'oneOf') and all(isinstance(s, dict) and s.keys() == {'required'}
+                                       for s in vv):
         names = [n for s in vv for n in s['required']]
         kind = f' (type {inst["type"]!r})' if isinstance(inst, dict) and 'type' in inst else ''
-        return path, f'expected at least one of the fields {names}{kind}'
+        how = 'at least' if v == 'anyOf' else 'exactly'
+        return path, f'expected {how} one of the fields {names}{kind}'
     if v in ('oneOf', 'anyOf') and e.context:
         sub_path, sub_text = _describe(_closest(e), root)
         return path, (f'matches none of its allowed forms (closest: '

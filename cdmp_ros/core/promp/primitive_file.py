@@ -13,28 +13,33 @@ from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.promp.promp import ProMP, RbfBasis
 
 
-def promp_body(promp: ProMP) -> Dict[str, Any]:
-    """The "promp" sub-object: basis definition, weight mean, full weight covariance."""
+def promp_body(promp: ProMP, compact: bool = False) -> Dict[str, Any]:
+    """The "promp" sub-object: basis definition, weight mean, full weight covariance
+    (``cov_w``, rows of numbers; ``compact``: ``cov_w_base64``, the same float64 values)."""
+    from cdmp_ros.core.primitive_io import encode_covariance
+    cov = np.asarray(promp.cov_w, dtype=float)
     return {
         'basis': {'type': 'normalized_rbf_phase',
                   'centers': [float(c) for c in promp.basis.centers],
                   'width': float(promp.basis.width)},
         'n_basis': int(promp.n_basis),
         'mean_w': np.asarray(promp.mean_w, dtype=float).tolist(),
-        'cov_w': np.asarray(promp.cov_w, dtype=float).tolist(),  # Python floats, as float(v)
+        # Python floats, as float(v), or their exact float64 bytes
+        **({'cov_w_base64': encode_covariance(cov)} if compact else {'cov_w': cov.tolist()}),
         'sigma_y': [float(v) for v in promp.sigma_y],
     }
 
 
-def promp_to_dict(promp: ProMP) -> Dict[str, Any]:
+def promp_to_dict(promp: ProMP, compact: bool = False) -> Dict[str, Any]:
     """File fields owned by the ProMP: ``duration``, ``promp``, (if any) ``metadata``, and
     ``limits`` when the metadata holds the position limits the ProMP was fitted or adapted
-    within (``metadata['limits']``, ``{'lower': [...], 'upper': [...]}``)."""
+    within (``metadata['limits']``, ``{'lower': [...], 'upper': [...]}``); ``compact``: the
+    covariance as ``cov_w_base64`` (:func:`promp_body`)."""
     d = {'duration': float(promp.duration)}
     meta = getattr(promp, 'metadata', None)
     if meta and isinstance(meta.get('limits'), dict):
         d['limits'] = {k: [float(v) for v in meta['limits'][k]] for k in ('lower', 'upper')}
-    d['promp'] = promp_body(promp)
+    d['promp'] = promp_body(promp, compact)
     if meta:
         d['metadata'] = dict(meta)
     return d
@@ -81,7 +86,8 @@ def promp_from_validated(d: Dict[str, Any], n_dims: int = None,
         if 'n_basis' in body and int(body['n_basis']) != M:
             raise PrimitiveFileError(f'{prefix}.n_basis: expected len(basis.centers) = {M}, '
                                      f'got {body["n_basis"]}')
-        p = ProMP(D, basis, mean_w, np.asarray(body['cov_w'], dtype=float),
+        from cdmp_ros.core.primitive_io import covariance_matrix
+        p = ProMP(D, basis, mean_w, covariance_matrix(body, mean_w.size, prefix),
                   body.get('sigma_y'), 1.0 if duration is None else duration, joint_names)
         if isinstance(d.get('metadata'), dict):
             p.metadata = dict(d['metadata'])
