@@ -190,6 +190,7 @@ def result_values(res: JobResult) -> Dict[str, Any]:
         return kv
     rep = res.result.report
     kv.update(kl=f'{rep.kl:.6g}', iterations=rep.n_inner, outer_iterations=rep.n_outer,
+              backtracks=rep.n_backtracks,
               evaluations=rep.n_evaluations, start=rep.start,
               obstacles_used=res.result.problem.obstacles_used,
               obstacles_ignored=res.result.problem.obstacles_ignored)

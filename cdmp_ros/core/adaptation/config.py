@@ -281,6 +281,9 @@ class AdaptationReport:
     #: start that replaced a warm one in ``start_note``
     start: str = 'cold'
     start_note: str = ''
+    #: outer iterations whose multiplier step was halved and retried from the last iterate
+    #: (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`)
+    n_backtracks: int = 0
     #: where the optimiser ended (whitened parameters and multipliers), the start of a warm
     #: solve of the next request; not part of :meth:`as_dict`
     state: Optional['SolverState'] = field(default=None, repr=False, compare=False)

@@ -126,7 +126,7 @@ def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConf
     history: List[Tuple[np.ndarray, np.ndarray]] = []     # (scales, violations), failed checks
     best = None            # (kl, adapted, report, verification, scales) of the best passing
     failing = None         # scales of the last failing check once a passing one is known
-    n_outer = n_inner = n_evals = n_solves = 0
+    n_outer = n_inner = n_evals = n_solves = n_back = 0
     for r in range(int(config.max_refinements) + 1):
         tight = [_with_level(c, s) for c, s in zip(constraints, scales)]
         adapted, report = solve_levels(prior, tight, config, should_stop)
@@ -134,6 +134,7 @@ def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConf
         n_outer += report.n_outer
         n_inner += report.n_inner
         n_evals += report.n_evaluations
+        n_back += report.n_backtracks
         ver = verify(adapted, constraints, n, rng, config.n_steps, 'trajectory')
         last = (report.kl, adapted, report, ver, scales)
         if ver.holds and report.converged:
@@ -173,7 +174,7 @@ def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConf
         cr.alpha = c.alpha
     report.levels = [float(s * (1.0 - c.alpha)) for s, c in zip(scales, constraints)]
     report.n_outer, report.n_inner, report.n_evaluations = n_outer, n_inner, n_evals
-    report.n_solves = n_solves
+    report.n_solves, report.n_backtracks = n_solves, n_back
     report.verification = ver
     report.guarantee = 'trajectory'
     if report.converged and not ver.holds:

@@ -4,6 +4,18 @@ min_p KL(p || p0) [+ kappa E_p[R(w)]]  s.t.  F_k,t(p) >= alpha_k,t,
 with p = N(mu, L L^T), L = L_tril + diag(exp(gamma)), solved by L-BFGS on the Lagrangian
 (inner loop, analytic gradients) and the exponential method of multipliers
 lambda <- lambda * exp(eta * (alpha - F)) (outer loop).
+
+A multiplier step can overshoot: with one constraint's multiplier grown by orders of magnitude,
+the inner loop may satisfy it by breaking others badly, whose multipliers then grow in turn
+until the solve diverges (a sphere crossing the Panda's path, events 28-29 of the tracked
+seed-3 stream of ``bench_adaptation_latency.py``: KL 7,000-136,000 after 2,300-2,700
+evaluations, where the neighbouring events converge at KL 17-20). So when an inner loop ends
+with its largest violation grown :data:`BACKTRACK_GROWTH` times and by at least
+:data:`BACKTRACK_MIN` over the last iterate's, the iterate is discarded and the inner loop
+retried from the last iterate with half the multiplier step (in log), at most
+:data:`MAX_BACKTRACKS` times per solve (those two events then converge at KL 17.8 and 18.6 in
+612-716 evaluations; on the 80 events of ``bench_adaptation_solve.py`` seeds 3 and 7 it never
+triggers).
 """
 import time
 from typing import Callable, Optional, Sequence, Tuple
@@ -22,6 +34,15 @@ from cdmp_ros.core.promp.promp import ProMP
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'SolverState',
            'adapt',
            'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels']
+
+
+#: Backtracking of a multiplier step (module docstring): the largest violation of the stopping
+#: level (alpha - F) grew by this factor ...
+BACKTRACK_GROWTH = 2.0
+#: ... and by at least this much (probability) over the last iterate's.
+BACKTRACK_MIN = 0.05
+#: Backtracks per solve at most (each one costs an outer iteration of ``max_outer``).
+MAX_BACKTRACKS = 3
 
 
 def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
@@ -138,6 +159,8 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     prev = None
     status = 'max_outer_reached'
     feasible = False
+    last = None      # (theta, multipliers, largest violation) of the last kept iterate
+    n_back = 0
     for n_outer in range(1, int(config.max_outer) + 1):
         ftol = config.lbfgs_ftol
         if config.lbfgs_ftol_first is not None:
@@ -156,6 +179,13 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             mu, L, _ = prob.unpack(theta)
             F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
         C = alpha_stop - F
+        worst = float(np.max(C)) if C.size else 0.0
+        if (last is not None and n_back < MAX_BACKTRACKS and worst - last[2] >= BACKTRACK_MIN
+                and worst > BACKTRACK_GROWTH * last[2]):
+            # the multiplier step overshot: retry from the last iterate with half the step
+            theta, lam = last[0].copy(), np.sqrt(last[1] * lam)
+            n_back += 1
+            continue
         feasible = bool(np.all(C <= config.feasibility_tol * config.confidence_margin))
         value = float(res.fun)
         if feasible:
@@ -169,6 +199,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             status = 'stalled_infeasible'
             break
         prev = value
+        last = (theta.copy(), lam.copy(), worst)
         lam = multiplier_update(lam, F, eta, alpha_aim, config)
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T
@@ -190,7 +221,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         status = 'infeasible_or_unconverged'
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports,
-                              start='cold' if start is None else 'warm',
+                              start='cold' if start is None else 'warm', n_backtracks=n_back,
                               state=SolverState(theta.copy(), tuple(
                                   (c.name, lam[sl].copy())
                                   for c, sl in zip(prob.constraints, prob.slices))))
