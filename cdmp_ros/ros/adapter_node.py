@@ -114,7 +114,7 @@ INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: new request, and the solver thread sees it, within about 1 ms while the other thread runs
 #: Python code (a refinement, a callback). With the default, the wait between an obstacle
 #: callback and the start of its solve reached 13-36 ms in 3 of 4 runs of the tracked latency
-#: benchmark, against at most 6 ms in 2 runs with 1 ms (benchmarks/RESULTS.md, 2026-11-27).
+#: benchmark, against at most 6-8 ms in 6 runs with 1 ms (benchmarks/RESULTS.md, 2026-11-27).
 SWITCH_INTERVAL = 0.001
 #: Triggers whose adaptation reshapes the running motion (Provenance.continues).
 CONTINUING_TRIGGERS = ('obstacles', 'constraints')

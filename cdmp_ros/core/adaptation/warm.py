@@ -31,15 +31,16 @@ evaluations is not). When it does not converge, the request is solved cold as we
 it converged it is kept; if its KL exceeds ``warm_start_kl_ratio`` x the KL of the last cold
 solve + :data:`KL_SLACK`, the next request starts cold (a chain of warm starts does not drift
 far from what a cold solve gives without one checking it; the result at hand, converged and
-verified, is not held back for it). When that cold solve does not converge (a sphere crossing
-the path can send the cold solve's multipliers off: on the tracked Panda stream of
-``bench_adaptation_latency.py --seed 3 --motion track``, events 28-29 end after ~2,500
-evaluations with KL 7,000-136,000 after 4.8 s, while every warm solve converges), or has not
-converged within ``warm_start_check_max_evaluations`` (600), the request is solved from the
-withheld warm start instead, and that solution's KL becomes the guard's reference:
-a failed check never loses the chain (before, the chain was dropped and the next request
-failed cold as well). The report says which start was kept (``start``) and why
-(``start_note``).
+verified, is not held back for it). That cold check is bounded
+(``warm_start_check_max_evaluations``, 600); when it does not converge within the bound, the
+request is solved from the withheld warm start instead, and that solution's KL becomes the
+guard's reference: a failed check never loses the chain. (On the tracked Panda stream of
+``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 took
+612-716 evaluations, 1-1.5 s, with the solver's backtracking
+(:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
+2,300-2,700 evaluations and 4-5 s; the chain was then dropped and the next request failed
+cold as well: two events not adapted in 2 of 9 runs.) The report says which start was kept
+(``start``) and why (``start_note``).
 
 A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
 pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
@@ -176,6 +177,20 @@ class _Memory:
     before: Optional[Tuple[SolverState, Tuple]] = None
 
 
+def _warm_solve(built, cfg: AdaptRequestConfig, should_stop: Optional[Callable[[], bool]],
+                start: SolverState) -> Tuple[ProMP, AdaptationReport]:
+    """Solve ``built`` from ``start`` within ``warm_start_max_evaluations``; verified only when
+    it converged (an attempt that is replaced by a cold solve is not)."""
+    config = dataclasses.replace(built.config,
+                                 max_evaluations=int(cfg.warm_start_max_evaluations))
+    t0 = time.perf_counter()
+    adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop, start)
+    if rep.converged:
+        attach_verification(rep, adapted, built.constraints, config, np.random.default_rng(0),
+                            t0)
+    return adapted, rep
+
+
 class WarmStarts:
     """Warm starts of a stream of requests (see the module docstring). One instance per
     solver thread; not thread-safe.
@@ -240,15 +255,9 @@ class WarmStarts:
         withheld = None if start is not None else self.start_for(req, built, cfg, guard=False)
         note = ''
         if start is not None:
-            config = dataclasses.replace(built.config,
-                                         max_evaluations=int(cfg.warm_start_max_evaluations))
             predicted = self.predicted_start(req) if cfg.warm_start_predict else None
-            t0 = time.perf_counter()
-            adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop,
-                                        start if predicted is None else predicted)
-            if rep.converged:   # verified only now: an attempt that is replaced is not
-                attach_verification(rep, adapted, built.constraints, config,
-                                    np.random.default_rng(0), t0)
+            adapted, rep = _warm_solve(built, cfg, should_stop,
+                                       start if predicted is None else predicted)
             if rep.converged:   # (and the verification confirmed it)
                 self.counts['warm'] += 1
                 self.counts['predicted'] += predicted is not None
@@ -291,13 +300,7 @@ class WarmStarts:
         """Solve ``built`` warm from ``start`` (the state the KL guard withheld) after its
         cold solve ended ``cold`` (not converged); the result when it converged and its
         verification holds (its KL becomes the guard's reference), else None."""
-        config = dataclasses.replace(built.config,
-                                     max_evaluations=int(cfg.warm_start_max_evaluations))
-        t0 = time.perf_counter()
-        adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop, start)
-        if rep.converged:
-            attach_verification(rep, adapted, built.constraints, config,
-                                np.random.default_rng(0), t0)
+        adapted, rep = _warm_solve(built, cfg, should_stop, start)
         if not rep.converged:
             return None
         self.counts['cold_then_warm'] += 1
