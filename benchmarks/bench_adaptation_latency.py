@@ -206,6 +206,22 @@ def run(args):
             raise SystemExit(f'no adaptation of the primitive within 90 s; see {alog_path}')
         if not user.wait(lambda: user.refs, 60.0):
             raise SystemExit(f'no joint_reference within 60 s; see {slog_path}')
+
+        def streamer_heard_adapter():  # the latched adaptation of the primitive reached it
+            with user.lock:
+                return any(kv.get('adapted_generation', 'none') != 'none' or any(
+                    int(kv.get(k, 0)) for k in ('adapted_held', 'adapted_ignored_stale',
+                                                'adapted_ignored_old'))
+                    for _, kv in user.states if 'adapted_generation' in kv)
+        # DDS discovery between the adapter and the streamer can take a second after start-up:
+        # an event before it would time the discovery (in 4 of about 40 runs the first event's
+        # adaptation reached the streamer 0.4-0.8 s after it was published)
+        t_heard = time.monotonic()
+        if not user.wait(streamer_heard_adapter, 60.0):
+            raise SystemExit(f'the streamer received no adapted_primitive within 60 s; see '
+                             f'{slog_path}')
+        print(f"the streamer received the adapter's first adaptation "
+              f'{time.monotonic() - t_heard:.2f} s after the first joint_reference')
         # three spheres: two near the end-effector path, one near the elbow path
         elbow = PointOfInterest('panda_link4')
         centres, radii = [], []
