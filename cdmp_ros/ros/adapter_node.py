@@ -16,6 +16,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
   ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
+  outer_iterations, backtracks (multiplier steps halved, :mod:`cdmp_ros.core.adaptation.solver`),
   evaluations, start (cold / warm; start_note says why a warm solve was replaced, exceeded
   the KL guard or was refined),
   ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
