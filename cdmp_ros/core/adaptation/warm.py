@@ -39,8 +39,8 @@ guard's reference: a failed check never loses the chain. (On the tracked Panda s
 612-716 evaluations, 1-1.5 s, with the solver's backtracking
 (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
 2,300-2,700 evaluations and 4-5 s; the chain was then dropped and the next request failed
-cold as well: two events not adapted in 2 of 9 runs.) The report says which start was kept
-(``start``) and why (``start_note``).
+cold as well: one or two events not adapted in 3 of about 32 runs.) The report says which
+start was kept (``start``) and why (``start_note``).
 
 A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
 pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
