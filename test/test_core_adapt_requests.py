@@ -289,19 +289,48 @@ CROSSING = (
     ((0.016736904811588002, 0.022277103212172245, 0.7151874133861116), 0.08200094956121073))
 
 
-def test_an_overshooting_multiplier_step_is_backtracked(monkeypatch):
-    """A cold solve whose multiplier step overshoots (the inner loop satisfies the obstacle by
-    breaking the joint limits) is retried from the last iterate with half the step: without
-    the backtracking this problem diverges (KL 136,461 after 2,673 evaluations); with it, it
-    converges at the KL of its neighbours in the stream (17.2 and 20.0) and the sampled
-    verification confirms it."""
-    from cdmp_ros.core.adaptation import solver
+#: Request 17 of heading 4 of bench_warm_track.py (the same prior; start_y of its events): its
+#: largest violation jumps 0.05 -> 0.48 at the 4th outer iteration, and the 5th recovers.
+RECOVERING = (
+    ((0.15219578955832813, -0.5123146764940745, 0.41622114747200323), 0.078123423470853),
+    ((0.16327702150668166, -0.6409375753513192, 0.43926122747502144), 0.08929553957831061),
+    ((0.02592431615030491, -0.011338352731755135, 0.7151874133861116), 0.08200094956121073))
+RECOVERING_START = (-0.9924980133188688, -0.4096203595543825, 0.7252253064460099,
+                    -1.4624724944170997, -0.9642424079274414, 1.7655299206634298,
+                    -0.04945764163532023)
+
+
+@pytest.fixture(scope='module')
+def panda_rng3():
+    """The Panda chain and the ProMP of panda_problem(rng 3) (the benchmarks' prior)."""
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.experiments.promp_problems import panda_problem
     from cdmp_ros.sim.robot_specs import panda_urdf_path
     chain = panda_chain(panda_urdf_path())
     prior, _, _ = panda_problem(chain, np.random.default_rng(3), n_spheres=1)
     prior.joint_names = list(chain.joint_names)
+    return chain, prior
+
+
+def test_a_jump_the_next_outer_iteration_recovers_from_is_not_backtracked(panda_rng3):
+    """The largest violation jumps (0.05 -> 0.48) but the next outer iteration recovers: the
+    solve goes on to the optimum (KL 17.1; retrying at once from before the jump ended at
+    KL 59.6)."""
+    chain, prior = panda_rng3
+    req = AdaptRequest(prior, tuple(Sphere(c, r) for c, r in RECOVERING),
+                       start_y=RECOVERING_START, continues=True)
+    rep = run_request(req, chain, AdaptRequestConfig()).report
+    assert rep.converged and rep.n_backtracks == 0 and rep.kl < 20.0
+
+
+def test_an_overshooting_multiplier_step_is_backtracked(panda_rng3, monkeypatch):
+    """A cold solve whose multiplier step overshoots (the inner loop satisfies the obstacle by
+    breaking the joint limits, and the next one does not recover) goes back to the iterate
+    before the jump with half the step: without the backtracking this problem diverges (KL
+    136,461 after 2,673 evaluations); with it, it converges at the KL of its neighbours in the
+    stream (17.2 and 20.0) and the sampled verification confirms it."""
+    from cdmp_ros.core.adaptation import solver
+    chain, prior = panda_rng3
     req = AdaptRequest(prior, tuple(Sphere(c, r) for c, r in CROSSING),
                        start_y=prior.mean([0.0])[0], continues=True)
     res = run_request(req, chain, AdaptRequestConfig())

@@ -35,8 +35,8 @@ verified, is not held back for it). That cold check is bounded
 (``warm_start_check_max_evaluations``, 600); when it does not converge within the bound, the
 request is solved from the withheld warm start instead, and that solution's KL becomes the
 guard's reference: a failed check never loses the chain. (On the tracked Panda stream of
-``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 took
-612-716 evaluations, 1-1.5 s, with the solver's backtracking
+``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 take
+826-951 evaluations with the solver's backtracking
 (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
 2,300-2,700 evaluations and 4-5 s; the chain was then dropped and the next request failed
 cold as well: one or two events not adapted in 3 of about 32 runs.) The report says which
