@@ -147,10 +147,11 @@ def _validate_promp(body: Dict[str, Any], n: int) -> None:
     why = f'values (n_dims * len(primitive.promp.basis.centers) = {n} * {M})'
     _len(['promp', 'mean_w'], body['mean_w'], nw, why)
     C = covariance_matrix(body, nw)
-    field = 'primitive.promp.' + ('cov_w' if 'cov_w' in body else 'cov_w_base64')
+    rows = 'cov_w' in body   # else cov_w_base64
+    field = 'primitive.promp.' + ('cov_w' if rows else 'cov_w_base64')
 
     def at(i: int, j: int) -> str:   # an entry, by its row and column
-        return f'{field}[{i}][{j}]' if 'cov_w' in body else f'{field} entry [{i}][{j}]'
+        return f'{field}[{i}][{j}]' if rows else f'{field} entry [{i}][{j}]'
     asym = np.abs(C - C.T) > 1e-12 + 1e-9 * np.abs(C.T)  # the ProMP's own tolerance
     if np.any(asym):
         i, j = (int(v) for v in np.argwhere(asym)[0])

@@ -122,8 +122,7 @@ CONTINUING_TRIGGERS = ('obstacles', 'constraints')
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
                'kl', 'iterations', 'outer_iterations', 'backtracks', 'evaluations', 'start',
-               'start_note',
-               'obstacles_used', 'obstacles_ignored', 'latency_ms')
+               'start_note', 'obstacles_used', 'obstacles_ignored', 'latency_ms')
 
 
 class AdapterNode(Node):

@@ -251,8 +251,9 @@ class WarmStarts:
         """Adapt ``built`` (the problem of ``req``), warm when :meth:`start_for` allows it
         (from the predictor's start first when it applies); remembers the outcome. Returns
         ``(adapted, report)`` as :func:`~cdmp_ros.core.adaptation.solver.adapt`."""
-        start = self.start_for(req, built, cfg)
-        withheld = None if start is not None else self.start_for(req, built, cfg, guard=False)
+        usable = self.start_for(req, built, cfg, guard=False)
+        guarded = usable is not None and self._memory.cold_next
+        start, withheld = (None, usable) if guarded else (usable, None)
         note = ''
         if start is not None:
             predicted = self.predicted_start(req) if cfg.warm_start_predict else None
@@ -322,9 +323,10 @@ class WarmStarts:
         t0 = time.perf_counter()
         adapted, rep = solve_levels(built.prior, built.constraints, built.config, should_stop)
         if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:
+            # converged stays True only if the sampled verification confirms it
             attach_verification(rep, adapted, built.constraints, built.config,
                                 np.random.default_rng(0), t0)
-        if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:
+        if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:   # (and verified)
             rep.start_note = f'refinement of a warm solve: KL {kl:.4g} -> {rep.kl:.4g}'
             self.counts['refined'] += 1
             self._remember(req, built, rep, rep.kl)
