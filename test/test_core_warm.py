@@ -137,8 +137,10 @@ def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centr
 
 
 def test_a_warm_solve_over_the_guard_or_budget(chain, prior, centre):
-    """Over the KL guard: the warm result is kept and the next request starts cold. Out of
-    its evaluation budget: the request is solved cold at once."""
+    """Over the KL guard: the warm result is kept; the refinement checks it off the request
+    path, so the next request still starts warm; without refinements
+    (``warm_start_refine`` false) the next request starts cold. Out of its evaluation budget:
+    the request is solved cold at once."""
     ws = WarmStarts()
     first = run_request(_request(prior, centre), chain, CFG, warm=ws)
     assert first.outcome == 'converged'
@@ -148,11 +150,17 @@ def test_a_warm_solve_over_the_guard_or_budget(chain, prior, centre):
     req = _request(prior, centre + [0.0, 0.005, 0.0])
     res = run_request(req, chain, CFG, warm=ws)
     assert res.outcome == 'converged' and res.report.start == 'warm'
-    assert 'the next request starts cold' in res.report.start_note, res.report.start_note
+    assert 'the refinement checks it' in res.report.start_note, res.report.start_note
     assert ws.counts['over_guard'] == 1
     nxt = _request(prior, centre + [0.0, 0.01, 0.0])
-    assert ws.start_for(nxt, build_problem(nxt, chain, CFG), CFG) is None
-    res = run_request(nxt, chain, CFG, warm=ws)
+    assert ws.start_for(nxt, build_problem(nxt, chain, CFG), CFG) is not None
+    no_refine = dataclasses.replace(CFG, warm_start_refine=False)
+    res = run_request(req, chain, no_refine, warm=ws)
+    assert res.outcome == 'converged' and res.report.start == 'warm'
+    assert 'the next request starts cold' in res.report.start_note, res.report.start_note
+    assert ws.counts['over_guard'] == 2
+    assert ws.start_for(nxt, build_problem(nxt, chain, no_refine), no_refine) is None
+    res = run_request(nxt, chain, no_refine, warm=ws)
     assert res.report.start == 'cold' and ws.counts['cold'] == 2
     assert ws._memory.anchor_kl == pytest.approx(res.report.kl)     # the new reference
     # the budget: the sphere moved onto the adapted mean path (the last solution violates
@@ -200,10 +208,11 @@ def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, pri
 
 def test_a_guard_check_that_fails_cold_keeps_the_warm_chain(chain, prior, centre,
                                                             monkeypatch):
-    """When the KL guard's cold solve does not converge (events 28-29 of the tracked Panda
-    stream of bench_adaptation_latency, seed 3), the request is solved from the warm start the
-    guard withheld, and its KL becomes the guard's reference. The cold solve's failure is
-    forced here: a cold solve of this problem converges."""
+    """Without refinements, when the KL guard's cold solve of the next request does not
+    converge (events 28-29 of the tracked Panda stream of bench_adaptation_latency, seed 3),
+    the request is solved from the warm start the guard withheld, and its KL becomes the
+    guard's reference. The cold solve's failure is forced here: a cold solve of this problem
+    converges."""
     from cdmp_ros.core.adaptation import warm as warm_module
     real = warm_module.adapt
 
@@ -242,6 +251,99 @@ def test_a_guard_check_that_fails_cold_keeps_the_warm_chain(chain, prior, centre
     res = run_request(req, chain, tight, warm=ws)
     assert res.outcome == 'converged' and res.report.start == 'warm'
     assert 'ended evaluation_budget_exhausted after' in res.report.start_note
+
+
+def test_a_cancelled_solve_says_where_it_was(chain, prior, centre, monkeypatch):
+    """solve_levels cancelled after k evaluations: Cancelled carries the best point of the
+    inner loop it was in (the evaluated theta of lowest Lagrangian value, its multipliers by
+    constraint) and the evaluations taken; cancelled before any evaluation, the start."""
+    from cdmp_ros.core.adaptation.problem import Problem
+    from cdmp_ros.core.errors import Cancelled
+    built = build_problem(_request(prior, centre), chain, CFG)
+    seen = []
+    real = Problem.lagrangian
+
+    def recorded(self, theta, lam):
+        value, grad = real(self, theta, lam)
+        seen.append((value, theta.copy(), lam.copy()))
+        return value, grad
+    monkeypatch.setattr(Problem, 'lagrangian', recorded)
+    for k in (0, 7):
+        seen.clear()
+        polls = iter(range(10 ** 6))
+        with pytest.raises(Cancelled) as info:
+            solve_levels(built.prior, built.constraints, built.config,
+                         should_stop=lambda: next(polls) >= k)
+        exc = info.value
+        assert exc.n_evaluations == len(seen) == k
+        names = [c.name for c in built.constraints]
+        assert [n for n, _ in exc.state.multipliers] == names
+        if k == 0:   # the prior (whitened: zeros) and lambda0
+            np.testing.assert_array_equal(exc.state.theta, np.zeros_like(exc.state.theta))
+            continue
+        best = min(seen, key=lambda v: v[0])
+        assert best[0] < seen[0][0]   # (the first point is the start: it moved)
+        np.testing.assert_array_equal(exc.state.theta, best[1])
+        np.testing.assert_array_equal(np.concatenate([m for _, m in exc.state.multipliers]),
+                                      best[2])
+
+
+def test_a_suspended_refinement_resumes_on_the_newer_request(chain, prior, centre,
+                                                             monkeypatch):
+    """A refinement cancelled by a newer request (the adapter's solver thread) continues on
+    that request from where it was: it ends converged on the newer problem, as a cold solve of
+    it does, with its evaluations counted over both requests; its evaluation bound covers all
+    its resumptions."""
+    from cdmp_ros.core.adaptation.requests import refine_request
+    from cdmp_ros.core.adaptation.warm import suspend
+    from cdmp_ros.core.errors import Cancelled
+    ws = WarmStarts()
+    run_request(_request(prior, centre), chain, CFG, warm=ws)
+    req = _request(prior, centre + [0.0, 0.005, 0.0])
+    assert run_request(req, chain, CFG, warm=ws).report.start == 'warm'
+    polls = iter(range(10 ** 6))
+    with pytest.raises(Cancelled) as info:
+        refine_request(req, chain, CFG, ws, 1e6, should_stop=lambda: next(polls) >= 6)
+    sus = suspend(info.value)
+    assert sus.n_evaluations == 6 and sus.n_requests == 1
+    # a newer request, solved warm; then the refinement continues on it
+    nxt = _request(prior, centre + [0.0, 0.01, 0.0])
+    assert run_request(nxt, chain, CFG, warm=ws).report.start == 'warm'
+    from cdmp_ros.core.adaptation.problem import Problem
+    first = []
+    real = Problem.lagrangian
+
+    def recorded(self, theta, lam):
+        if not first:
+            first.append((theta.copy(), lam.copy()))
+        return real(self, theta, lam)
+    monkeypatch.setattr(Problem, 'lagrangian', recorded)
+    out = refine_request(nxt, chain, CFG, ws, 1e6, resume=sus)
+    monkeypatch.setattr(Problem, 'lagrangian', real)
+    np.testing.assert_array_equal(first[0][0], sus.state.theta)   # from where it was
+    np.testing.assert_array_equal(first[0][1], np.concatenate(
+        [m for _, m in sus.state.multipliers]))
+    assert out is not None and out.outcome == 'converged' and out.report.start == 'cold'
+    assert out.report.verification.holds
+    note = out.report.start_note
+    assert (f'started 1 requests before, resumed on each newer one; '
+            f'{6 + out.report.n_evaluations} evaluations' in note), note
+    cold = adapt(*(lambda b: (b.prior, b.constraints, b.config))(build_problem(nxt, chain,
+                                                                               CFG)))[1]
+    assert cold.converged and out.report.kl == pytest.approx(cold.kl, rel=0.05)
+    # suspended again, then the bound over its resumptions: 6 + 6 evaluations taken, 13
+    # allowed -> this resumption gets 1 (L-BFGS-B checks it between iterations): unconverged,
+    # the warm solution stays
+    polls = iter(range(10 ** 6))
+    with pytest.raises(Cancelled) as info:
+        refine_request(nxt, chain, CFG, ws, 1e6, should_stop=lambda: next(polls) >= 6,
+                       resume=sus)
+    again = suspend(info.value, sus)
+    assert again.n_evaluations == 12 and again.n_requests == 2
+    tight = dataclasses.replace(CFG, warm_start_check_max_evaluations=13)
+    kept = ws.counts['refine_kept_warm']
+    assert refine_request(nxt, chain, tight, ws, 1e6, resume=again) is None
+    assert ws.counts['refine_kept_warm'] == kept + 1
 
 
 def test_a_refinement_runs_the_sampled_verification_only_for_a_result_it_would_keep(

@@ -71,3 +71,33 @@ def test_latest_request_wins_and_stale_results_are_marked():
         w.stop()
         w.join(5.0)
     assert not w.is_alive()
+
+
+def test_a_cancelled_refinement_says_where_it_was_and_resumes(chain, prior):
+    """solve_job: a refinement that a newer request cancels returns where it was
+    (``JobResult.suspended``); the node's next refinement job carries it and continues the
+    solve on the newer request (cdmp_ros.core.adaptation.warm, resumed refinements)."""
+    from cdmp_ros.core.adaptation.config import AdapterConfig, AdaptRequestConfig
+    from cdmp_ros.core.adaptation.requests import AdaptRequest, ee_path
+    from cdmp_ros.core.adaptation.warm import WarmStarts
+    from cdmp_ros.core.kinematics import Sphere
+    from cdmp_ros.ros.adapter_worker import solve_job
+    cfg = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000)
+    centre = ee_path(chain, prior.mean([0.5]))[0]
+
+    def job(dy, refine_kl=None, resume=None):
+        req = AdaptRequest(prior, (Sphere(tuple(centre + [0.0, dy, 0.0]), 0.05),),
+                           continues=True)
+        return Job(req, cfg, AdapterConfig(), 'obstacles', 0, 0.0, refine_kl=refine_kl,
+                   refine_resume=resume)
+    ws = WarmStarts()
+    assert solve_job(job(0.0), chain, warm=ws).outcome == 'converged'
+    assert solve_job(job(0.005), chain, warm=ws).result.report.start == 'warm'
+    polls = iter(range(10 ** 6))
+    res = solve_job(job(0.005, 1e6), chain, lambda: next(polls) >= 5, ws)
+    assert res.outcome == 'cancelled' and res.suspended is not None
+    assert (res.suspended.n_evaluations, res.suspended.n_requests) == (5, 1)
+    assert solve_job(job(0.01), chain, warm=ws).result.report.start == 'warm'
+    out = solve_job(job(0.01, 1e6, res.suspended), chain, warm=ws)
+    assert out.outcome == 'converged' and out.text is not None
+    assert 'resumed on each newer one' in out.result.report.start_note

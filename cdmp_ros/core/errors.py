@@ -18,4 +18,15 @@ class ConstraintSetError(ValidationError):
 
 
 class Cancelled(CdmpError):
-    """A long computation was asked to stop (e.g. an adaptation at node shutdown)."""
+    """A long computation was asked to stop (e.g. an adaptation at node shutdown).
+
+    An adaptation that was cancelled says where it was: ``state`` (its
+    :class:`~cdmp_ros.core.adaptation.config.SolverState`: the best point of the inner loop it
+    was in, with its multipliers; None when it had not started) and ``n_evaluations`` (of the
+    Lagrangian, so far). A solve can resume from that state (the adapter's refinements,
+    :mod:`cdmp_ros.core.adaptation.warm`)."""
+
+    def __init__(self, message: str = '', state=None, n_evaluations: int = 0):
+        super().__init__(message)
+        self.state = state
+        self.n_evaluations = int(n_evaluations)

@@ -23,7 +23,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   starts_warm / starts_predicted / starts_cold / starts_warm_then_cold / starts_cold_then_warm
   / starts_over_guard,
   refinements_started / published / kept_warm / cancelled / failed (not counted among the
-  requests); and
+  requests) / resumed (started from where a cancelled one was); and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
   current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
   the robot's limits came from) and limit_mismatch (every bound on which the primitive's
@@ -39,13 +39,15 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   the secant prediction of the last two when every obstacle moved as in the last request,
   ``adaptation.warm_start_predict``); a warm solve that does not converge within
   ``adaptation.warm_start_max_evaluations`` is followed by a cold solve of the same
-  request, and one whose KL exceeds the guard
-  (``adaptation.warm_start_kl_ratio``) by a cold start of the next request. After a
-  published warm solve, with no request waiting, the same request is solved cold as a
-  refinement (``adaptation.warm_start_refine``), published only if its KL is at least 5 %
-  lower, and cancelled by any newer request within one evaluation (a refinement runs its
-  sampled verification only when its KL is that much lower, so a newer request rarely waits
-  for one).
+  request. After a published warm solve, with no request waiting, the same request is solved
+  cold as a refinement (``adaptation.warm_start_refine``), published only if its KL is at
+  least 5 % lower, and cancelled by any newer request within one evaluation (a refinement
+  runs its sampled verification only when its KL is that much lower, so a newer request
+  rarely waits for one); the next refinement resumes from where the cancelled one was, on
+  the newer request, within ``adaptation.warm_start_check_max_evaluations`` over all its
+  resumptions. The refinement is also the cold check of a warm solve whose KL exceeds the
+  guard (``adaptation.warm_start_kl_ratio``); without refinements, the next request starts
+  cold instead.
 - Every published primitive carries in ``metadata.adapter`` its provenance
   (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
   ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
@@ -148,6 +150,9 @@ class AdapterNode(Node):
         self.primitive = None        # dict: kind, d (validated dict), prim, perm
         self.primitive_id = 0
         self._generation = 0         # of the last adaptation (ROS time [ns] at the request)
+        #: (primitive id, Suspended) of the refinement a newer request cancelled: the next
+        #: refinement continues it (adaptation.warm_start_refine)
+        self._suspended = None
         # continuing requests need a motion to continue: the primitive_id whose motion-starting
         # (phase-0 conditioned) adaptation was published, and the generation of the newest
         # motion-starting request still to be published (0: none)
@@ -163,7 +168,8 @@ class AdapterNode(Node):
                        'outcome_unconverged': 0, 'outcome_rejected': 0,
                        'requests_outdated': 0, 'refinements_started': 0,
                        'refinements_published': 0, 'refinements_kept_warm': 0,
-                       'refinements_cancelled': 0, 'refinements_failed': 0}
+                       'refinements_cancelled': 0, 'refinements_failed': 0,
+                       'refinements_resumed': 0}
 
         self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
         self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
@@ -400,7 +406,12 @@ class AdapterNode(Node):
                 or self.worker.has_pending()):
             return
         self.counts['refinements_started'] += 1
+        resume = None
+        if self._suspended is not None and self._suspended[0] == job.primitive_id:
+            resume = self._suspended[1]
+            self.counts['refinements_resumed'] += 1
         self.worker.submit(dataclasses.replace(job, refine_kl=float(res.result.report.kl),
+                                               refine_resume=resume,
                                                generation=self._next_generation(),
                                                received=time.monotonic()))
 
@@ -461,6 +472,9 @@ class AdapterNode(Node):
         if job.refine_kl is not None and (outdated or res.stale or res.outcome != 'converged'):
             # a refinement that gave way to a newer request, found no lower KL or failed: the
             # warm solution stays published
+            # a refinement cancelled by a newer request resumes on it after its warm solve
+            self._suspended = ((job.primitive_id, res.suspended)
+                               if res.suspended is not None and not outdated else None)
             if res.outcome == 'kept_warm':
                 key = 'kept_warm'
             elif res.outcome == 'rejected' and not (outdated or res.stale):
@@ -486,6 +500,8 @@ class AdapterNode(Node):
             self._publish_now()
             return
         if res.outcome == 'converged':
+            if job.refine_kl is not None or res.result.report.start == 'cold':
+                self._suspended = None   # the chain is cold-checked: nothing to resume
             if not job.request.continues and job.generation >= self._restart_generation:
                 self._motion_of, self._restart_generation = job.primitive_id, 0
             self.pub.publish(String(data=res.text))

@@ -4,7 +4,8 @@
 a time; ``submit`` replaces a request that has not started yet (latest request wins: the
 replaced one is counted as *dropped*). A running solve is never interrupted by a newer request,
 except a refinement (a cold solve of the last request after a warm one,
-:mod:`cdmp_ros.core.adaptation.warm`), which a waiting request cancels;
+:mod:`cdmp_ros.core.adaptation.warm`), which a waiting request cancels (the result says where
+it was, ``JobResult.suspended``: the node resumes it after that request);
 :meth:`SolveWorker.stop` (node shutdown) cancels any solve, within one evaluation of the
 Lagrangian (``solve_job(job, chain, should_stop)``). When a solve finishes while a newer
 request is already waiting, its result is marked *stale*; the node still publishes a stale
@@ -27,7 +28,7 @@ from cdmp_ros.core.adaptation.requests import (AdaptRequest, AdaptResult, ee_ban
                                                promp_message, refine_request, run_request)
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.adaptation.verification import worker_cpu_seconds
-from cdmp_ros.core.adaptation.warm import WarmStarts
+from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts, suspend
 from cdmp_ros.core.errors import Cancelled, CdmpError, ConstraintSetError
 from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.ros.latest_worker import LatestWorker
@@ -48,6 +49,7 @@ class Job:
     id: int = 0
     generation: int = 0           # adapter ROS time [ns] at the request (issue 13)
     refine_kl: Optional[float] = None  # a refinement of a warm solve of this KL (else None)
+    refine_resume: Optional[Suspended] = None  # the suspended refinement it continues
 
 
 @dataclass
@@ -68,6 +70,7 @@ class JobResult:
     finished: float = 0.0
     solve_cpu: float = 0.0                # [s], CPU time of the solver thread and of the
     #                                       verification's worker threads
+    suspended: Optional[Suspended] = None  # a cancelled refinement: where it was
 
 
 def job_provenance(job: Job) -> Provenance:
@@ -88,9 +91,10 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
         if job.refine_kl is not None:
             try:
                 res = refine_request(job.request, chain, job.config, warm, job.refine_kl,
-                                     should_stop)
-            except Cancelled:
-                return JobResult(job, 'cancelled', time.perf_counter() - t0)
+                                     should_stop, job.refine_resume)
+            except Cancelled as exc:
+                return JobResult(job, 'cancelled', time.perf_counter() - t0,
+                                 suspended=suspend(exc, job.refine_resume))
             if res is None:
                 return JobResult(job, 'kept_warm', time.perf_counter() - t0,
                                  solve_cpu=time.thread_time() + worker_cpu_seconds() - c0)

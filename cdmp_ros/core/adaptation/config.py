@@ -420,21 +420,25 @@ class AdaptRequestConfig:
         0.0, 10.0)
     warm_start_kl_ratio: float = _param(
         2.0, "After a warm solve whose KL exceeds this times the last cold solve's (+ 1), "
-        'the next request starts cold (the warm result is kept).',
+        'a cold solve checks it (the warm result is kept): the refinement, off the request '
+        'path, or without warm_start_refine the next request, started cold.',
         1.0, 100.0)
     warm_start_max_evaluations: int = _param(
         30, 'Evaluations of the Lagrangian a warm solve may take before the request is '
         'solved cold instead.', 1, 10000)
     warm_start_check_max_evaluations: int = _param(
-        600, "Evaluations the KL guard's cold solve may take; one that has not converged "
-        'within them gives way to a solve from the warm start the guard withheld.', 1, 100000)
+        600, "Evaluations the KL guard's cold check may take: a refinement over all its "
+        'resumptions (then the warm solution stays), or without warm_start_refine the next '
+        "request's cold solve (then it is solved from the warm start the guard withheld).",
+        1, 100000)
     warm_start_predict: bool = _param(
         True, 'An obstacle moving by the same displacement as in the last request (constant '
         'velocity): start the warm solve from the secant prediction of the last two warm '
         'solutions.')
     warm_start_refine: bool = _param(
         True, 'When the solver is idle after a warm solve, solve the same request cold and '
-        'publish the result if its KL is at least 5 % lower (a newer request cancels it).')
+        'publish the result if its KL is at least 5 % lower. A newer request suspends it; '
+        'it resumes on that request after its warm solve, from where it was.')
 
     def __post_init__(self):
         check_fields(self)

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport, adapt
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
-from cdmp_ros.core.adaptation.warm import WarmStarts
+from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.ik import IkResult, solve_position_ik
 from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
@@ -375,13 +375,17 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
 
 
 def refine_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig, warm: WarmStarts,
-                   kl: float, should_stop: Optional[Callable[[], bool]] = None
-                   ) -> Optional[AdaptResult]:
-    """Solve ``req`` again, cold, after a warm solve of KL ``kl``
-    (:meth:`cdmp_ros.core.adaptation.warm.WarmStarts.refine`): the result if its KL is
-    lower by REFINE_GAIN at least, else None. ``should_stop`` cancels it."""
+                   kl: float, should_stop: Optional[Callable[[], bool]] = None,
+                   resume: Optional[Suspended] = None) -> Optional[AdaptResult]:
+    """Solve ``req`` again, cold (or continuing the suspended refinement ``resume``), after a
+    warm solve of KL ``kl`` (:meth:`cdmp_ros.core.adaptation.warm.WarmStarts.refine`, within
+    ``cfg.warm_start_check_max_evaluations`` over its resumptions): the result if its KL is
+    lower by REFINE_GAIN at least, else None. ``should_stop`` cancels it
+    (:class:`~cdmp_ros.core.errors.Cancelled`; :func:`~cdmp_ros.core.adaptation.warm.suspend`
+    gives where it was)."""
     prob = build_problem(req, chain, cfg)
-    out = warm.refine(req, prob, kl, should_stop)
+    out = warm.refine(req, prob, kl, should_stop, resume,
+                      int(cfg.warm_start_check_max_evaluations))
     if out is None:
         return None
     return AdaptResult(out[0], out[1], classify(out[1], prob.infeasible), prob)

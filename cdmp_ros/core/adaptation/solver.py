@@ -114,7 +114,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     should_stop : callable, optional
         Polled before every evaluation of the Lagrangian; when it returns True the solve is
         abandoned with :class:`~cdmp_ros.core.errors.Cancelled` (a node shutting down stops
-        a long solve within one evaluation).
+        a long solve within one evaluation); the exception's ``state`` is the best point of
+        the inner loop it was in, with the multipliers of that loop, and ``n_evaluations``
+        the evaluations it took.
     start : SolverState, optional
         Start from these parameters and multipliers (``report.state`` of an earlier solve
         of a problem with the same prior; constraints it does not name start at their
@@ -138,10 +140,15 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     t_start = time.perf_counter()
     prob = Problem(prior, constraints, config)
 
+    best = [np.inf, None]   # lowest Lagrangian value of the current inner loop, its theta
+
     def fun(theta, lam):
         if should_stop is not None and should_stop():
             raise Cancelled('adaptation cancelled')
-        return prob.lagrangian(theta, lam)
+        value, grad = prob.lagrangian(theta, lam)
+        if value < best[0]:
+            best[0], best[1] = value, theta.copy()
+        return value, grad
     theta = prob.initial_theta()
     lam = np.concatenate([np.full(s.stop - s.start, c.lambda0 or config.lambda0)
                           for c, s in zip(prob.constraints, prob.slices)]) \
@@ -181,7 +188,14 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
                    'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor}
         if budget is not None:
             options['maxfun'] = max(1, int(budget) - prob.n_evaluations)
-        res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B', options=options)
+        best[0], best[1] = np.inf, None
+        try:
+            res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
+                           options=options)
+        except Cancelled as exc:   # where it was: a refinement resumes from there
+            exc.state = _state(prob, theta if best[1] is None else best[1], lam)
+            exc.n_evaluations = prob.n_evaluations
+            raise
         if np.all(np.isfinite(res.x)):
             theta = res.x
         n_inner += int(res.nit)
@@ -235,10 +249,14 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports,
                               start='cold' if start is None else 'warm', n_backtracks=n_back,
-                              state=SolverState(theta.copy(), tuple(
-                                  (c.name, lam[sl].copy())
-                                  for c, sl in zip(prob.constraints, prob.slices))))
+                              state=_state(prob, theta, lam))
     return adapted, report
+
+
+def _state(prob: Problem, theta: NDArray, lam: NDArray) -> SolverState:
+    """The optimiser's variables as a :class:`SolverState` (multipliers by constraint)."""
+    return SolverState(theta.copy(), tuple((c.name, lam[sl].copy())
+                                           for c, sl in zip(prob.constraints, prob.slices)))
 
 
 def multiplier_update(lam: NDArray, F: NDArray, eta: NDArray, alpha_aim: NDArray,

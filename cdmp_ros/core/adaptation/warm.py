@@ -29,12 +29,19 @@ The warm solve is bounded (``warm_start_max_evaluations``) and goes through the 
 verification as any other (only a solve that is kept is verified: an attempt that runs out of
 evaluations is not). When it does not converge, the request is solved cold as well. When
 it converged it is kept; if its KL exceeds ``warm_start_kl_ratio`` x the KL of the last cold
-solve + :data:`KL_SLACK`, the next request starts cold (a chain of warm starts does not drift
-far from what a cold solve gives without one checking it; the result at hand, converged and
-verified, is not held back for it). That cold check is bounded
-(``warm_start_check_max_evaluations``, 600); when it does not converge within the bound, the
-request is solved from the withheld warm start instead, and that solution's KL becomes the
-guard's reference: a failed check never loses the chain. (On the tracked Panda stream of
+solve + :data:`KL_SLACK` (the KL guard: a chain of warm starts does not drift far from what a
+cold solve gives without one checking it; the result at hand, converged and verified, is not
+held back for it), a cold solve checks it. With refinements (``warm_start_refine``, below)
+that check is the refinement, off the request path: the next request still starts warm. (It
+used to be the next request's cold solve: on the tracked stream of
+``bench_adaptation_latency.py --seed 3 --motion track`` those were 15 of the 16 events over
+85 ms in 8 runs, 131-1,516 ms; off the path, the largest of 120 events was 89 ms;
+benchmarks/RESULTS.md, 2026-11-27, tenth session.) Without refinements the next request
+starts cold. That cold check is bounded (``warm_start_check_max_evaluations``, 600, over all
+the resumptions of a refinement); when a next request's check does not converge within the
+bound, the request is solved from the withheld warm start instead, and that solution's KL
+becomes the guard's reference: a failed check never loses the chain. (On the tracked Panda
+stream of
 ``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 take
 826-951 evaluations with the solver's backtracking
 (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
@@ -48,7 +55,16 @@ pass on the other side (on the test's sphere on the mean path, moved 5 mm per re
 changes of 10-14 cm). So a warm chain can stay in a local optimum worse than the cold one
 within the guard. :meth:`WarmStarts.refine` is the remedy the adapter applies when its solver
 is idle after a warm solve: it solves the same request cold and keeps the result if its KL is
-at least :data:`REFINE_GAIN` lower (the adapter then publishes it; a newer request cancels it).
+at least :data:`REFINE_GAIN` lower (the adapter then publishes it).
+
+**Resumed refinements.** A newer request cancels a running refinement within one evaluation,
+and the refinement says where it was (:func:`suspend`: the best point of its inner loop, with
+its multipliers, and the evaluations so far). After the newer request's warm solve, the next
+refinement continues from there on the newer problem instead of starting cold again (the
+obstacle moved by millimetres; the solve stays in the basin a cold start reached), so an
+obstacle tracked at 30 Hz, whose requests leave the solver idle for less than a cold solve,
+still gets its cold check: on that stream 17-19 of 39 refinements per run resumed, and 20-21
+ended (against 13-17 without resumption), so the KL guard no longer fired.
 
 Measured on the Panda problem of bench_adaptation_solve (3 spheres, limits, 50 steps): a
 sphere moving a few millimetres per request costs 3-4 evaluations warm against 46-168 cold,
@@ -66,11 +82,12 @@ from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport,
                                              AdaptRequestConfig, SolverState)
 from cdmp_ros.core.adaptation.guarantee import attach_verification
 from cdmp_ros.core.adaptation.solver import adapt, solve_levels
+from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 from cdmp_ros.core.promp.promp import ProMP
 
-__all__ = ['KL_SLACK', 'PREDICT_ATOL', 'PREDICT_RTOL', 'REFINE_GAIN', 'WarmStarts',
-           'obstacle_shift', 'predict_state']
+__all__ = ['KL_SLACK', 'PREDICT_ATOL', 'PREDICT_RTOL', 'REFINE_GAIN', 'Suspended',
+           'WarmStarts', 'obstacle_shift', 'predict_state', 'suspend']
 
 #: Additive slack [nats] of the KL guard: small KLs (an obstacle barely touching the band) may
 #: double between requests without a cold check.
@@ -191,6 +208,25 @@ def _warm_solve(built, cfg: AdaptRequestConfig, should_stop: Optional[Callable[[
     return adapted, rep
 
 
+@dataclass(frozen=True)
+class Suspended:
+    """A refinement that gave way to a newer request: where its solve was (the best point of
+    its inner loop, with its multipliers), the evaluations it took so far and the requests it
+    spanned. The next refinement continues from there (:meth:`WarmStarts.refine`)."""
+    state: SolverState
+    n_evaluations: int
+    n_requests: int
+
+
+def suspend(exc: Cancelled, resume: Optional[Suspended] = None) -> Optional[Suspended]:
+    """Where the refinement cancelled with ``exc`` was (it had resumed ``resume``, if given),
+    or None when it had not started solving."""
+    if exc.state is None:
+        return None
+    before = resume or Suspended(exc.state, 0, 0)
+    return Suspended(exc.state, before.n_evaluations + exc.n_evaluations, before.n_requests + 1)
+
+
 class WarmStarts:
     """Warm starts of a stream of requests (see the module docstring). One instance per
     solver thread; not thread-safe.
@@ -267,12 +303,15 @@ class WarmStarts:
                 rep.start_note = ('started from the prediction of a steady obstacle motion'
                                   if predicted is not None else '')
                 bound = cfg.warm_start_kl_ratio * anchor + KL_SLACK
-                if rep.kl > bound:   # kept (converged and verified); the next one is cold
+                if rep.kl > bound:   # kept (converged and verified); checked cold
                     self.counts['over_guard'] += 1
-                    self._memory.cold_next = True
-                    rep.start_note = (f'KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x '
-                                      f'{anchor:.4g} + {KL_SLACK:g} (last cold solve): the '
-                                      f'next request starts cold')
+                    over = (f'KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x {anchor:.4g} + '
+                            f'{KL_SLACK:g} (last cold solve): ')
+                    if cfg.warm_start_refine:   # off the request path
+                        rep.start_note = over + 'the refinement checks it'
+                    else:
+                        self._memory.cold_next = True
+                        rep.start_note = over + 'the next request starts cold'
                 return adapted, rep
             self.counts['warm_then_cold'] += 1
             note = (f'{"predicted" if predicted is not None else "warm"} start replaced: '
@@ -311,23 +350,37 @@ class WarmStarts:
                           f"instead (its KL {rep.kl:.4g} is the guard's new reference)")
         return adapted, rep
 
-    def refine(self, req, built, kl: float, should_stop: Optional[Callable[[], bool]] = None
+    def refine(self, req, built, kl: float, should_stop: Optional[Callable[[], bool]] = None,
+               resume: Optional[Suspended] = None, max_evaluations: Optional[int] = None
                ) -> Optional[Tuple[ProMP, AdaptationReport]]:
         """Solve ``built`` (the problem of ``req``, the last request, solved warm with KL
         ``kl``) cold. Returns ``(adapted, report)`` when it converged with a KL at least
         :data:`REFINE_GAIN` lower, and remembers it for the next warm start; otherwise None,
         and the warm solution stays (its KL becomes the guard's reference). ``should_stop``
-        cancels it (:class:`~cdmp_ros.core.errors.Cancelled`). Only a solve that would be kept
+        cancels it (:class:`~cdmp_ros.core.errors.Cancelled`; :func:`suspend` keeps where it
+        was). ``resume``: continue a refinement of an earlier request that was suspended
+        (module docstring). ``max_evaluations`` bounds the evaluations of the refinement over
+        all its resumptions (at least one more is allowed). Only a solve that would be kept
         is verified (a refinement that finds no lower KL, most of them, costs no sampled
         verification, which a newer request could not interrupt)."""
         t0 = time.perf_counter()
-        adapted, rep = solve_levels(built.prior, built.constraints, built.config, should_stop)
+        config = built.config
+        if max_evaluations is not None:
+            spent = resume.n_evaluations if resume is not None else 0
+            config = dataclasses.replace(config, max_evaluations=max(1, max_evaluations - spent))
+        adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop,
+                                    None if resume is None else resume.state)
+        rep.start = 'cold'   # (a resumed refinement continues a cold solve)
         if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:
             # converged stays True only if the sampled verification confirms it
             attach_verification(rep, adapted, built.constraints, built.config,
                                 np.random.default_rng(0), t0)
         if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:   # (and verified)
             rep.start_note = f'refinement of a warm solve: KL {kl:.4g} -> {rep.kl:.4g}'
+            if resume is not None:
+                rep.start_note += (f' (a cold solve started {resume.n_requests} requests '
+                                   f'before, resumed on each newer one; '
+                                   f'{resume.n_evaluations + rep.n_evaluations} evaluations)')
             self.counts['refined'] += 1
             self._remember(req, built, rep, rep.kl)
             return adapted, rep
