@@ -33,9 +33,12 @@ which it received it. ``--before`` measures code without those keys (``--code DI
 of an older commit): the switch is then read from the streamer's log line
 ``adapted_primitive: switched in`` (its ROS-time log stamp; the first reference of the new
 primitive is computed in the same tick). The adapter's ``solve_time_ms`` / ``solve_cpu_ms``
-(CPU time of its solver thread: the solve on an idle core) and the load average are printed
-beside every event. An event that was not adapted and streamed within ``--timeout`` counts as
-an infinite latency in the percentiles and in the share within 100 ms. After the events it
+(CPU time of its solver thread: the solve on an idle core), its evaluations of the
+Lagrangian, the time of its sampled verification, its ``latency_ms`` (from the
+obstacle callback to the publication: the solve, the wait before it and the message), the KL
+of the solve answering the event and the load average are printed beside every event. An event that was not adapted
+and streamed within ``--timeout`` counts as an infinite latency in the percentiles and in the
+share within 100 ms. After the events it
 prints the CPU used over them, in cores, by this process, the adapter and the streamer (this
 process should leave the CPU to the nodes).
 
@@ -309,16 +312,25 @@ def run(args):
                             if kv.get('request_id') == str(meta.get('request_id')) \
                                     and 'solve_cpu_ms' in kv:
                                 return (float(kv['solve_time_ms']), float(kv['solve_cpu_ms']),
-                                        kv.get('start', '-'))
+                                        kv.get('start', '-'), float(kv.get('kl', 'nan')),
+                                        float(kv.get('latency_ms', 'nan')),
+                                        kv.get('evaluations', '-'),
+                                        float(kv.get('verification.time_ms', 'nan')))
                     return None
-                row['solve_ms'], row['solve_cpu_ms'], row['start'] = (user.wait(solve, 5.0)
-                                                                      or (None, None, '-'))
+                (row['solve_ms'], row['solve_cpu_ms'], row['start'], row['kl'],
+                 row['adapter_ms'], row['evaluations'], row['verification_ms']) = (
+                    user.wait(solve, 5.0)
+                    or (None, None, '-', float('nan'), float('nan'), '-', float('nan')))
             rows.append(row)
             print(f'event {k + 1}: {row["outcome"]} ({row.get("start", "-")} start), latency '
                   f'{row.get("latency_ms", float("nan")):.0f} ms (received '
                   f'{row.get("received_ms", float("nan")):.0f} ms), solve '
-                  f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms), load '
-                  f'{load:.1f}', file=sys.stderr, flush=True)
+                  f'{row.get("solve_ms")} ms (CPU {row.get("solve_cpu_ms")} ms; '
+                  f'{row.get("evaluations", "-")} evaluations; verification '
+                  f'{row.get("verification_ms", float("nan")):.0f} ms; callback to publish '
+                  f'{row.get("adapter_ms", float("nan")):.0f} ms), KL '
+                  f'{row.get("kl", float("nan")):.4g}, load {load:.1f}', file=sys.stderr,
+                  flush=True)
             time.sleep(args.gap)
         cpu1 = cpu_seconds(procs)
         wall = cpu1[0] - cpu0[0]
@@ -405,6 +417,11 @@ def main():
           f'{within} | {pct(wall, 50)} | {pct(cpu, 50)} / {pct(cpu, 95)} | '
           f'{pct(over, 50)} / {pct(over, 95)} | {min(loads):.1f}-{max(loads):.1f} |')
     print(f'starts of the published solves: {starts["warm"]} warm, {starts["cold"]} cold')
+    kls = np.array([r['kl'] for r in rows if np.isfinite(r.get('kl', np.nan))])
+    if kls.size:
+        print(f'KL of the solves answering the events: p50 {np.median(kls):.4g}, mean '
+              f'{kls.mean():.4g}, max {kls.max():.4g} (refinements published later not '
+              f'included)')
 
 
 if __name__ == '__main__':
