@@ -34,13 +34,13 @@ of an older commit): the switch is then read from the streamer's log line
 ``adapted_primitive: switched in`` (its ROS-time log stamp; the first reference of the new
 primitive is computed in the same tick). The adapter's ``solve_time_ms`` / ``solve_cpu_ms``
 (CPU time of its solver thread: the solve on an idle core), its evaluations of the
-Lagrangian, the time of its sampled verification, its ``latency_ms`` (from the
-obstacle callback to the publication: the solve, the wait before it and the message), the KL
-of the solve answering the event and the load average are printed beside every event. An event that was not adapted
-and streamed within ``--timeout`` counts as an infinite latency in the percentiles and in the
-share within 100 ms. After the events it
-prints the CPU used over them, in cores, by this process, the adapter and the streamer (this
-process should leave the CPU to the nodes).
+Lagrangian, the time of its sampled verification, its ``latency_ms`` (from the obstacle
+callback to the publication: the solve, the wait before it and the message), the KL of the
+solve answering the event and the load average are printed beside every event. An event that
+was not adapted and streamed within ``--timeout`` counts as an infinite latency in the
+percentiles and in the share within 100 ms. After the events it prints the CPU used over
+them, in cores, by this process, the adapter and the streamer (this process should leave the
+CPU to the nodes), and the KL of the solves answering the events.
 
 Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 Bounded: start-up + n * (at most --timeout) seconds.

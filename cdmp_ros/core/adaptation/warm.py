@@ -34,14 +34,14 @@ cold solve gives without one checking it; the result at hand, converged and veri
 held back for it), a cold solve checks it. With refinements (``warm_start_refine``, below)
 that check is the refinement, off the request path: the next request still starts warm. (It
 used to be the next request's cold solve: on the tracked stream of
-``bench_adaptation_latency.py --seed 3 --motion track`` those were 15 of the 16 events over
-85 ms in 8 runs, 131-1,516 ms; off the path, the largest of 120 events was 89 ms;
-benchmarks/RESULTS.md, 2026-11-27, tenth session.) Without refinements the next request
-starts cold. That cold check is bounded (``warm_start_check_max_evaluations``, 600, over all
-the resumptions of a refinement); when a next request's check does not converge within the
-bound, the request is solved from the withheld warm start instead, and that solution's KL
-becomes the guard's reference: a failed check never loses the chain. (On the tracked Panda
-stream of
+``bench_adaptation_latency.py --seed 3 --motion track`` they were 22 of the 32 events over
+100 ms in 22 runs of 40 events, 135-1,991 ms; off the path, p95 79 ms and at most 135 ms over
+880 events; benchmarks/RESULTS.md, 2026-11-27, tenth session.) Without refinements the next
+request starts cold. That cold check is bounded (``warm_start_check_max_evaluations``, 600,
+over all the resumptions of a refinement); when a next request's check does not converge
+within the bound, the request is solved from the withheld warm start instead, and that
+solution's KL becomes the guard's reference: a failed check never loses the chain. (On the
+tracked Panda stream of
 ``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 take
 826-951 evaluations with the solver's backtracking
 (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
@@ -63,8 +63,9 @@ its multipliers, and the evaluations so far). After the newer request's warm sol
 refinement continues from there on the newer problem instead of starting cold again (the
 obstacle moved by millimetres; the solve stays in the basin a cold start reached), so an
 obstacle tracked at 30 Hz, whose requests leave the solver idle for less than a cold solve,
-still gets its cold check: on that stream 17-19 of 39 refinements per run resumed, and 20-21
-ended (against 13-17 without resumption), so the KL guard no longer fired.
+still gets its cold check: on that stream 16-23 of 39 refinements per run resumed and 14-21
+ended (394 over 22 runs, against 268 without resumption), and the KL guard, which fired in 20
+of 22 runs without resumption, did not fire at all.
 
 Measured on the Panda problem of bench_adaptation_solve (3 spheres, limits, 50 steps): a
 sphere moving a few millimetres per request costs 3-4 evaluations warm against 46-168 cold,
