@@ -1,8 +1,11 @@
 """The adapter's solver thread (cdmp_ros.ros.adapter_worker.SolveWorker), without ROS: latest
 request wins, a running solve is not interrupted, its result is marked stale when a newer
 request waits, a failing solve becomes a 'rejected' result and the thread survives;
-refinements are not counted among the requests."""
+refinements are not counted among the requests; a refinement a newer request cancels says
+where it was, and the node's next refinement continues it (Suspensions)."""
 import threading
+
+import numpy as np
 
 from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker
 
@@ -101,3 +104,41 @@ def test_a_cancelled_refinement_says_where_it_was_and_resumes(chain, prior):
     out = solve_job(job(0.01, 1e6, res.suspended), chain, warm=ws)
     assert out.outcome == 'converged' and out.text is not None
     assert 'resumed on each newer one' in out.result.report.start_note
+
+
+def test_the_node_resumes_only_the_refinement_a_newer_request_suspended():
+    """Suspensions (the adapter node's bookkeeping): a refinement cancelled with a state is
+    held for its primitive; the next refinement of that primitive continues it; an ended
+    refinement, a published cold solve or refinement, an outdated result or another primitive
+    drop it or do not get it; a published warm solve keeps it."""
+    from types import SimpleNamespace
+    from cdmp_ros.core.adaptation.config import SolverState
+    from cdmp_ros.core.adaptation.warm import Suspended
+    from cdmp_ros.ros.adapter_worker import Suspensions
+
+    def job(primitive_id=1, refine_kl=None):
+        j = _job('obstacles', refine_kl)
+        j.primitive_id = primitive_id
+        return j
+
+    def result(j, outcome, suspended=None, start='warm'):
+        res = JobResult(j, outcome, 0.0, suspended=suspended)
+        res.result = SimpleNamespace(report=SimpleNamespace(start=start))
+        return res
+    sus = Suspended(SolverState(np.zeros(3), ()), 12, 1)
+    s = Suspensions()
+    assert s.resume_for(job()) is None
+    s.refinement_ended(result(job(refine_kl=1.0), 'cancelled', sus), outdated=False)
+    assert s.resume_for(job()) is sus and s.resume_for(job(primitive_id=2)) is None
+    s.published(result(job(), 'converged', start='warm'))      # the newer request, warm
+    assert s.resume_for(job()) is sus
+    s.published(result(job(), 'converged', start='cold'))      # the chain restarted cold
+    assert s.resume_for(job()) is None
+    s.refinement_ended(result(job(refine_kl=1.0), 'cancelled', sus), outdated=False)
+    s.published(result(job(refine_kl=1.0), 'converged', start='cold'))   # a refinement
+    assert s.resume_for(job()) is None
+    s.refinement_ended(result(job(refine_kl=1.0), 'cancelled', sus), outdated=True)
+    assert s.resume_for(job()) is None                          # another primitive's
+    s.refinement_ended(result(job(refine_kl=1.0), 'cancelled', sus), outdated=False)
+    s.refinement_ended(result(job(refine_kl=1.0), 'kept_warm'), outdated=False)
+    assert s.resume_for(job()) is None                          # it ended: nothing to resume

@@ -103,8 +103,8 @@ from cdmp_ros.ros import qos
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
                                          primitive_goal, primitive_limits)
 from cdmp_ros.ros.adapter_viz import build_markers
-from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, result_values, solve_job,
-                                         violated)
+from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, Suspensions, result_values,
+                                         solve_job, violated)
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate, joint_names,
@@ -150,9 +150,8 @@ class AdapterNode(Node):
         self.primitive = None        # dict: kind, d (validated dict), prim, perm
         self.primitive_id = 0
         self._generation = 0         # of the last adaptation (ROS time [ns] at the request)
-        #: (primitive id, Suspended) of the refinement a newer request cancelled: the next
-        #: refinement continues it (adaptation.warm_start_refine)
-        self._suspended = None
+        #: the refinement a newer request cancelled: the next refinement continues it
+        self.suspensions = Suspensions()
         # continuing requests need a motion to continue: the primitive_id whose motion-starting
         # (phase-0 conditioned) adaptation was published, and the generation of the newest
         # motion-starting request still to be published (0: none)
@@ -406,10 +405,8 @@ class AdapterNode(Node):
                 or self.worker.has_pending()):
             return
         self.counts['refinements_started'] += 1
-        resume = None
-        if self._suspended is not None and self._suspended[0] == job.primitive_id:
-            resume = self._suspended[1]
-            self.counts['refinements_resumed'] += 1
+        resume = self.suspensions.resume_for(job)
+        self.counts['refinements_resumed'] += resume is not None
         self.worker.submit(dataclasses.replace(job, refine_kl=float(res.result.report.kl),
                                                refine_resume=resume,
                                                generation=self._next_generation(),
@@ -473,8 +470,7 @@ class AdapterNode(Node):
             # a refinement that gave way to a newer request, found no lower KL or failed: the
             # warm solution stays published
             # a refinement cancelled by a newer request resumes on it after its warm solve
-            self._suspended = ((job.primitive_id, res.suspended)
-                               if res.suspended is not None and not outdated else None)
+            self.suspensions.refinement_ended(res, outdated)
             if res.outcome == 'kept_warm':
                 key = 'kept_warm'
             elif res.outcome == 'rejected' and not (outdated or res.stale):
@@ -500,8 +496,7 @@ class AdapterNode(Node):
             self._publish_now()
             return
         if res.outcome == 'converged':
-            if job.refine_kl is not None or res.result.report.start == 'cold':
-                self._suspended = None   # the chain is cold-checked: nothing to resume
+            self.suspensions.published(res)
             if not job.request.continues and job.generation >= self._restart_generation:
                 self._motion_of, self._restart_generation = job.primitive_id, 0
             self.pub.publish(String(data=res.text))

@@ -177,6 +177,36 @@ class SolveWorker(LatestWorker):
                 'solver_busy': busy}
 
 
+class Suspensions:
+    """Which suspended refinement the adapter's next refinement continues (the node's
+    bookkeeping, in the executor thread; :mod:`cdmp_ros.core.adaptation.warm`, resumed
+    refinements).
+
+    A refinement that a newer request cancelled is held with the primitive it adapts; the
+    refinement after that request's warm solve continues it. A refinement that ended (published,
+    no lower KL, failed) or a cold solve that was published (the chain restarted cold) drops
+    it, and so does a new primitive."""
+
+    def __init__(self):
+        self._held: Optional[tuple] = None   # (primitive id, Suspended)
+
+    def refinement_ended(self, res: JobResult, outdated: bool) -> None:
+        """A refinement's result arrived: hold where a cancelled one was, else drop."""
+        self._held = ((res.job.primitive_id, res.suspended)
+                      if res.suspended is not None and not outdated else None)
+
+    def published(self, res: JobResult) -> None:
+        """A converged result was published: a refinement or a cold solve drops the hold."""
+        if res.job.refine_kl is not None or res.result.report.start == 'cold':
+            self._held = None
+
+    def resume_for(self, job: Job) -> Optional[Suspended]:
+        """The suspended refinement a refinement of ``job``'s request continues, or None."""
+        if self._held is not None and self._held[0] == job.primitive_id:
+            return self._held[1]
+        return None
+
+
 def _failed(job: Job, exc: Exception) -> JobResult:
     """A solve that raised: a rejected result (the solver thread goes on)."""
     return JobResult(job, 'rejected', 0.0, error=f'adaptation failed: {exc!r}',
