@@ -396,7 +396,8 @@ class AdapterNode(Node):
 
     def _refine(self, res: JobResult) -> None:
         """After a warm solve was published, with the solver idle: solve the same request
-        cold (``adaptation.warm_start_refine``; :mod:`cdmp_ros.core.adaptation.warm`)."""
+        cold, or continue the refinement a newer request suspended (``Suspensions``), on this
+        request (``adaptation.warm_start_refine``; :mod:`cdmp_ros.core.adaptation.warm`)."""
         job = res.job
         # only with the solver idle: a refinement must run before any newer request (its
         # generation is newer than theirs), which then cancels it
