@@ -221,3 +221,47 @@ def test_the_node_preexec_loads_nothing_in_the_child(monkeypatch):
     r = subprocess.run([sys.executable, '-c', 'import os; print(os.getppid())'],
                        preexec_fn=preexec, capture_output=True, text=True, timeout=WAIT_S)
     assert r.returncode == 0 and int(r.stdout) == os.getpid(), r
+
+
+STUCK_NODE = '''
+import threading
+from cdmp_ros.ros.node_main import catch_stop_signals
+catch_stop_signals()
+
+
+def stuck_in_shutdown():
+    print('ready', flush=True)
+    threading.Event().wait()   # SIGINT sets the stop flag; nothing here looks at it
+
+
+stuck_in_shutdown()
+'''
+
+
+def test_a_node_that_does_not_stop_shows_where_it_is_stuck_and_is_killed(tmp_path):
+    """A node still running ``stop_timeout`` after SIGINT is asked for the stack of every
+    thread (SIGUSR1, written by the C signal handler that catch_stop_signals registers) and
+    then killed: the graph's output shows where it was stuck. The stand-in node is a process
+    that ran catch_stop_signals and then waits forever."""
+    import io
+    import threading
+    graph = parse_graph({'stop_timeout': 0.5, 'nodes': [{'name': 'stuck', 'executable': 'sim'}]})
+    log = io.StringIO()
+    b = Bringup(graph, log=log)
+    proc = subprocess.Popen([sys.executable, '-c', STUCK_NODE], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        b.procs['stuck'] = proc
+        pump = threading.Thread(target=b._pump, args=('stuck', proc.stdout), daemon=True)
+        pump.start()
+        b._threads.append(pump)
+        assert wait_for(lambda: 'ready' in log.getvalue() or proc.poll() is not None, WAIT_S)
+        assert proc.poll() is None, log.getvalue()
+        codes = b.stop()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    text = log.getvalue()
+    assert codes == {'stuck': -signal.SIGKILL}, text
+    assert '[bringup] stuck did not stop within 0.5 s: its threads follow' in text, text
+    assert 'in stuck_in_shutdown' in text, text

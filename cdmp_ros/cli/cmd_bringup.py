@@ -24,7 +24,9 @@ of the caller plus ``environment``. If ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unse
 to ``LOCALHOST`` (say ``SUBNET`` explicitly to reach other machines). Output lines are prefixed
 with the node name. Ctrl-C (SIGINT) or SIGTERM stops every process: the same signal is
 forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL after
-``stop_timeout``; the exit code is 0 when every process stopped cleanly (exit code 0, or ended
+``stop_timeout`` (a node still running then is first sent SIGUSR1, which makes it write the
+stack of each of its threads into the output, and gets :data:`DUMP_WAIT` to do so); the exit
+code is 0 when every process stopped cleanly (exit code 0, or ended
 by that signal in the first instants of the interpreter, before the node's entry point
 installed its handlers, see :mod:`cdmp_ros.ros.node_main`). If the launching process dies
 without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kernel
@@ -45,6 +47,7 @@ import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
+from cdmp_ros.ros.node_main import DUMP_SIGNAL
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
@@ -53,6 +56,10 @@ EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
 _NODE_KEYS = {'name', 'executable', 'params_file', 'parameters', 'remappings', 'namespace',
               'required', 'delay', 'arguments'}
+#: [s] a node that did not stop within stop_timeout gets this long to write its threads' stacks
+#: (SIGUSR1) before SIGKILL
+DUMP_WAIT = 2.0
+
 _GRAPH_KEYS = {'environment', 'stop_timeout', 'nodes'}
 
 NAME = 'bringup'
@@ -280,18 +287,34 @@ class Bringup:
                 except ProcessLookupError:
                     pass
         end = time.monotonic() + self.graph.stop_timeout
-        for p in self.procs.values():
+        for name, p in self.procs.items():
             try:
                 p.wait(timeout=max(0.0, end - time.monotonic()))
             except subprocess.TimeoutExpired:
-                try:
-                    os.killpg(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                p.wait()
+                self._kill_stuck(name, p)
         for t in self._threads:
             t.join(timeout=1.0)
         return {n: p.returncode for n, p in self.procs.items()}
+
+    def _kill_stuck(self, name: str, p: subprocess.Popen) -> None:
+        """SIGKILL a node that did not stop within ``stop_timeout``, after asking it for the
+        stack of every thread (:data:`cdmp_ros.ros.node_main.DUMP_SIGNAL`, written into the
+        output, so that the log shows where it was stuck)."""
+        with self._lock:
+            self.log.write(f'[bringup] {name} did not stop within '
+                           f'{self.graph.stop_timeout:g} s: its threads follow, then SIGKILL\n')
+            self.log.flush()
+        try:
+            os.kill(p.pid, DUMP_SIGNAL)
+            p.wait(timeout=DUMP_WAIT)   # (the dump is a few kB; it may also finish the stop)
+        except ProcessLookupError:
+            pass
+        except subprocess.TimeoutExpired:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        p.wait()
 
     def __enter__(self):
         self.start()

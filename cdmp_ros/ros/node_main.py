@@ -20,6 +20,13 @@ finish building, skips the spin loop and closes the node: exit code 0. A signal 
 before Python runs the entry module at all (the first ~0.1 s of the interpreter) still gets
 Python's defaults; ``cdmp bringup`` counts that exit (-SIGINT) as a clean stop.
 
+A stop is bounded even when something below the node hangs (a DDS teardown, a call into C
+that does not return): :func:`catch_stop_signals` also starts a stop watchdog
+(:func:`_watch_stop`) that sees the signal through Python's wakeup fd, and allows
+:data:`STOP_LIMIT` until ``close()`` starts and again after it returns; a node that overruns
+writes the stack of every thread to stderr and exits (:data:`EXIT_STUCK` if ``close()`` never
+started). SIGUSR1 writes the same stacks at any time (``cdmp bringup`` sends it before SIGKILL).
+
 Usage in ``cdmp_ros/nodes/<name>.py``::
 
     def main(args=None):
@@ -32,9 +39,12 @@ loop ends when it returns True, e.g. a player that finished its bag).  ``make_no
 that are :class:`~cdmp_ros.core.errors.CdmpError` are logged and give exit code 2, as do
 invalid ROS arguments (a malformed ``--params-file``), reported in one line.
 """
+import faulthandler
+import os
 import signal
 import sys
 import threading
+import time
 from typing import Callable, List, Optional
 
 from cdmp_ros.core.errors import CdmpError
@@ -44,14 +54,78 @@ SPIN_PERIOD = 0.05
 #: Set by SIGINT / SIGTERM once :func:`catch_stop_signals` ran (one per process).
 STOP = threading.Event()
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: Writes the Python stack of every thread of a node to its stderr (``cdmp bringup`` sends it
+#: to a node that has not stopped within ``stop_timeout``, before SIGKILL).
+DUMP_SIGNAL = signal.SIGUSR1
+#: [s] The stop watchdog's bound (:func:`_watch_stop`) on each of the two parts of a stop
+#: that have no bound of their own: from the stop signal (or the end of the start-up, if later)
+#: to the start of ``close()``, and from the end of ``close()`` to the exit. Twice the 2 s
+#: shutdown target; measured whole stops take 0.16-1.21 s (benchmarks/RESULTS.md,
+#: ``bench_shutdown.py``). ``close()`` itself bounds its own waits (the recorder's final drain,
+#: the adapter's solver thread).
+STOP_LIMIT = 4.0
+#: Exit code of a node that the stop watchdog ended before its ``close()`` had started.
+EXIT_STUCK = 3
+#: Set when the node is built (:func:`run_node`), when its ``close()`` starts and when it
+#: has returned.
+BUILT = threading.Event()
+CLOSING = threading.Event()
+CLOSED = threading.Event()
+_built_at = [0.0]
+_exit_code = [0]     # run_node's exit code once close() has returned
+_watchdog: List[threading.Thread] = []
 
 
 def _on_stop_signal(signum, frame) -> None:
     STOP.set()
 
 
+def _watch_stop(fd: int) -> None:
+    """The stop watchdog (a daemon thread started by :func:`catch_stop_signals`).
+
+    It reads the signal numbers that the C signal handler writes to ``fd`` (Python's wakeup
+    fd), so it sees SIGINT / SIGTERM even while the main thread is blocked in C code and
+    cannot run the Python handler. Then it allows :data:`STOP_LIMIT` from the later of the
+    signal and the end of the node's start-up until ``close()`` starts, and again from the
+    end of ``close()`` until the process exits. A node that overruns either writes the stack
+    of every thread to stderr (where it was stuck) and exits at once: with
+    :data:`EXIT_STUCK` if its ``close()`` never started (the main loop was stuck), with its
+    own exit code if ``close()`` had returned (what hung is the middleware teardown:
+    ``destroy_node``, the executor, ``rclpy.try_shutdown``)."""
+    numbers = {int(sig) for sig in STOP_SIGNALS}
+    while True:
+        try:
+            data = os.read(fd, 64)
+        except OSError:
+            return
+        if not data:
+            return
+        if numbers.intersection(data):
+            break
+    signalled = time.monotonic()
+    STOP.set()
+    BUILT.wait()
+    start = max(signalled, _built_at[0])
+    if not CLOSING.wait(max(0.0, start + STOP_LIMIT - time.monotonic())):
+        _stuck('its main loop did not end, close() never started', EXIT_STUCK)
+    CLOSED.wait()
+    time.sleep(STOP_LIMIT)
+    _stuck('its close() had returned: the middleware teardown hangs', _exit_code[0])
+
+
+def _stuck(where: str, code: int) -> None:
+    """The end of a node that overran the stop watchdog's bound (:func:`_watch_stop`)."""
+    sys.stdout.flush()
+    sys.stderr.write(f'[node_main] the node has not exited {STOP_LIMIT:g} s after the stop '
+                     f'signal ({where}); the stack of every thread follows, then it exits\n')
+    faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def catch_stop_signals() -> None:
-    """Make SIGINT and SIGTERM set :data:`STOP` (idempotent; main thread only).
+    """Make SIGINT and SIGTERM set :data:`STOP` (idempotent; main thread only), and SIGUSR1
+    write the Python stack of every thread to stderr (:data:`DUMP_SIGNAL`).
 
     Call it before the slow imports of a node executable: from then on a signal never
     interrupts the start-up, it ends the node once it is built (see the module docstring).
@@ -59,6 +133,15 @@ def catch_stop_signals() -> None:
     for sig in STOP_SIGNALS:
         if signal.getsignal(sig) is not _on_stop_signal:
             signal.signal(sig, _on_stop_signal)
+    # written by the C signal handler: works while the main thread is blocked in C code
+    faulthandler.register(DUMP_SIGNAL, file=sys.stderr, all_threads=True)
+    if not _watchdog:
+        r, w = os.pipe()
+        os.set_blocking(w, False)
+        signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        _watchdog.append(threading.Thread(target=_watch_stop, args=(r,), daemon=True,
+                                          name='stop-watchdog'))
+        _watchdog[0].start()
 
 
 def stop_requested() -> bool:
@@ -123,6 +206,8 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
         if stop.is_set():  # stopped while importing or initialising: nothing to build
             return code
         node = make_node()
+        _built_at[0] = time.monotonic()
+        BUILT.set()
         executor.add_node(node)
         done = getattr(node, 'done', None)
         if graceful or done is not None:
@@ -143,12 +228,15 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     finally:
         if node is not None:
             close = getattr(node, 'close', None)
+            CLOSING.set()
             if close is not None:
                 try:
                     close()
                 except CdmpError as exc:
                     print(f'error while closing: {exc}', file=sys.stderr)
                     code = code or 2
+            _exit_code[0] = code or int(getattr(node, 'exit_code', 0))
+            CLOSED.set()
             code = code or int(getattr(node, 'exit_code', 0))
             executor.remove_node(node)
             node.destroy_node()

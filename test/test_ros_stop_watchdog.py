@@ -1,0 +1,99 @@
+"""The stop watchdog of every node (cdmp_ros.ros.node_main): a node whose stop hangs after
+SIGINT writes the stack of every thread and exits on its own, within STOP_LIMIT of each part
+of the stop that has no bound of its own.
+
+Each case runs a small node process through ``run_node`` (real rclpy, localhost, a private
+domain) and makes one part of its stop hang forever: the middleware teardown
+(``destroy_node``), or the main loop (a ``done()`` that never returns). The test waits for the
+node's ``ready`` line, sends SIGINT and waits (bounded) for the exit. No duration is asserted:
+what is checked is the exit code, the message and the stack of the place that hung.
+"""
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from conftest import module_domain, ros_env
+from cdmp_ros.ros.node_main import EXIT_STUCK
+
+pytestmark = pytest.mark.ros
+DOMAIN = module_domain(13)
+TIMEOUT = 60.0   # s; bounds a failing wait only
+
+NODE = '''
+import sys
+import threading
+
+from cdmp_ros.ros.node_main import catch_stop_signals, run_node
+catch_stop_signals()
+from rclpy.node import Node
+
+HANG = sys.argv[1]
+
+
+def hang_forever():
+    threading.Event().wait()
+
+
+class Stuck(Node):
+    def __init__(self):
+        super().__init__('stop_watchdog_case')
+
+    def done(self):
+        print('ready', flush=True)
+        if HANG == 'loop':
+            hang_forever()
+        return False
+
+    def close(self):
+        print('closed', flush=True)
+
+    def destroy_node(self):
+        if HANG == 'teardown':
+            hang_forever()
+        return super().destroy_node()
+
+
+sys.exit(run_node(Stuck, ['--ros-args'], graceful=True))
+'''
+
+
+def _run(case):
+    """Start the node with ``case`` ('teardown' or 'loop') hanging, SIGINT it once it is in
+    its loop; returns (exit code, output)."""
+    proc = subprocess.Popen([sys.executable, '-c', NODE, case], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=ros_env(DOMAIN))
+    try:
+        assert proc.stdout.readline().strip() == 'ready'
+        proc.send_signal(signal.SIGINT)
+        text, _ = proc.communicate(timeout=TIMEOUT)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, text
+
+
+def test_a_hanging_middleware_teardown_ends_after_close_with_the_stacks():
+    code, text = _run('teardown')
+    assert code == 0, text
+    assert 'closed' in text
+    assert ('the node has not exited 4 s after the stop signal (its close() had returned: '
+            'the middleware teardown hangs)' in text), text
+    assert 'in hang_forever' in text and 'in destroy_node' in text, text
+
+
+def test_a_main_loop_that_never_ends_exits_stuck_with_the_stacks():
+    code, text = _run('loop')
+    assert code == EXIT_STUCK, text
+    assert 'closed' not in text
+    assert 'its main loop did not end, close() never started' in text, text
+    assert 'in hang_forever' in text and 'in done' in text, text
+
+
+def test_a_node_that_stops_normally_is_not_touched():
+    """The same node without a hang: exit code 0, no watchdog message."""
+    code, text = _run('none')
+    assert code == 0 and 'closed' in text, text
+    assert '[node_main]' not in text, text
