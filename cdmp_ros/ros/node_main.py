@@ -235,9 +235,9 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
                 except CdmpError as exc:
                     print(f'error while closing: {exc}', file=sys.stderr)
                     code = code or 2
-            _exit_code[0] = code or int(getattr(node, 'exit_code', 0))
-            CLOSED.set()
             code = code or int(getattr(node, 'exit_code', 0))
+            _exit_code[0] = code
+            CLOSED.set()
             executor.remove_node(node)
             node.destroy_node()
         executor.shutdown()
