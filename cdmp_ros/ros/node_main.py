@@ -48,15 +48,12 @@ import time
 from typing import Callable, List, Optional
 
 from cdmp_ros.core.errors import CdmpError
+from cdmp_ros.core.node_signals import DUMP_SIGNAL, STOP_SIGNALS
 
 #: How often the graceful loop checks the stop flag and ``done()`` (seconds).
 SPIN_PERIOD = 0.05
 #: Set by SIGINT / SIGTERM once :func:`catch_stop_signals` ran (one per process).
 STOP = threading.Event()
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-#: Writes the Python stack of every thread of a node to its stderr (``cdmp bringup`` sends it
-#: to a node that has not stopped within ``stop_timeout``, before SIGKILL).
-DUMP_SIGNAL = signal.SIGUSR1
 #: [s] The stop watchdog's bound (:func:`_watch_stop`) on each of the two parts of a stop
 #: that have no bound of their own: from the stop signal (or the end of the start-up, if later)
 #: to the start of ``close()``, and from the end of ``close()`` to the exit. Twice the 2 s
