@@ -11,10 +11,11 @@ what is checked is the exit code, the message and the stack of the place that hu
 import signal
 import subprocess
 import sys
+import threading
 
 import pytest
 
-from conftest import module_domain, ros_env
+from conftest import module_domain, ros_env, wait_for
 from cdmp_ros.ros.node_main import EXIT_STUCK
 
 pytestmark = pytest.mark.ros
@@ -60,19 +61,26 @@ sys.exit(run_node(Stuck, ['--ros-args'], graceful=True))
 
 
 def _run(case):
-    """Start the node with ``case`` ('teardown' or 'loop') hanging, SIGINT it once it is in
-    its loop; returns (exit code, output)."""
+    """Start the node with ``case`` ('teardown', 'loop' or 'none') hanging, SIGINT it once it
+    is in its loop; returns (exit code, output). The output is read by a thread (a line the
+    middleware prints before ``ready`` is kept, not taken for it)."""
+    lines = []
     proc = subprocess.Popen([sys.executable, '-c', NODE, case], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=ros_env(DOMAIN))
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, '')),
+                              daemon=True)
+    reader.start()
     try:
-        assert proc.stdout.readline().strip() == 'ready'
+        assert wait_for(lambda: 'ready\n' in lines or proc.poll() is not None, TIMEOUT)
+        assert proc.poll() is None, ''.join(lines)
         proc.send_signal(signal.SIGINT)
-        text, _ = proc.communicate(timeout=TIMEOUT)
+        proc.wait(timeout=TIMEOUT)
+        reader.join(timeout=TIMEOUT)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    return proc.returncode, text
+    return proc.returncode, ''.join(lines)
 
 
 def test_a_hanging_middleware_teardown_ends_after_close_with_the_stacks():
