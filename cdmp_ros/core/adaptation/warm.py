@@ -372,11 +372,11 @@ class WarmStarts:
         adapted, rep = solve_levels(built.prior, built.constraints, config, should_stop,
                                     None if resume is None else resume.state)
         rep.start = 'cold'   # (a resumed refinement continues a cold solve)
-        if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:
-            # converged stays True only if the sampled verification confirms it
+        lower = rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl
+        if lower:   # converged stays True only if the sampled verification confirms it
             attach_verification(rep, adapted, built.constraints, built.config,
                                 np.random.default_rng(0), t0)
-        if rep.converged and rep.kl < (1.0 - REFINE_GAIN) * kl:   # (and verified)
+        if lower and rep.converged:
             rep.start_note = f'refinement of a warm solve: KL {kl:.4g} -> {rep.kl:.4g}'
             if resume is not None:
                 rep.start_note += (f' (a cold solve started {resume.n_requests} requests '
