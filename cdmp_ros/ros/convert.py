@@ -155,7 +155,8 @@ class JointStateWriter:
         msg.header.frame_id = frame_id
         self.n_dims = n
 
-    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float]):
+    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float],
+             ydd: Sequence[float] = ()):
         """Write the stamp, positions and velocities; returns the message."""
         msg = self.msg
         st = msg.header.stamp
@@ -207,7 +208,8 @@ class ForwardCommandWriter:
         self.order = controller_order(joint_names, controller_joints)
         msg.data = [0.0] * len(self.order)
 
-    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float]):
+    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float],
+             ydd: Sequence[float] = ()):
         """Write the positions in the controller's order; returns the message."""
         data = self.msg.data
         for i, j in enumerate(self.order):
@@ -218,8 +220,8 @@ class ForwardCommandWriter:
 class JointTrajectoryWriter:
     """Fills one reused ``trajectory_msgs/JointTrajectory`` for a ros2_control
     ``joint_trajectory_controller``: one point per tick, ``time_from_start`` one period,
-    positions and velocities in the controller's joint order, the header stamp of the
-    reference.
+    positions, velocities and accelerations (those the published positions imply) in the
+    controller's joint order, the header stamp of the reference.
 
     Parameters
     ----------
@@ -243,22 +245,27 @@ class JointTrajectoryWriter:
         msg.header.frame_id = frame_id
         point.positions = [0.0] * n
         point.velocities = [0.0] * n
+        point.accelerations = [0.0] * n
         ns = int(round(period * 1e9))
         point.time_from_start.sec = ns // 1_000_000_000
         point.time_from_start.nanosec = ns % 1_000_000_000
         msg.points = [point]
         self.point = msg.points[0]
 
-    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float]):
+    def fill(self, stamp_ns: int, y: Sequence[float], yd: Sequence[float],
+             ydd: Sequence[float] = ()):
         """Write the stamp, positions and velocities; returns the message."""
         msg = self.msg
         st = msg.header.stamp
         st.sec = stamp_ns // 1_000_000_000
         st.nanosec = stamp_ns % 1_000_000_000
-        pos, vel = self.point.positions, self.point.velocities
+        pos, vel, acc = self.point.positions, self.point.velocities, self.point.accelerations
         for i, j in enumerate(self.order):
             pos[i] = y[j]
             vel[i] = yd[j]
+        if ydd:
+            for i, j in enumerate(self.order):
+                acc[i] = ydd[j]
         return msg
 
 

@@ -69,6 +69,7 @@ from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
 from cdmp_ros.ros.latest_worker import LatestWorker
+from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
 from cdmp_ros.ros.robot_model import (limits_source, load_collision_capsules,
@@ -100,9 +101,11 @@ class StreamerNode(Node):
         self.capsules = load_collision_capsules(cfg.urdf_path, cfg.coupling_capsule_links,
                                                 cfg.robot_description, self.chain)
         self.coupling = self._make_coupling(self.params.configs)
+        # position and velocity from the URDF, tighter-of-two with joint_limits.* parameters
+        self.limits = robot_limits(self, cfg.joint_names, self.chain, self.urdf_path)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
-            coupling=self.coupling if cfg.coupling_enabled else None)
+            coupling=self.coupling if cfg.coupling_enabled else None, limits=self.limits)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
@@ -113,6 +116,8 @@ class StreamerNode(Node):
                                               qos.COMMAND)
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
         self.reporter.values['limits_source'] = self.urdf_path
+        self.reporter.values['limits'] = self.limits.describe()
+        self.reporter.values['limits_sources'] = '; '.join(self.limits.sources)
         # the reporter's own lock: building and publishing diagnostics (milliseconds on a
         # loaded machine) must not hold the tick's lock; the tick's timings are ring-buffer
         # writes without a lock
@@ -142,7 +147,7 @@ class StreamerNode(Node):
                                    key=lambda request: request[0])
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
-                       'coupled': 0, 'coupling_bounded': 0}
+                       'coupled': 0, 'coupling_bounded': 0, 'output_limited': 0}
         self.active_text = None
         # which primitive is streamed (issue 13: deterministic restart) and the latency from
         # an adaptation's trigger stamp to the first reference computed from it
@@ -382,6 +387,8 @@ class StreamerNode(Node):
                 c['coupled'] += 1
             if flags & StreamFlags.COUPLING_BOUNDED:
                 c['coupling_bounded'] += 1
+            if flags & StreamFlags.LIMITED:
+                c['output_limited'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
     def _switch_in(self, topic: str, prepared, now: float) -> None:
@@ -432,9 +439,10 @@ class StreamerNode(Node):
         stamp = self.schedule.stamp_ns(self._pub_slot0 + i)
         if self._adapt_pending is not None:
             self._note_adapted_reference(stamp)
-        self.pub.publish(self.writer.fill(stamp, st.y, st.yd))
+        self.pub.publish(self.writer.fill(stamp, st.out_y, st.out_yd))
         if self.controller_pub is not None:  # the same reference, the controller's order
-            self.controller_pub.publish(self.controller_writer.fill(stamp, st.y, st.yd))
+            self.controller_pub.publish(self.controller_writer.fill(stamp, st.out_y, st.out_yd,
+                                                                    st.out_ydd))
         self.counts['published'] += 1
         if self._latency_pending_ns:
             lat = (self.get_clock().now().nanoseconds - self._latency_pending_ns) * 1e-6
@@ -454,7 +462,8 @@ class StreamerNode(Node):
             self.obstacles.expire(time.monotonic())
             self.streamer.obstacles = self.obstacles.snapshot.items
             latency = self._obstacle_latency.values()
-            counts = dict(self.counts, **self.schedule.counts)
+            counts = dict(self.counts, **self.schedule.counts,
+                          output_clamped=st.stage.clamped)
             state, reason, active = st.state, st.reason, st.active
             n_obstacles = len(self.obstacles)
             # the largest coupling asked for beyond the bound in this period (0: none)

@@ -42,6 +42,16 @@ class StreamerConfig:
         'reference; the difference fades out over this time [s] (quintic weight, as a coupling '
         'term: limits kept). 0: position and velocity continuous, the acceleration jumps.',
         0.0, 1.0)
+    output_stage: bool = _param(
+        True, 'Pass every published reference through the output stage: consecutive '
+        'positions differ within the velocity, acceleration and jerk limits (joint_limits.*) '
+        'and stop in time before the position limits; the published velocity is the '
+        "positions' difference. False: publish the primitive's reference as integrated "
+        '(for comparison only: a real arm may refuse it).')
+    output_bandwidth: float = _param(
+        30.0, 'Poles [1/s] of the output stage when it closes a gap to the reference (after '
+        'a bounded step, a start or a resume); a reference that keeps the limits is followed '
+        'exactly.', 1.0, 500.0)
     max_catch_up: int = _param(
         10, 'Integration steps made at most in one tick after a late timer callback.', 1, 1000)
     limit_margin: float = _param(

@@ -48,8 +48,14 @@ from cdmp_ros.core.kinematics.capsules import Capsule
 from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
 from cdmp_ros.core.streaming.config import StreamerConfig
+from cdmp_ros.core.streaming.output_stage import OutputStage
+from cdmp_ros.core.joint_limits import KinematicLimits
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
+
+
+#: Distance [rad or m] the output stage keeps from the position limits.
+STAGE_MARGIN = 1e-6
 
 
 def streamer_coupling(chain: Chain, config: StreamerConfig,
@@ -95,6 +101,7 @@ class StreamFlags(enum.IntFlag):
     VELOCITY_LIMITED = 8  #: the phase was slowed to respect velocity limits (stepper)
     COUPLING_REJECTED = 16  #: the coupling term was non-finite or failed and was dropped
     COUPLING_BOUNDED = 32   #: the coupling term was scaled down to coupling_max_acceleration
+    LIMITED = 64          #: the output stage bent the reference to keep the limits
 
 
 def _h(s: float) -> float:
@@ -196,6 +203,9 @@ class ReferenceStreamer:
     coupling : Coupling, optional
         Obstacle coupling (:class:`~cdmp_ros.core.coupling.contract.Coupling`), evaluated at
         the reference state for ``self.obstacles`` (not called while there is none).
+    limits : KinematicLimits, optional
+        The robot's velocity, acceleration and jerk limits (same joints) that the output stage
+        keeps; default none beyond the position limits.
 
     Attributes
     ----------
@@ -211,7 +221,8 @@ class ReferenceStreamer:
     """
 
     def __init__(self, lower: ArrayLike, upper: ArrayLike, config: StreamerConfig,
-                 coupling: Optional[Coupling] = None):
+                 coupling: Optional[Coupling] = None,
+                 limits: Optional[KinematicLimits] = None):
         self.config = config
         self.joint_names = list(config.joint_names)
         n = self.n_dims = len(self.joint_names)
@@ -243,6 +254,14 @@ class ReferenceStreamer:
         self._blended = [0.0] * n          # that plus the switch correction
         self._bounded = [0.0] * n          # the coupling as bounded (coupling_max_acceleration)
         self._zeros = (0.0,) * n
+        self.measured: Optional[List[float]] = None  # the last measured position
+        if limits is None:
+            limits = KinematicLimits.unlimited(self.joint_names, lo, hi)
+        self.limits = limits.subset(self.joint_names)
+        self.stage = OutputStage(lo, hi, self.limits.velocity, self.limits.acceleration,
+                                 self.limits.jerk, config.dt, config.output_bandwidth,
+                                 margin=STAGE_MARGIN)
+        self._bind_output()
 
     # -- configuration ------------------------------------------------------------------------
     def set_config(self, config: StreamerConfig) -> None:
@@ -253,6 +272,20 @@ class ReferenceStreamer:
         self.config = config
         self._goal_transform = TanhTransform(self.lower, self.upper,
                                              margin=config.limit_margin)
+        self.stage.bandwidth = config.output_bandwidth
+        self._bind_output()
+
+    def _bind_output(self) -> None:
+        """What is published: the output stage's state, or (``output_stage`` off) the
+        primitive's reference itself."""
+        if self.config.output_stage:
+            if self.out_y is self.y and self.state is not StreamState.WAITING:
+                self.stage.reset(self.y, self.yd, self.ydd)  # switched on while streaming
+            self.out_y, self.out_yd, self.out_ydd = self.stage.p, self.stage.v, self.stage.a
+        else:
+            self.out_y, self.out_yd, self.out_ydd = self.y, self.yd, self.ydd
+
+    out_y: List[float] = None  # set by _bind_output
 
     @property
     def dt(self) -> float:
@@ -266,8 +299,14 @@ class ReferenceStreamer:
     def note_joint_states(self, q: ArrayLike, now: float) -> None:
         """A valid measurement arrived (streamer order); the first one sets the reference."""
         self.last_measure = now
+        if self.measured is None:
+            self.measured = [0.0] * self.n_dims
+        m = self.measured
+        for d in range(self.n_dims):
+            m[d] = float(q[d])
         if self.state is StreamState.WAITING:
             self._set_reference(np.asarray(q, dtype=float), np.zeros(self.n_dims))
+            self.stage.reset(self.y)
             self.state = StreamState.HOLDING
             self.reason = 'holding the measured position: no primitive yet'
 
@@ -308,6 +347,7 @@ class ReferenceStreamer:
         self.active = prepared
         if self.state is StreamState.WAITING and self.config.joint_states_timeout == 0:
             self._set_reference(prepared.prim.start_y_, np.zeros(self.n_dims))
+            self.stage.reset(self.y)
             self.state = StreamState.HOLDING
         if self.state is StreamState.WAITING:
             return f'{prepared.source}: stored; waiting for joint_states to start'
@@ -328,9 +368,12 @@ class ReferenceStreamer:
         """Advance the reference by ``n_steps`` periods; returns :class:`StreamFlags` bits.
 
         ``on_step(i)``, if given, is called after each step (``i = 0 .. n_steps - 1``) with
-        ``y, yd`` already checked (the node publishes every step of a catch-up).
+        ``out_y, out_yd, out_ydd`` (what is published) already through the output stage (the
+        node publishes every step of a catch-up).
         Never raises on account of inputs: the stepper does not raise, the coupling callable is
-        guarded, and the guard keeps every position finite and inside the limits.
+        guarded, the guard keeps every position finite and inside the limits, and the output
+        stage keeps what is published inside the position, velocity, acceleration and jerk
+        limits.
         """
         state = self.state
         if state is StreamState.WAITING:
@@ -344,6 +387,7 @@ class ReferenceStreamer:
             self.reason = self._stale_reason(now)
         flags = 0
         dt = self.config.dt
+        stage_on = self.config.output_stage
         if self.state is StreamState.RUNNING and self.coupling is not None:
             # evaluated once per call (zero-order hold over catch-up steps), every
             # coupling_decimation calls
@@ -360,6 +404,8 @@ class ReferenceStreamer:
                     self._hold()
             self.steps += 1
             flags |= self._guard()
+            if stage_on and self.stage.update(self.y):
+                flags |= StreamFlags.LIMITED
             if on_step is not None:
                 on_step(i)
         return flags
@@ -387,8 +433,16 @@ class ReferenceStreamer:
 
     def _start_stepper(self, phase_u: float = 0.0) -> float:
         """Restart the active stepper at the current reference (at normalised time
-        ``phase_u``, see :meth:`activate`); returns the start clip [rad]."""
+        ``phase_u``, see :meth:`activate`); returns the start clip [rad].
+
+        From rest (``HOLDING``) with a measurement, the reference first moves to the measured
+        position: the motion starts where the arm is, not where it was held (the arm may
+        have been moved meanwhile); the output stage carries what is published there within
+        the limits."""
         prep = self.active
+        if self.state is StreamState.HOLDING and self.measured is not None:
+            self._set_reference(self.measured, self._zeros)
+            self.stage.retarget(self.y)
         prim = prep.prim
         goal = self.goal_override if self.goal_override is not None else prim.goal_y_
         y = np.asarray(self.y)

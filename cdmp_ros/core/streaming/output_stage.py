@@ -1,0 +1,314 @@
+"""The output stage: every published reference inside position, velocity, acceleration and jerk
+limits, as a robot's controller sees it (differences of consecutive commands on their stamps).
+
+:class:`OutputStage` follows a target position per tick (the primitive's reference) with a
+discrete triple integrator whose state *is* the published stream::
+
+    a_k = a_{k-1} + j_k dt,   v_k = v_{k-1} + a_k dt,   p_k = p_{k-1} + v_k dt
+
+so ``v_k = (p_k - p_{k-1}) / dt``, ``a_k`` and ``j_k`` are exactly the first, second and third
+backward differences of the published positions, and bounding ``j_k`` bounds all of them.
+Each tick the jerk is chosen in three steps:
+
+1. **Tracking** (the candidate): the target's own discrete differences are the feed-forward
+   (a target that respects the limits is reproduced exactly, with no lag); an error is closed
+   by a cascade of square-root controllers (position error -> velocity, velocity error ->
+   acceleration, each along the braking curve of the next limit; linear near zero, with
+   poles at ``-bandwidth``), so large errors are closed at the limits without overshoot.
+2. **Limits** as an interval of admissible jerks: ``|j| <= J``, ``|a| <= A``, the velocity
+   viability ``v + a|a| / 2J`` inside ``[-V, V]`` (the velocity still reachable once the
+   acceleration is ramped to zero), and the **braking-aware position guard**: after the tick,
+   a maximal brake (jerk ``-J`` to ``-A``, then ``-A`` until at rest) must stop before
+   ``upper - margin`` (and symmetrically before the lower limit). The brake's stopping
+   distance is the closed form of the continuous motion (:func:`brake_excursion`); the
+   discrete motion under the same jerk sequence stops no later (its velocity is a right
+   Riemann sum of a decreasing acceleration), so the bound is conservative on the grid.
+   The guard's jerk bound is found by bisection only when the candidate breaks it.
+3. A last clamp of the position into ``[lower, upper]``, which only a state made infeasible
+   from outside (limits tightened while moving) can reach; it is flagged ``CLAMPED``.
+
+Non-finite targets are held (the last target is kept). The tick works on Python floats in
+preallocated lists (7 joints: numpy call overhead would dominate), allocates nothing and never
+raises.
+"""
+import math
+from typing import List, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.validation import as_array, check_limits
+
+__all__ = ['OutputStage', 'brake_excursion', 'sqrt_controller', 'DEFAULT_BANDWIDTH']
+
+#: Poles of the tracking error's linear region [1/s] (time constant ~ 1 / bandwidth).
+DEFAULT_BANDWIDTH = 30.0
+#: Fraction of the acceleration and jerk limits the error loops plan with (the rest is left to
+#: the feed-forward of a target that accelerates itself).
+ERROR_AUTHORITY = 0.5
+#: Least fraction of the acceleration limit the position loop plans with (a target at its
+#: limit leaves nothing; the error must still close).
+MIN_AUTHORITY = 0.1
+#: Bisection steps of the position guard (the jerk interval shrinks 2^-k).
+GUARD_ITERATIONS = 24
+
+
+def sqrt_controller(x: float, k: float, limit: float) -> float:
+    """``k x`` near zero, ``sign(x) sqrt(2 limit (|x| - limit / 2k^2))`` beyond ``limit / k^2``.
+
+    The command that closes an error ``x`` along the braking curve of a second-order limit
+    (continuous in value and slope at the switch).
+    """
+    lin = limit / (k * k)
+    if x > lin:
+        return math.sqrt(2.0 * limit * (x - 0.5 * lin))
+    if x < -lin:
+        return -math.sqrt(2.0 * limit * (-x - 0.5 * lin))
+    return k * x
+
+
+def brake_excursion(v: float, a: float, amax: float, jmax: float) -> float:
+    """How far further forward (in ``+``) the motion goes under a maximal brake.
+
+    The brake: jerk ``-jmax`` until the acceleration is ``-amax``, then ``-amax``, until the
+    velocity is zero (continuous time, from velocity ``v`` and acceleration ``a``). Returns
+    ``max(0, position at rest - position now)``; for the ``-`` direction call it with
+    ``(-v, -a)``.
+    """
+    a = min(a, amax) if a > -amax else -amax
+    # the velocity under jerk -J: v + a t - J t^2 / 2; it is positive somewhere ahead only
+    # if the discriminant is positive
+    disc = a * a + 2.0 * jmax * v
+    if disc <= 0.0 or (v <= 0.0 and a <= 0.0):
+        return 0.0
+    t1 = (a + amax) / jmax  # acceleration reaches -amax
+    ts = (a + math.sqrt(disc)) / jmax  # velocity reaches zero under the ramp alone
+    if ts <= t1:
+        return max(0.0, ts * (v + ts * (0.5 * a - ts * jmax / 6.0)))
+    v1 = v + t1 * (a - 0.5 * jmax * t1)
+    x1 = t1 * (v + t1 * (0.5 * a - t1 * jmax / 6.0))
+    return max(0.0, x1 + 0.5 * v1 * v1 / amax)
+
+
+class OutputStage:
+    """Jerk-limited tracking of a target with a braking-aware position guard.
+
+    Parameters
+    ----------
+    lower, upper : array-like, shape (n_dims,)
+        Position limits; published positions stay inside ``[lower + margin, upper - margin]``.
+    max_velocity, max_acceleration, max_jerk : array-like, shape (n_dims,)
+        Positive limits; ``inf`` disables one (the jerk limit must be finite when the position
+        guard is to brake in time: an infinite jerk is treated as ``1e12``).
+    dt : float
+        Period of the published stream [s].
+    bandwidth : float
+        Poles of the tracking error [1/s].
+    margin : float
+        Distance [rad or m] kept from the position limits.
+
+    Attributes
+    ----------
+    p, v, a, j : list of float, length n_dims
+        The last published position and its first, second and third backward differences.
+    """
+
+    def __init__(self, lower: ArrayLike, upper: ArrayLike, max_velocity: ArrayLike,
+                 max_acceleration: ArrayLike, max_jerk: ArrayLike, dt: float,
+                 bandwidth: float = DEFAULT_BANDWIDTH, margin: float = 1e-6):
+        lo, hi = check_limits(lower, upper)
+        n = self.n_dims = lo.size
+        self.lower, self.upper = lo, hi
+        self.dt = float(dt)
+        if not (self.dt > 0.0 and math.isfinite(self.dt)):
+            raise ValidationError(f'dt: expected a positive period [s], got {dt!r}')
+        lims = []
+        for name, value in (('max_velocity', max_velocity),
+                            ('max_acceleration', max_acceleration), ('max_jerk', max_jerk)):
+            arr = as_array(name, value, (n,), finite=False)
+            if not np.all(arr > 0.0) or np.any(np.isnan(arr)):
+                raise ValidationError(f'{name}: expected positive limits, got {arr.tolist()}')
+            lims.append(np.minimum(arr, 1e12))
+        self.max_velocity, self.max_acceleration, self.max_jerk = lims
+        if not (bandwidth > 0.0 and math.isfinite(bandwidth)):
+            raise ValidationError(f'bandwidth: expected a positive rate [1/s], got {bandwidth!r}')
+        self.bandwidth = float(bandwidth)
+        half = 0.5 * (hi - lo)
+        if not (0.0 <= margin < float(np.min(half))):
+            raise ValidationError(f'margin: expected 0 <= margin < half the smallest range '
+                                  f'{float(np.min(half)):.6g}, got {margin!r}')
+        self._lo = lo.tolist()
+        self._hi = hi.tolist()
+        self._glo = (lo + margin).tolist()
+        self._ghi = (hi - margin).tolist()
+        self._V, self._A, self._J = (x.tolist() for x in lims)
+        self.p = [0.0] * n
+        self.v = [0.0] * n
+        self.a = [0.0] * n
+        self.j = [0.0] * n
+        # the target's last position and its differences (feed-forward)
+        self._r = [0.0] * n
+        self._rv = [0.0] * n
+        self._ra = [0.0] * n
+        self.clamped = 0   # ticks on which the last clamp acted (a state made infeasible)
+        self.limited = 0   # ticks on which the limits changed the tracking jerk
+
+    # -- state ------------------------------------------------------------------------------
+    def reset(self, p: Sequence[float], v: Sequence[float] = (), a: Sequence[float] = ()
+              ) -> None:
+        """Start at position ``p`` (clipped into the guarded limits), with velocity ``v`` and
+        acceleration ``a`` (default rest); the target starts there too."""
+        n = self.n_dims
+        for d in range(n):
+            x = float(p[d])
+            if not math.isfinite(x):
+                x = 0.5 * (self._lo[d] + self._hi[d])
+            self.p[d] = min(max(x, self._glo[d]), self._ghi[d])
+            self.v[d] = float(v[d]) if len(v) == n and math.isfinite(v[d]) else 0.0
+            self.a[d] = float(a[d]) if len(a) == n and math.isfinite(a[d]) else 0.0
+            self.j[d] = 0.0
+            self._r[d] = self.p[d]
+            self._rv[d] = self.v[d]
+            self._ra[d] = self.a[d]
+
+    def retarget(self, r: Sequence[float]) -> None:
+        """The target continues from ``r`` at rest (a target that jumps by design, such as a
+        primitive restarted at the measured position): its first step then differs by the
+        target's own motion only, not by the jump."""
+        for d in range(self.n_dims):
+            x = float(r[d])
+            if math.isfinite(x):
+                self._r[d] = x
+                self._rv[d] = 0.0
+                self._ra[d] = 0.0
+
+    @property
+    def position(self) -> NDArray[np.float64]:
+        return np.array(self.p)
+
+    # -- the tick ---------------------------------------------------------------------------
+    def update(self, target: Sequence[float]) -> int:
+        """One period: move toward ``target`` (length n_dims); returns the number of joints on
+        which the limits changed the tracking jerk (0: the target was followed as planned).
+
+        Never raises; non-finite targets hold the last one.
+        """
+        dt = self.dt
+        inv = 1.0 / dt
+        k_v = 2.0 * self.bandwidth   # velocity loop; position loop k_v / 4: critical damping
+        k_p = 0.25 * k_v
+        limited = 0
+        p, v, a, jj = self.p, self.v, self.a, self.j
+        R, RV, RA = self._r, self._rv, self._ra
+        for d in range(self.n_dims):
+            r = target[d]
+            if not math.isfinite(r):
+                r = R[d]
+            pd, vd, ad = p[d], v[d], a[d]
+            # the error of the last tick (published minus target)
+            ep, ev = pd - R[d], vd - RV[d]
+            rv = (r - R[d]) * inv
+            ra = (rv - RV[d]) * inv
+            R[d], RV[d], RA[d] = r, rv, ra
+            V, A, J = self._V[d], self._A[d], self._J[d]
+            # 1. tracking: feed-forward of the target's acceleration, cascade on the error
+            # the error loops plan with what the target's own acceleration leaves
+            a_err = max(ERROR_AUTHORITY * min(A, A - abs(ra)), MIN_AUTHORITY * A)
+            ev_des = -sqrt_controller(ep + ev * dt, k_p, a_err)
+            ea_des = sqrt_controller(ev_des - ev, k_v, ERROR_AUTHORITY * J)
+            a_des = ra + ea_des
+            j = (a_des - ad) * inv
+            if not math.isfinite(j):
+                j = 0.0
+            # 2. the admissible interval of jerks
+            jlo, jhi = -J, J
+            x_lo, x_hi = (-A - ad) * inv, (A - ad) * inv  # acceleration
+            jlo, jhi = _intersect(jlo, jhi, x_lo, x_hi)
+            # velocity viability: a_next within [amin_v, amax_v]
+            room = V - vd
+            amax_v = (room * inv if room <= 0.0
+                      else -J * dt + math.sqrt(J * J * dt * dt + 2.0 * J * room))
+            room = V + vd
+            amin_v = (-room * inv if room <= 0.0
+                      else J * dt - math.sqrt(J * J * dt * dt + 2.0 * J * room))
+            jlo, jhi = _intersect(jlo, jhi, (amin_v - ad) * inv, (amax_v - ad) * inv)
+            # braking-aware position guard (only evaluated where it can bind)
+            jhi2 = self._guard_high(d, pd, vd, ad, jlo, jhi)
+            jlo2 = self._guard_low(d, pd, vd, ad, jlo, jhi)
+            if jlo2 <= jhi2:
+                jlo, jhi = jlo2, jhi2
+            else:  # cannot honour both: brake toward the nearer limit
+                jlo = jhi = jhi2 if vd > 0.0 else jlo2
+            jc = jhi if j > jhi else (jlo if j < jlo else j)
+            if jc != j:
+                limited += 1
+            ad = ad + jc * dt
+            vd = vd + ad * dt
+            pn = pd + vd * dt
+            # 3. the last clamp (only a state made infeasible from outside reaches it)
+            if not self._lo[d] < pn < self._hi[d] or not math.isfinite(pn):
+                self.clamped += 1
+                pn = min(max(pn, self._glo[d]), self._ghi[d]) if math.isfinite(pn) else pd
+                vd = (pn - pd) * inv
+                ad = (vd - v[d]) * inv
+                jc = (ad - a[d]) * inv
+            p[d], v[d], a[d], jj[d] = pn, vd, ad, jc
+        if limited:
+            self.limited += 1
+        return limited
+
+    def _next_excess_high(self, d: int, pd: float, vd: float, ad: float, j: float) -> float:
+        """How far the brake after a tick with jerk ``j`` would end beyond the upper guard."""
+        dt = self.dt
+        an = ad + j * dt
+        vn = vd + an * dt
+        return pd + vn * dt + brake_excursion(vn, an, self._A[d], self._J[d]) - self._ghi[d]
+
+    def _next_excess_low(self, d: int, pd: float, vd: float, ad: float, j: float) -> float:
+        dt = self.dt
+        an = ad + j * dt
+        vn = vd + an * dt
+        return self._glo[d] - (pd + vn * dt - brake_excursion(-vn, -an, self._A[d],
+                                                              self._J[d]))
+
+    def _guard_high(self, d, pd, vd, ad, jlo, jhi) -> float:
+        """The largest jerk in ``[jlo, jhi]`` after which the brake stops below the upper
+        guard (``jlo`` if none does: the strongest brake available)."""
+        if self._next_excess_high(d, pd, vd, ad, jhi) <= 0.0:
+            return jhi
+        if self._next_excess_high(d, pd, vd, ad, jlo) > 0.0:
+            return jlo
+        lo_, hi_ = jlo, jhi   # excess(lo_) <= 0 < excess(hi_): increasing in j
+        for _ in range(GUARD_ITERATIONS):
+            mid = 0.5 * (lo_ + hi_)
+            if self._next_excess_high(d, pd, vd, ad, mid) <= 0.0:
+                lo_ = mid
+            else:
+                hi_ = mid
+        return lo_
+
+    def _guard_low(self, d, pd, vd, ad, jlo, jhi) -> float:
+        """The smallest jerk in ``[jlo, jhi]`` after which the brake stops above the lower
+        guard (``jhi`` if none does)."""
+        if self._next_excess_low(d, pd, vd, ad, jlo) <= 0.0:
+            return jlo
+        if self._next_excess_low(d, pd, vd, ad, jhi) > 0.0:
+            return jhi
+        lo_, hi_ = jlo, jhi   # excess(hi_) <= 0 < excess(lo_): decreasing in j
+        for _ in range(GUARD_ITERATIONS):
+            mid = 0.5 * (lo_ + hi_)
+            if self._next_excess_low(d, pd, vd, ad, mid) <= 0.0:
+                hi_ = mid
+            else:
+                lo_ = mid
+        return hi_
+
+
+def _intersect(lo: float, hi: float, lo2: float, hi2: float):
+    """``[lo, hi] & [lo2, hi2]``; if empty, the end of ``[lo, hi]`` nearest the second."""
+    nlo, nhi = max(lo, lo2), min(hi, hi2)
+    if nlo <= nhi:
+        return nlo, nhi
+    x = hi if hi2 > hi else lo   # the second lies entirely above or below
+    return x, x
