@@ -218,7 +218,8 @@ class KinematicLimits:
         def fmt(arr):
             return '[' + ', '.join('none' if not np.isfinite(x) else f'{x:.6g}'
                                    for x in arr) + ']'
-        return (f'position [{", ".join(f"{lo:.4g}..{hi:.4g}" for lo, hi in zip(self.lower, self.upper))}]'
+        pos = ', '.join(f'{lo:.4g}..{hi:.4g}' for lo, hi in zip(self.lower, self.upper))
+        return (f'position [{pos}]'
                 f'; velocity {fmt(self.velocity)}; acceleration {fmt(self.acceleration)}'
                 f'; jerk {fmt(self.jerk)}')
 

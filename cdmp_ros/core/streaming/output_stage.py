@@ -32,7 +32,7 @@ preallocated lists (7 joints: numpy call overhead would dominate), allocates not
 raises.
 """
 import math
-from typing import List, Sequence
+from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
