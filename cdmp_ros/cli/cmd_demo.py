@@ -47,6 +47,13 @@ def run(args):
         bad.append('a reference left the joint limits')
     if not s['limit_violations'] == 0 or not s['max_limit_excess_rad'] <= LIMIT_TOLERANCE:
         bad.append(f'a joint left its limits by more than {LIMIT_TOLERANCE} rad')
+    kin = s['kinematic_limits']
+    for order in ('velocity', 'acceleration', 'jerk'):
+        if kin[order]['over']:
+            bad.append(f'{kin[order]["over"]} references broke the {order} limit (worst '
+                       f'{kin[order]["worst_ratio"]:.2f} x the limit)')
+    if s['reflex_errors'] > 0:  # NaN (not reported) passes: the sim may predate the check
+        bad.append(f'the sim counted {s["reflex_errors"]:.0f} reflex errors')
     if math.isnan(s['min_obstacle_distance_m']) or s['min_obstacle_distance_m'] <= 0.0:
         bad.append('the robot touched the obstacle (or the distance is unknown)')
     if args.kind == 'promp' and not s['promp']['adaptations']:

@@ -23,7 +23,12 @@ Figures and where they come from:
   the dropped obstacle's messages (its diagnostics);
 - ``tracking_error_rad``: largest |reference - measured| joint error at the ``joint_states``
   samples (reference = the latest one before each sample), from the bag;
-- ``messages_recorded``: messages in the bag (verified, every CRC).
+- ``messages_recorded``: messages in the bag (verified, every CRC);
+- ``kinematic_limits``: the ``joint_reference`` stream as the robot's controller sees it,
+  differenced on its header stamps (:func:`cdmp_ros.core.run_metrics.kinematic_report`):
+  per order (velocity, acceleration, jerk) the references over the Panda's limits by more
+  than 2 % and the worst ratio to the limit; ``reflex_errors``: the sim's count of received
+  references that broke a limit (what would stop a real Panda).
 """
 import json
 import os
@@ -40,7 +45,8 @@ from cdmp_ros.bag.cdr import decode_joint_state
 from cdmp_ros.cli.cmd_bringup import (Bringup, Terminated, load_graph, package_config_dir,
                                       signal_flag)
 from cdmp_ros.core.errors import CdmpError
-from cdmp_ros.core.run_metrics import tracking_error
+from cdmp_ros.core.joint_limits import shipped_limits
+from cdmp_ros.core.run_metrics import kinematic_report, tracking_error
 from cdmp_ros.core.dmp.dmp import limit_usage
 
 #: What the learner fits: ``cdmp`` (obstacle drop and goal change) or ``promp`` (constrained
@@ -51,7 +57,9 @@ RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primit
             '/adapted_primitive', '/ee_pose', '/diagnostics', '/visualization']
 
 
-def _joint_arrays(bag: str, topic: str):
+def _joint_arrays(bag: str, topic: str, header_stamps: bool = False):
+    """Times [s] (receipt, or with ``header_stamps`` the messages' own stamps [ns]),
+    positions and joint names of a JointState topic, in time order."""
     T, Q, names = [], [], None
     for m in BagReader(bag).messages([topic]):
         js = decode_joint_state(m.data)
@@ -64,7 +72,7 @@ def _joint_arrays(bag: str, topic: str):
             pos = js.position[idx]
         else:
             pos = js.position
-        T.append(m.log_time * 1e-9)
+        T.append(js.stamp_ns if header_stamps else m.log_time * 1e-9)
         Q.append(pos)
     if not T:
         raise CdmpError(f'{bag}: no {topic} messages were recorded')
@@ -86,8 +94,10 @@ def _status(diag: Dict, prefix: str) -> Dict[str, str]:
     return {}
 
 
-def summarise(out: str, bag: str, driver: Dict, lower, upper) -> Dict:
-    """The summary dict (see the module docstring)."""
+def summarise(out: str, bag: str, driver: Dict, lower, upper, limits) -> Dict:
+    """The summary dict (see the module docstring); ``limits`` the robot's
+    :class:`~cdmp_ros.core.joint_limits.KinematicLimits`."""
+    lower, upper = limits.lower, limits.upper
     info = bag_info(bag)
     T_ref, Q_ref, _ = _joint_arrays(bag, '/joint_reference')
     T, Q, names = _joint_arrays(bag, '/joint_states')
@@ -95,7 +105,12 @@ def summarise(out: str, bag: str, driver: Dict, lower, upper) -> Dict:
     sim = _status(driver.get('diagnostics', {}), 'sim')
     streamer = _status(driver.get('diagnostics', {}), 'streamer')
     counts = {t['name']: t['count'] for t in info['topics']}
+    # the references as the robot's controller sees them: differenced on their own stamps
+    S_ref, Q_stamped, ref_names = _joint_arrays(bag, '/joint_reference', header_stamps=True)
+    kin = kinematic_report(S_ref, Q_stamped, limits.subset(ref_names))
     return {
+        'kinematic_limits': kin,
+        'reflex_errors': _float(sim, 'reflex_errors'),
         'min_obstacle_distance_m': _float(sim, 'min_obstacle_distance_since_start_m'),
         'closest_pair': sim.get('closest_pair_since_start', ''),
         'contacts': _float(sim, 'contacts_since_start'),
@@ -182,6 +197,12 @@ def markdown(s: Dict) -> str:
             ('tracking error max / rms', f'{s["tracking_error_rad"]:.4f} / '
                                          f'{s["tracking_error_rms_rad"]:.4f} rad'),
             ('reference rate', f'{s["reference_rate_hz"]:.1f} Hz'),
+            ('worst velocity / acceleration / jerk of the references, to the limit',
+             ' / '.join(f'{s["kinematic_limits"][k]["worst_ratio"]:.3f}'
+                        for k in ('velocity', 'acceleration', 'jerk'))
+             + f' ({s["kinematic_limits"]["samples"]} references, differenced on their '
+               'stamps)'),
+            ('reflex errors (sim)', f'{s["reflex_errors"]:.0f}'),
             ('messages recorded', f'{s["messages_recorded"]}'),
             ('bag', s['bag'])]
     p = s.get('promp')
@@ -293,7 +314,9 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
     with open(os.path.join(out, 'driver.json')) as f:
         drv = json.load(f)
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
-    summary = summarise(out, bag, drv, chain.lower, chain.upper)
+    limits = shipped_limits(chain.joint_names, chain.lower, chain.upper,
+                            chain.velocity_limits, 'urdf panda.urdf')
+    summary = summarise(out, bag, drv, chain.lower, chain.upper, limits)
     summary['kind'] = kind
     summary['wall_time_s'] = time.monotonic() - t_start
     summary['node_exit_codes'] = codes

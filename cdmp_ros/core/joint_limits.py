@@ -20,7 +20,7 @@ from cdmp_ros.core.validation import check_limits
 
 __all__ = ['LimitMismatch', 'merge_limits', 'describe_mismatches', 'KinematicLimits',
            'parse_joint_limits', 'joint_limits_entries', 'panda_limits', 'PANDA_DATASHEET',
-           'default_joint_limits']
+           'default_joint_limits', 'shipped_limits']
 
 #: Bounds closer than this [rad or m] are equal (URDF files round to 4 decimals).
 LIMIT_TOLERANCE = 1e-9
@@ -347,3 +347,18 @@ def default_joint_limits(joint_names: Sequence[str]) -> Dict[str, Dict[str, Any]
                          'max_acceleration': PLANAR_ACCELERATION,
                          'has_jerk_limits': True, 'max_jerk': PLANAR_JERK}
     return out
+
+
+def shipped_limits(joint_names: Sequence[str], lower: ArrayLike, upper: ArrayLike,
+                   velocity: Optional[ArrayLike], source: str,
+                   entries: Optional[Mapping[str, Mapping[str, Any]]] = None
+                   ) -> KinematicLimits:
+    """The limits a node runs with: the URDF's position and velocity (named ``source``)
+    merged tighter-of-two with ``joint_limits`` entries (default: the shipped ones of
+    :func:`default_joint_limits`)."""
+    urdf = KinematicLimits.unlimited(joint_names, lower, upper, velocity, source=source)
+    if entries is None:
+        entries, what = default_joint_limits(joint_names), 'shipped joint_limits'
+    else:
+        what = 'joint_limits parameters'
+    return urdf.merged(parse_joint_limits(joint_names, entries, lower, upper, source=what))

@@ -116,3 +116,79 @@ def percentiles(samples: Sequence[float], qs=(50.0, 99.0)) -> Dict[str, float]:
     if x.size == 0:
         return {f'p{q:g}': float('nan') for q in qs}
     return {f'p{q:g}': float(v) for q, v in zip(qs, np.percentile(x, qs))}
+
+
+#: Relative slack of :func:`kinematic_report` (rounding of stamps and positions).
+KINEMATIC_TOLERANCE = 0.02
+
+
+def stamped_differences(stamps_ns: ArrayLike, Q: ArrayLike):
+    """Velocity, acceleration and jerk of a stream as a controller sees it: divided
+    differences of consecutive positions on their own stamps (each difference sits at the
+    midpoint of the samples it spans, so uneven gaps are differentiated correctly; on an exact
+    grid these are the backward differences divided by ``dt^k``).
+
+    Parameters
+    ----------
+    stamps_ns : array-like, shape (n,)
+        Strictly increasing stamps [ns].
+    Q : array-like, shape (n, n_dims)
+
+    Returns
+    -------
+    V, A, J : ndarray, shapes (n-1, n_dims), (n-2, n_dims), (n-3, n_dims)
+
+    Raises
+    ------
+    ValidationError
+        Shapes differ, or the stamps do not increase strictly.
+    """
+    raw = np.asarray(stamps_ns)
+    if raw.ndim != 1:
+        raise ValidationError(f'stamps_ns: expected shape (*,), got {raw.shape}')
+    # relative to the first stamp in integer nanoseconds: epoch seconds in float64 resolve
+    # only ~0.2 us, which reads as 1e-4 of a 2 ms period in the differences
+    t = (raw.astype(np.int64) - (int(raw[0]) if raw.size else 0)) * 1e-9
+    Q = as_array('Q', Q, (t.size, None))
+    if t.size > 1 and not np.all(np.diff(t) > 0.0):
+        k = int(np.flatnonzero(np.diff(t) <= 0.0)[0])
+        raise ValidationError(f'stamps_ns: expected strictly increasing stamps, got '
+                              f'{stamps_ns[k]} then {stamps_ns[k + 1]} at index {k}')
+    out, x, m = [], Q, t
+    for _ in range(3):
+        if x.shape[0] < 2:
+            out.append(np.zeros((0, Q.shape[1])))
+            continue
+        dm = np.diff(m)
+        x = np.diff(x, axis=0) / dm[:, None]
+        m = 0.5 * (m[1:] + m[:-1])
+        out.append(x)
+    return out[0], out[1], out[2]
+
+
+def kinematic_report(stamps_ns: ArrayLike, Q: ArrayLike, limits,
+                     tolerance: float = KINEMATIC_TOLERANCE) -> Dict:
+    """Per order (velocity, acceleration, jerk): the samples over the limit by more than
+    ``tolerance`` and the worst ratio to the limit, of a stream differenced on its stamps
+    (:func:`stamped_differences`); and the positions outside ``[lower, upper]``.
+
+    ``limits`` is a :class:`~cdmp_ros.core.joint_limits.KinematicLimits` in the order of the
+    columns of ``Q``. Returns ``{'velocity': {'over': int, 'worst_ratio': float}, ...,
+    'position_outside': int, 'samples': int, 'ok': bool}``.
+    """
+    V, A, J = stamped_differences(stamps_ns, Q)
+    Q = np.asarray(Q, dtype=float)
+    rep: Dict = {'samples': int(Q.shape[0])}
+    ok = True
+    for name, X, lim in (('velocity', V, limits.velocity), ('acceleration', A,
+                                                            limits.acceleration),
+                         ('jerk', J, limits.jerk)):
+        r = np.abs(X) / lim if X.size else np.zeros((0, Q.shape[1]))
+        worst = float(r.max()) if r.size else 0.0
+        over = int(np.count_nonzero(np.any(r > 1.0 + tolerance, axis=1)))
+        rep[name] = {'over': over, 'worst_ratio': worst}
+        ok &= over == 0
+    outside = int(np.count_nonzero(np.any((Q <= limits.lower) | (Q >= limits.upper), axis=1)))
+    rep['position_outside'] = outside
+    rep['ok'] = bool(ok and outside == 0)
+    return rep

@@ -8,7 +8,7 @@ from rclpy.exceptions import ParameterException
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.joint_limits import (USED_KEYS, KinematicLimits, default_joint_limits,
-                                        parse_joint_limits)
+                                        shipped_limits)
 
 _DESCRIPTIONS = {
     'has_position_limits': 'Use min_position/max_position (tighter-of-two with the URDF).',
@@ -60,8 +60,5 @@ def robot_limits(node, joint_names: Sequence[str], chain, source: str) -> Kinema
     ValidationError
         A parameter of the wrong type or value, naming it.
     """
-    urdf = KinematicLimits.unlimited(joint_names, chain.lower, chain.upper,
-                                     chain.velocity_limits, source=f'urdf {source}')
-    params = parse_joint_limits(joint_names, declare_joint_limits(node, joint_names),
-                                chain.lower, chain.upper, source='joint_limits parameters')
-    return urdf.merged(params)
+    return shipped_limits(joint_names, chain.lower, chain.upper, chain.velocity_limits,
+                          f'urdf {source}', declare_joint_limits(node, joint_names))
