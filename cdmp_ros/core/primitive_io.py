@@ -14,7 +14,8 @@ import numpy as np
 
 from cdmp_ros.core.dmp.basis import PhaseBasis
 from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
-from cdmp_ros.core.errors import PrimitiveFileError
+from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
+from cdmp_ros.core.joint_limits import parse_joint_limits
 from cdmp_ros.core.file_checks import check_document, field_path
 from cdmp_ros.core.resources import load_schema
 
@@ -121,6 +122,8 @@ def validate_primitive_dict(d: Any) -> None:
                                          f'primitive.limits.lower[{i}] = {a!r}, got {b!r}')
     if 'velocity_limits' in d:
         _len(['velocity_limits'], d['velocity_limits'], n, per_joint)
+    if 'joint_limits' in d:
+        primitive_kinematic_limits(d)
     if d['kind'] in ('dmp', 'cdmp'):
         nb = len(d['basis']['centers'])
         per_kernel = 'values (len(primitive.basis.centers))'
@@ -182,6 +185,8 @@ def primitive_to_dict(prim) -> Dict[str, Any]:
     """Serialise a fitted DMP, CDMP or ProMP to a schema-valid dict."""
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': prim.kind,
                          'joint_names': list(prim.joint_names), 'n_dims': prim.n_dims}
+    if getattr(prim, 'joint_limits', None):
+        d['joint_limits'] = prim.joint_limits
     if prim.kind == 'promp':
         from cdmp_ros.core.promp.primitive_file import promp_to_dict
         body = promp_to_dict(prim)
@@ -209,12 +214,38 @@ def primitive_to_dict(prim) -> Dict[str, Any]:
     return d
 
 
+def primitive_kinematic_limits(d: Dict[str, Any]):
+    """The ``joint_limits`` of a primitive dict as
+    :class:`~cdmp_ros.core.joint_limits.KinematicLimits` in its joint order (position limits:
+    its ``limits``, else unbounded), or None without them.
+
+    Raises
+    ------
+    PrimitiveFileError
+        Entries for other joints, unknown keys, or values of the wrong kind (naming them).
+    """
+    if 'joint_limits' not in d:
+        return None
+    names = d['joint_names']
+    n = len(names)
+    lim = d.get('limits') or {}
+    lo = lim.get('lower', [-1e300] * n)
+    hi = lim.get('upper', [1e300] * n)
+    try:
+        return parse_joint_limits(names, d['joint_limits'], lo, hi, source='primitive')
+    except ValidationError as exc:
+        raise PrimitiveFileError(f'primitive.{exc}') from None
+
+
 def primitive_from_dict(d: Any):
     """Build a DMP, CDMP or ProMP from a dict; raises :class:`PrimitiveFileError`."""
     validate_primitive_dict(d)
     if d['kind'] == 'promp':
         from cdmp_ros.core.promp.primitive_file import promp_from_validated
-        return promp_from_validated(d)
+        prim = promp_from_validated(d)
+        if 'joint_limits' in d:
+            prim.joint_limits = d['joint_limits']
+        return prim
     dm = d['dmp']
     try:
         cfg = DmpConfig(n_weights_per_dim=len(d['basis']['centers']),
@@ -235,6 +266,8 @@ def primitive_from_dict(d: Any):
         raise PrimitiveFileError(f'primitive: {exc}') from None
     if 'velocity_limits' in d:
         prim.velocity_limits = np.asarray(d['velocity_limits'], dtype=float)
+    if 'joint_limits' in d:
+        prim.joint_limits = d['joint_limits']
     if 'metadata' in d:
         prim.metadata = d['metadata']
     return prim

@@ -154,6 +154,23 @@ class OutputStage:
         self.clamped = 0   # ticks on which the last clamp acted (a state made infeasible)
         self.limited = 0   # ticks on which the limits changed the tracking jerk
 
+    def set_limits(self, max_velocity: Sequence[float], max_acceleration: Sequence[float],
+                   max_jerk: Sequence[float]) -> None:
+        """New velocity, acceleration and jerk limits (positive; ``inf``: none), from the
+        next tick on. A state beyond the new limits is brought inside at the jerk limit (the
+        admissible interval is then the nearest bound, never a jump)."""
+        for name, arr in (('max_velocity', max_velocity),
+                          ('max_acceleration', max_acceleration), ('max_jerk', max_jerk)):
+            if len(arr) != self.n_dims or not all(x > 0.0 for x in arr):
+                raise ValidationError(f'{name}: expected {self.n_dims} positive limits, got '
+                                      f'{list(arr)}')
+        self._V = [min(float(x), 1e12) for x in max_velocity]
+        self._A = [min(float(x), 1e12) for x in max_acceleration]
+        self._J = [min(float(x), 1e12) for x in max_jerk]
+        self.max_velocity = np.array(self._V)
+        self.max_acceleration = np.array(self._A)
+        self.max_jerk = np.array(self._J)
+
     # -- state ------------------------------------------------------------------------------
     def reset(self, p: Sequence[float], v: Sequence[float] = (), a: Sequence[float] = ()
               ) -> None:

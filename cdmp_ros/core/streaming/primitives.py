@@ -17,7 +17,8 @@ from numpy.typing import ArrayLike, NDArray
 from cdmp_ros.core.dmp.dmp import CDMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import LimitMismatch, describe_mismatches, merge_limits
-from cdmp_ros.core.primitive_io import primitive_from_dict, validate_primitive_dict
+from cdmp_ros.core.primitive_io import (primitive_from_dict, primitive_kinematic_limits,
+                                        validate_primitive_dict)
 from cdmp_ros.core.dmp.stepper import DmpStepper
 from cdmp_ros.core.streaming.selection import primitive_id
 from cdmp_ros.core.validation import check_limits
@@ -53,6 +54,9 @@ class PreparedPrimitive:
     provenance : Provenance or None
         Of an adapted primitive (set by the streamer from ``metadata``; see
         :mod:`cdmp_ros.core.streaming.selection`).
+    kinematic : KinematicLimits or None
+        The primitive's own ``joint_limits`` (streamer order), merged by the streamer with
+        the robot's while it runs.
     """
 
     prim: Any
@@ -64,6 +68,7 @@ class PreparedPrimitive:
     content_id: str = ''
     metadata: Dict[str, Any] = field(default_factory=dict)
     provenance: Any = None
+    kinematic: Any = None
 
     @property
     def goal_y(self) -> NDArray[np.float64]:
@@ -210,6 +215,10 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
     except (ValueError, TypeError, KeyError, np.linalg.LinAlgError) as exc:
         raise PrimitiveFileError(f'{source}: cannot be streamed: {exc}') from None
     meta = d.get('metadata')
+    kinematic = primitive_kinematic_limits(d)
+    if kinematic is not None:
+        kinematic = kinematic.subset(joint_names)
+        notes.append("joint_limits of the primitive merged with the robot's")
     return PreparedPrimitive(prim, stepper, d['kind'], source, notes, mismatches,
                              '' if isinstance(payload, dict) else primitive_id(payload),
-                             meta if isinstance(meta, dict) else {})
+                             meta if isinstance(meta, dict) else {}, kinematic=kinematic)

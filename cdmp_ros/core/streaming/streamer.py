@@ -258,6 +258,7 @@ class ReferenceStreamer:
         if limits is None:
             limits = KinematicLimits.unlimited(self.joint_names, lo, hi)
         self.limits = limits.subset(self.joint_names)
+        self.active_limits = self.limits  # with the active primitive's own joint_limits
         self.stage = OutputStage(lo, hi, self.limits.velocity, self.limits.acceleration,
                                  self.limits.jerk, config.dt, config.output_bandwidth,
                                  margin=STAGE_MARGIN)
@@ -345,6 +346,7 @@ class ReferenceStreamer:
             # not running (stopping, holding): the motion restarts at phase 0
             phase = float(self._last.stepper.output.u)
         self.active = prepared
+        self._apply_limits(prepared)
         if self.state is StreamState.WAITING and self.config.joint_states_timeout == 0:
             self._set_reference(prepared.prim.start_y_, np.zeros(self.n_dims))
             self.stage.reset(self.y)
@@ -361,6 +363,15 @@ class ReferenceStreamer:
                     + (f' (start clipped by {jump:.3g} rad to the primitive limits)'
                        if jump > 1e-9 else ''))
         return f'{prepared.source}: stored; inputs stale ({self.reason})'
+
+    def _apply_limits(self, prepared: PreparedPrimitive) -> None:
+        """The output stage keeps the robot's limits, merged with the primitive's own
+        ``joint_limits`` while it is the active one (the tighter of the two)."""
+        lim = self.limits if prepared.kinematic is None else self.limits.merged(
+            prepared.kinematic)
+        self.active_limits = lim
+        self.stage.set_limits(lim.velocity.tolist(), lim.acceleration.tolist(),
+                              lim.jerk.tolist())
 
     # -- the tick -----------------------------------------------------------------------------
     def advance(self, n_steps: int, now: float,
