@@ -28,6 +28,9 @@ def add_arguments(parser):
                         help='drop (default): the sphere falls onto the path; cross: it moves '
                              'horizontally across the path at 0.2 m/s, published at 30 Hz '
                              '(the adapter keeps up: the latest obstacle wins)')
+    parser.add_argument('--rate', type=float, default=None,
+                        help="the streamer's rate [Hz] (default: the graph's, 500; 1000 "
+                             'supported)')
     parser.add_argument('--graph', default=None,
                         help='graph file to start instead of config/graphs/demo.yaml')
 
@@ -37,7 +40,8 @@ def run(args):
     import math
     from cdmp_ros.cli.demo_run import markdown, run_demo
     s = run_demo(args.out, timeout=args.timeout, graph_file=args.graph, kind=args.kind,
-                 driver_args=['--motion', args.motion])
+                 driver_args=['--motion', args.motion],
+                 streamer_parameters={'rate': args.rate} if args.rate else None)
     print()
     print(markdown(s))
     print(f'wall time {s["wall_time_s"]:.1f} s; summary: {args.out}/summary.json, plots: '

@@ -236,12 +236,14 @@ def demo_environment() -> Dict[str, str]:
 
 
 def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
-             driver_args: List[str] = (), log=None, kind: str = 'cdmp') -> Dict:
+             driver_args: List[str] = (), log=None, kind: str = 'cdmp',
+             streamer_parameters: Dict = None) -> Dict:
     """Run the demo; return the summary (also written to ``out``).
 
     ``kind``: ``cdmp`` (the learner fits a CDMP; obstacle drop, then a goal change) or
     ``promp`` (the learner fits a ProMP, every obstacle message triggers a constrained
-    adaptation that the streamer follows; :mod:`cdmp_ros.cli.demo_promp`)."""
+    adaptation that the streamer follows; :mod:`cdmp_ros.cli.demo_promp`).
+    ``streamer_parameters``: more parameters of the streamer (e.g. ``{'rate': 1000.0}``)."""
     if kind not in KINDS:
         raise CdmpError(f'demo: kind: expected one of {list(KINDS)}, got {kind!r}')
     from cdmp_ros.core.kinematics import panda_chain
@@ -263,6 +265,8 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
         # the robot executes only adapted trajectories: it starts with the adapter's answer
         # to the primitive, not with the raw prior (which ignores the constraints)
         overrides['streamer'] = {'stream_unadapted': False}
+    if streamer_parameters:
+        overrides['streamer'] = dict(overrides.get('streamer', {}), **streamer_parameters)
     adapter_spec = next((spec for spec in graph.nodes if spec.executable == 'adapter'), None)
     nodes = []
     for spec in graph.nodes:

@@ -50,6 +50,7 @@ from std_msgs.msg import Float64MultiArray, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
+from cdmp_ros.core.coupling.braking import influence_warning, primitive_braking_distance
 from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
@@ -313,6 +314,9 @@ class StreamerNode(Node):
                                      chain.upper, chain.velocity_limits, source=topic)
         if topic != 'primitive':
             prepared.provenance = read_provenance(prepared.metadata)
+        lim = self.streamer.limits
+        prepared.braking_m = primitive_braking_distance(prepared.prim, chain,
+                                                        lim.acceleration, lim.jerk)
         return topic, prepared, None
 
     # -- the tick ----------------------------------------------------------------------------
@@ -404,6 +408,10 @@ class StreamerNode(Node):
         if chosen is None:
             return
         text = self.streamer.activate(chosen, now, dec.continues)
+        advice = influence_warning(chosen.braking_m,
+                                   self.params['repeller'].influence_distance)
+        if advice:
+            self.get_logger().warning(advice)
         if dec.provenance is not None:
             text += f' (generation {dec.provenance.generation}, {dec.provenance.trigger_topic})'
         text += '; ' + '; '.join(chosen.notes) if chosen.notes else ''
@@ -476,7 +484,10 @@ class StreamerNode(Node):
         if mismatches:
             reason += (f'; the primitive limits differ from the robot ({self.urdf_path}) on '
                        f'{len(mismatches)} bounds: the tighter are used')
-        extra_limits = {'limit_mismatch': describe_mismatches(mismatches)}
+        extra_limits = {'limit_mismatch': describe_mismatches(mismatches),
+                        'braking_distance_m': f'{active.braking_m if active else 0.0:.4f}',
+                        'repeller_influence_distance_m':
+                            f'{self.params["repeller"].influence_distance:.4f}'}
         extra = {'tick_errors': self._tick_errors} if self._tick_errors else {}
         if self.controller_pub is not None:
             extra['controller_output'] = (f'{self.config.controller_output} on '

@@ -57,6 +57,10 @@ class PreparedPrimitive:
     kinematic : KinematicLimits or None
         The primitive's own ``joint_limits`` (streamer order), merged by the streamer with
         the robot's while it runs.
+    braking_m : float
+        The largest braking distance of the hand along the nominal motion [m]
+        (:func:`cdmp_ros.core.coupling.braking.primitive_braking_distance`; set by the
+        streamer node, 0 if not computed).
     """
 
     prim: Any
@@ -69,6 +73,7 @@ class PreparedPrimitive:
     metadata: Dict[str, Any] = field(default_factory=dict)
     provenance: Any = None
     kinematic: Any = None
+    braking_m: float = 0.0
 
     @property
     def goal_y(self) -> NDArray[np.float64]:
