@@ -153,9 +153,52 @@ class Recorder:
         with self.lock:
             return self.status.get(name, {}).get(key, default)
 
+    def recent_q(self):
+        """The last reference and its velocity (difference of the last two)."""
+        with self.lock:
+            if len(self.Q) < 2:
+                return np.array(self.Q[-1]), np.zeros(len(self.Q[-1]))
+            dt = max((self.stamps[-1] - self.stamps[-2]) * 1e-9, 1e-4)
+            return np.array(self.Q[-1]), (np.array(self.Q[-1]) - np.array(self.Q[-2])) / dt
+
     def last_q(self):
         with self.lock:
             return np.array(self.Q[-1]) if self.Q else None
+
+
+#: Points along the Panda from the shoulder to the fingertips, and the radius [m] around them
+#: that the arm's links fill (the largest collision capsule: 10.9 cm at the hand).
+ARM_POINTS = ('panda_link2', 'panda_link3', 'panda_link4', 'panda_link5', 'panda_link6',
+              'panda_link7', 'panda_hand', 'ee')
+ARM_RADIUS = 0.11
+#: Extra distance [m] a new sphere keeps beyond what the arm needs to stop.
+CLEARANCE = 0.03
+
+
+def place_sphere(rng, chain, state, limits, radius, near=None, tries=50):
+    """A sphere next to the arm that the arm can still avoid within its limits: its surface
+    at least the braking distance of every arm point (at the arm's current motion,
+    :func:`cdmp_ros.core.coupling.braking.braking_distance`) plus ``CLEARANCE`` away from
+    the arm's links, and at most 20 cm beyond that; ``near``: a jump of 3-15 cm from there.
+    None if no place is found in ``tries`` draws."""
+    from cdmp_ros.core.coupling.braking import braking_distance
+    from cdmp_ros.core.kinematics import PointOfInterest
+    pts = [PointOfInterest(p) for p in ARM_POINTS]
+    q, qd = state
+    X = chain.forward(q[None], pts)[0]
+    need = float(np.max(braking_distance(chain, q, qd, limits.acceleration, limits.jerk,
+                                         pts))) + CLEARANCE + ARM_RADIUS + radius
+    for _ in range(tries):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        if near is None:
+            c = X[int(rng.integers(len(X)))] + d * (need + rng.uniform(0.0, 0.2))
+        else:
+            c = near + d * rng.uniform(0.03, 0.15)
+        gap = float(np.min(np.linalg.norm(X - c, axis=1)))
+        if need <= gap <= need + 0.2 and c[2] > 0.05:
+            return c
+    return None
 
 
 def run_storm(args, rate, chain, limits):
@@ -163,7 +206,6 @@ def run_storm(args, rate, chain, limits):
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from visualization_msgs.msg import Marker, MarkerArray
-    from cdmp_ros.core.kinematics import PointOfInterest
     from cdmp_ros.core.run_metrics import kinematic_report
     from cdmp_ros.ros import qos
 
@@ -183,9 +225,8 @@ def run_storm(args, rate, chain, limits):
     spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.05)
                                                for _ in iter(stop.is_set, True)], daemon=True)
     spinner.start()
-    ee = [PointOfInterest('ee')]
     counts = {'goal inside': 0, 'goal beyond': 0, 'sphere appears': 0, 'sphere jumps': 0,
-              'spheres cleared': 0}
+              'spheres cleared': 0, 'no room': 0}
     try:
         t0 = time.monotonic()
         while time.monotonic() - t0 < STARTUP and (
@@ -219,20 +260,20 @@ def run_storm(args, rate, chain, limits):
                 continue
             arr = MarkerArray()
             if u < 0.9 or sphere is None:
-                x = chain.forward(rec.last_q()[None], ee)[0, 0]
-                if sphere is None or u < 0.6:
-                    d = rng.normal(size=3)
-                    sphere = x + d / np.linalg.norm(d) * rng.uniform(0.08, 0.2)
-                    counts['sphere appears'] += 1
-                else:
-                    d = rng.normal(size=3)
-                    sphere = sphere + d / np.linalg.norm(d) * rng.uniform(0.03, 0.15)
-                    counts['sphere jumps'] += 1
+                radius = float(rng.uniform(0.03, 0.07))
+                jump = sphere is not None and u >= 0.6
+                new = place_sphere(rng, chain, rec.recent_q(), limits, radius,
+                                   sphere if jump else None)
+                if new is None:
+                    counts['no room'] += 1
+                    continue
+                sphere = new
+                counts['sphere jumps' if jump else 'sphere appears'] += 1
                 m = Marker(type=Marker.SPHERE, action=Marker.ADD, id=1, ns='storm')
                 m.header.frame_id = 'panda_link0'
                 m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, sphere)
                 m.pose.orientation.w = 1.0
-                m.scale.x = m.scale.y = m.scale.z = float(rng.uniform(0.06, 0.14))
+                m.scale.x = m.scale.y = m.scale.z = 2.0 * radius
                 arr.markers.append(m)
             else:
                 arr.markers.append(Marker(action=Marker.DELETEALL))
