@@ -183,6 +183,8 @@ class KinematicLimits:
         """
         try:
             idx = [other.joint_names.index(n) for n in self.joint_names]
+            if len(other.joint_names) != len(idx):
+                raise ValueError
         except ValueError:
             raise ValidationError(f'joint limits: expected the joints {list(self.joint_names)}, '
                                   f'got {list(other.joint_names)}') from None
@@ -255,14 +257,16 @@ def parse_joint_limits(joint_names: Sequence[str], entries: Mapping[str, Mapping
     vals = {o: np.full(n, np.inf) for o in ORDERS}
     seen = set()
     for d, name in enumerate(joint_names):
-        entry = entries.get(name) or {}
+        entry = entries.get(name)
+        if entry is None:  # 'joint:' with nothing under it
+            entry = {}
         if not isinstance(entry, Mapping):
             raise ValidationError(f'joint_limits.{name}: expected a mapping of limits, got '
                                   f'{type(entry).__name__}')
         bad = [k for k in entry if k not in USED_KEYS + IGNORED_KEYS]
         if bad:
-            raise ValidationError(f'joint_limits.{name}: unknown keys {bad}; expected some of '
-                                  f'{list(USED_KEYS)}')
+            raise ValidationError(f'joint_limits.{name}.{bad[0]}: unknown key (of {bad}); '
+                                  f'expected some of {list(USED_KEYS)}')
 
         def flag(key):
             v = entry.get(key, False)
@@ -282,8 +286,8 @@ def parse_joint_limits(joint_names: Sequence[str], entries: Mapping[str, Mapping
         if flag('has_position_limits'):
             pmin, pmax = number('min_position', False), number('max_position', False)
             if not pmin < pmax:
-                raise ValidationError(f'joint_limits.{name}: min_position {pmin} is not below '
-                                      f'max_position {pmax}')
+                raise ValidationError(f'joint_limits.{name}.min_position: {pmin} is not below '
+                                      f'joint_limits.{name}.max_position {pmax}')
             lo[d], hi[d] = max(lo[d], pmin), min(hi[d], pmax)
             seen.add('position')
         for order in ORDERS:

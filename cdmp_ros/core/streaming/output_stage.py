@@ -157,6 +157,7 @@ class OutputStage:
         self._r = [0.0] * n
         self._rv = [0.0] * n
         self._ra = [0.0] * n
+        self._restart = [False] * n
         self.clamped = 0   # ticks on which the last clamp acted (a state made infeasible)
         self.limited = 0   # ticks on which the limits changed the tracking jerk
 
@@ -188,8 +189,12 @@ class OutputStage:
             if not math.isfinite(x):
                 x = 0.5 * (self._lo[d] + self._hi[d])
             self.p[d] = min(max(x, self._glo[d]), self._ghi[d])
-            self.v[d] = float(v[d]) if len(v) == n and math.isfinite(v[d]) else 0.0
-            self.a[d] = float(a[d]) if len(a) == n and math.isfinite(a[d]) else 0.0
+            # velocity and acceleration start within their limits
+            vv = float(v[d]) if len(v) == n and math.isfinite(v[d]) else 0.0
+            aa = float(a[d]) if len(a) == n and math.isfinite(a[d]) else 0.0
+            self.v[d] = min(max(vv, -self._V[d]), self._V[d])
+            self.a[d] = min(max(aa, -self._A[d]), self._A[d])
+            self._restart[d] = False
             self.j[d] = 0.0
             self._r[d] = self.p[d]
             self._rv[d] = self.v[d]
@@ -223,12 +228,16 @@ class OutputStage:
         k_p = 0.25 * k_v
         limited = 0
         p, v, a, jj = self.p, self.v, self.a, self.j
+        restart = self._restart
         R, RV, RA = self._r, self._rv, self._ra
         for d in range(self.n_dims):
             r = target[d]
             if not math.isfinite(r):
                 r = R[d]
             pd, vd, ad = p[d], v[d], a[d]
+            if restart[d]:  # after the last clamp: on from rest (see step 3)
+                restart[d] = False
+                vd = ad = 0.0
             V, A, J = self._V[d], self._A[d], self._J[d]
             # the error of the last tick against the target as far as it can be followed
             # (its velocity within the limit: a target that outruns the limits is not chased)
@@ -237,16 +246,21 @@ class OutputStage:
             ep, ev = pd - R[d], vd - rv0
             rv = (r - R[d]) * inv
             ra = (rv - RV[d]) * inv
+            # 1. tracking: the target's acceleration is fed forward only on a tick on which
+            # the target itself keeps the limits (a jump or a spike is not followed by its own
+            # acceleration: the stage could not undo it in time), and fades beyond the linear
+            # region of the error; the cascade on the error gets what the feed-forward leaves
+            if abs(ra) <= A and abs(ra - RA[d]) <= J * dt and abs(rv) <= V:
+                lin = ERROR_AUTHORITY * A / (k_p * k_p)
+                ea = abs(ep)
+                if ea > lin:
+                    ra_ff = ra * lin / ea
+                else:
+                    ra_ff = ra
+            else:
+                ra_ff = 0.0
             R[d], RV[d], RA[d] = r, rv, ra
-            # 1. tracking: feed-forward of the target's acceleration (within the limit),
-            # cascade on the error with what that feed-forward leaves
-            ra = A if ra > A else (-A if ra < -A else ra)
-            # beyond the linear region the feed-forward fades: a target the stage cannot keep
-            # up with is closed by the cascade, not pushed on by its own acceleration
-            lin = ERROR_AUTHORITY * A / (k_p * k_p)
-            ea = abs(ep)
-            if ea > lin:
-                ra *= lin / ea
+            ra = ra_ff
             a_err = max(ERROR_AUTHORITY * (A - abs(ra)), MIN_AUTHORITY * A)
             ev_des = -sqrt_controller(ep + ev * dt, k_p, a_err)
             ea_des = sqrt_controller(ev_des - ev, k_v, ERROR_AUTHORITY * J)
@@ -294,6 +308,10 @@ class OutputStage:
                 vd = (pn - pd) * inv
                 ad = (vd - v[d]) * inv
                 jc = (ad - a[d]) * inv
+                # published as it is (the differences the positions imply), but continued from
+                # rest: the state that broke the limits is not carried on (it would swing
+                # between the limits with a growing amplitude)
+                restart[d] = True
             p[d], v[d], a[d], jj[d] = pn, vd, ad, jc
         if limited:
             self.limited += 1
