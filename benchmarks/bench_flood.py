@@ -61,11 +61,15 @@ def ros_env(domain, code):
     return e
 
 
-def start_nodes(domain, code, logdir):
+def start_nodes(domain, code, logdir, params=None):
+    """sim, streamer, adapter and learner from ``code``'s config/*.yaml; ``params``: more
+    ``-p`` parameters per node (``{'streamer': {'rate': 1000.0}}``)."""
     procs = {}
     for name in NODES:
         cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{name}', '--ros-args', '--params-file',
                os.path.join(code, 'config', f'{name}.yaml')]
+        for k, v in (params or {}).get(name, {}).items():
+            cmd += ['-p', f'{k}:={v}']
         log = open(os.path.join(logdir, f'{name}.log'), 'w')
         procs[name] = subprocess.Popen(cmd, env=ros_env(domain, code), cwd=code, stdout=log,
                                        stderr=subprocess.STDOUT, start_new_session=True)

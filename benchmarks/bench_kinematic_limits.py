@@ -24,8 +24,6 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 import argparse
 import io
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -35,8 +33,9 @@ import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_flood import NODES, start_nodes, stop_nodes  # noqa: E402
 
-NODES = ('sim', 'streamer', 'adapter', 'learner')
 ORDERS = ('velocity', 'acceleration', 'jerk')
 STARTUP = 90.0
 
@@ -87,42 +86,6 @@ def run_demos(args, limits):
 
 
 # -- part 2: the storm --------------------------------------------------------------------------
-def ros_env(domain):
-    e = dict(os.environ)
-    e['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    e['ROS_DOMAIN_ID'] = str(domain)
-    e['AMENT_PREFIX_PATH'] = sys.prefix
-    e['PYTHONUNBUFFERED'] = '1'
-    e['PYTHONPATH'] = REPO
-    return e
-
-
-def start_nodes(domain, logdir, streamer_params):
-    procs = {}
-    for name in NODES:
-        cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{name}', '--ros-args', '--params-file',
-               os.path.join(REPO, 'config', f'{name}.yaml')]
-        if name == 'streamer':
-            for k, v in streamer_params.items():
-                cmd += ['-p', f'{k}:={v}']
-        log = open(os.path.join(logdir, f'{name}.log'), 'w')
-        procs[name] = subprocess.Popen(cmd, env=ros_env(domain), cwd=REPO, stdout=log,
-                                       stderr=subprocess.STDOUT, start_new_session=True)
-    return procs
-
-
-def stop_nodes(procs):
-    for p in procs.values():
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs.values():
-        try:
-            p.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait(5)
-
-
 class Recorder:
     """joint_reference (stamp, positions) and the latest diagnostics of every node."""
 
@@ -211,9 +174,9 @@ def run_storm(args, rate, chain, limits):
 
     rng = np.random.default_rng(args.seed)
     logdir = tempfile.mkdtemp(prefix='bench_kinematic_limits_')
-    procs = start_nodes(args.domain, logdir, {'rate': float(rate),
-                                              'output_stage': str(args.stage == 'on').lower(),
-                                              'diagnostics_period': 0.5})
+    procs = start_nodes(args.domain, REPO, logdir, {'streamer': {
+        'rate': float(rate), 'output_stage': str(args.stage == 'on').lower(),
+        'diagnostics_period': 0.5}})
     rclpy.init(domain_id=args.domain)
     node = rclpy.create_node('kinematic_storm')
     rec = Recorder(node)
