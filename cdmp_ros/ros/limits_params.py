@@ -51,14 +51,16 @@ def declare_joint_limits(node, joint_names: Sequence[str]) -> Dict[str, Dict[str
     return entries
 
 
-def robot_limits(node, joint_names: Sequence[str], chain, source: str) -> KinematicLimits:
-    """The limits in force: the URDF's position and velocity (``chain``, named ``source``)
-    merged tighter-of-two with the ``joint_limits.*`` parameters (declared here).
+def robot_limits(node, joint_names: Sequence[str], lower, upper, velocity,
+                 source: str) -> KinematicLimits:
+    """The limits in force: the URDF's position and velocity (arrays in the order of
+    ``joint_names``; the model named ``source``) merged tighter-of-two with the
+    ``joint_limits.*`` parameters (declared here).
 
     Raises
     ------
     ValidationError
         A parameter of the wrong type or value, naming it.
     """
-    return shipped_limits(joint_names, chain.lower, chain.upper, chain.velocity_limits,
-                          f'urdf {source}', declare_joint_limits(node, joint_names))
+    return shipped_limits(joint_names, lower, upper, velocity, f'urdf {source}',
+                          declare_joint_limits(node, joint_names))

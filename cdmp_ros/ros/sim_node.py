@@ -14,7 +14,7 @@ Topics (relative names, remappable):
   ``publish_clock``, ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects;
   reliable, keep last 1).
 - services ``~/snapshot`` (std_srvs/Trigger: TinyRenderer PNG, the path in the message) and
-  ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest).
+  ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest; clears a reflex stop).
 
 Stepping: one steady-clock timer. With ``real_time`` it fires every publish period and steps
 the physics up to the wall clock (catch-up of at most ``max_catch_up`` s, beyond which the
@@ -29,7 +29,20 @@ names than the robot has joints, is rejected before it is deserialised), then th
 validation (:mod:`cdmp_ros.ros.convert`); each rejection or sanitisation is logged and counted
 per topic and per reason on ``diagnostics``; the node keeps running. A reference outside the
 joint limits is clipped into them, a velocity above the URDF velocity limit is clipped (both
-reported).
+reported). Whatever it receives, the simulated joints never pass their limits (the end stops of
+:class:`~cdmp_ros.sim.live.LiveSim`).
+
+Reflex (as a Franka Panda): every accepted ``joint_reference`` first passes a
+:class:`cdmp_ros.core.reflex.ReflexMonitor` with the limits in force: position and velocity
+of the simulated robot's URDF(s) merged tighter-of-two with the ``joint_limits.<joint>.*``
+parameters (:func:`cdmp_ros.ros.limits_params.robot_limits`, the streamer's limits; defaults:
+the Panda datasheet, ``left_``/``right_`` prefixed for ``dual_panda``, the planar arm's for
+``planar4``). The references are differenced on their header stamps (an unstamped one on its
+arrival time); a position outside the limits, or a velocity, acceleration or jerk above its
+limit by more than ``reflex_tolerance``, is a reflex error. ``reflex: count`` counts it and
+applies the reference; ``reflex: stop`` halts the robot at its measured position (state
+``reflex``, level ERROR with the reason) and refuses every further reference (counted) until
+``~/reset``, after which the monitor re-seeds from the next reference.
 
 Diagnostics: status ``sim: state`` (level WARN while holding a stale reference or in contact)
 with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
@@ -42,7 +55,12 @@ robots' links against each other) plus ``state`` (waiting / tracking / holding),
 ``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
 ``scheduling`` (``realtime_priority``: normal, or SCHED_FIFO and on how many threads),
 ``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
-``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``rejected_total`` and
+``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``limits`` and
+``limits_sources`` (the limits the reflex checks, as the streamer reports them), ``reflex``,
+``reflex_errors``, ``reflex_errors_<order>`` and ``reflex_worst_ratio_<order>`` (position,
+velocity, acceleration, jerk), ``reflex_last_error``, ``reflex_stopped``,
+``references_refused_reflex`` (:meth:`~cdmp_ros.core.reflex.ReflexMonitor.as_values`),
+``limit_stops`` and ``limit_stop_depth_max_rad``, ``rejected_total`` and
 ``rejected_<reason>`` per category of
 :data:`cdmp_ros.ros.input_gate.REASONS`; ``sim: input <topic>`` per topic with rejections
 (``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
@@ -74,10 +92,12 @@ from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.joint_limits import LimitMismatch
+from cdmp_ros.core.reflex import REFUSED, STOP, VIOLATION, ReflexMonitor
 from cdmp_ros.ros import qos
-from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet
-from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
+from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
+from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.realtime import process_thread_ids, set_threads_fifo
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
@@ -103,15 +123,21 @@ class SimNode(Node):
         super().__init__('sim', **kwargs)
         self.params = ConfigParameters(self, [('', SimConfig)], on_change=self._on_params)
         cfg: SimConfig = self.params['']
-        robot_limits = None
+        urdf_limits = None
         if cfg.robot == 'panda':  # the limits of the robot that runs (see the module docstring)
             chain = load_panda_chain(cfg.urdf_path, PANDA_JOINTS, cfg.robot_description)
-            robot_limits = (chain.lower, chain.upper, chain.velocity_limits)
-        self.sim = LiveSim(cfg, robot_limits)
+            urdf_limits = (chain.lower, chain.upper, chain.velocity_limits)
+        self.sim = LiveSim(cfg, urdf_limits)
         self.limits_source = (limits_source(cfg.urdf_path, cfg.robot_description)
-                              if robot_limits is not None
+                              if urdf_limits is not None
                               else ', '.join(r.spec.urdf_path for r in self.sim.robots))
         try:
+            # the limits the reflex checks: the simulated robot's position and velocity limits
+            # merged with the joint_limits.* parameters, as in the streamer
+            self.limits = robot_limits(self, self.sim.joint_names, self.sim.lower,
+                                       self.sim.upper, self.sim.velocity_limits,
+                                       self.limits_source)
+            self.reflex = ReflexMonitor(self.limits, cfg.reflex_tolerance, cfg.reflex)
             self._declare_initial_positions()
             self._setup(cfg)
         except Exception:
@@ -189,7 +215,8 @@ class SimNode(Node):
         self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
         mismatch = '; '.join(describe_sim_mismatch(m) for m in sim.limit_mismatches) or 'none'
         self.reporter.set_state(OK, 'starting', limits_source=self.limits_source,
-                                limit_mismatch=mismatch)
+                                limit_mismatch=mismatch, limits=self.limits.describe(),
+                                limits_sources='; '.join(self.limits.sources))
         if sim.limit_mismatches:
             self.get_logger().warning(f'the limits of {self.limits_source} differ from the '
                                       f'pybullet model on {len(sim.limit_mismatches)} bounds, '
@@ -212,6 +239,7 @@ class SimNode(Node):
                        'slipped_steps': 0, 'snapshots': 0, 'resets': 0}
         self._ref_time = None   # steady time of the last accepted reference
         self._holding = False
+        self._reflex_log = [-math.inf, 0]  # last log time of a reflex error, errors since
         self._n_published = 0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._anchor()
@@ -252,6 +280,8 @@ class SimNode(Node):
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
         old, cfg = self.config, configs['']
         self.sim.set_control(cfg)  # raises on bad gains
+        self.reflex.set_mode(cfg.reflex)
+        self.reflex.set_tolerance(cfg.reflex_tolerance)
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance
@@ -281,6 +311,8 @@ class SimNode(Node):
         except ValidationError as exc:
             self.gate.reject(topic, str(exc))
             return
+        if not self._reflex_check(msg, q):
+            return
         sim = self.sim
         names = sim.joint_names
         q, bad = limit_clip(q, sim.lower, sim.upper)
@@ -301,6 +333,31 @@ class SimNode(Node):
         self.counts['references_received'] += 1
         self._ref_time = time.monotonic()
         self._holding = False
+
+    def _reflex_check(self, msg: JointState, q: np.ndarray) -> bool:
+        """The reflex check of one reference (see the module docstring); False: refused."""
+        stamp = stamp_to_ns(msg.header.stamp) or self._now_ns()  # unstamped: arrival time
+        status, violations = self.reflex.update(stamp, q.tolist())
+        if status == REFUSED:
+            return False
+        log = self.get_logger()
+        if status == STOP:
+            self.sim.halt()
+            log.error(f'reflex: joint_reference breaks the limits ({self.reflex.stop_reason}): '
+                      'the robot halts and refuses references until ~/reset')
+            self._publish_diagnostics()
+            return False
+        if status == VIOLATION:
+            now = time.monotonic()
+            entry = self._reflex_log
+            entry[1] += 1
+            if now - entry[0] >= 1.0:
+                extra = f' ({entry[1]} references since the last report)' if entry[1] > 1 \
+                    else ''
+                log.warning(f'reflex error: joint_reference breaks the limits '
+                            f'({self.reflex.last_error}){extra}; applied (reflex: count)')
+                entry[0], entry[1] = now, 0
+        return True
 
     def _on_obstacles(self, msg: MarkerArray) -> None:
         good, _ = self.gate.markers('obstacles', msg)
@@ -330,13 +387,17 @@ class SimNode(Node):
         return response
 
     def _on_reset(self, request, response):
+        stopped = self.reflex.stopped
         self.sim.reset()
+        self.reflex.reset()
         self._ref_time = None
         self._holding = False
         self.counts['resets'] += 1
         response.success = True
         response.message = ('reset to initial_positions '
                             f'{np.round(self.sim.initial_positions, 6).tolist()}')
+        if stopped:
+            response.message += '; reflex cleared, references accepted again'
         self.get_logger().info(response.message)
         return response
 
@@ -346,7 +407,7 @@ class SimNode(Node):
         now = time.monotonic()
         cfg = self.config
         if (self._ref_time is not None and not self._holding and cfg.reference_timeout > 0
-                and now - self._ref_time > cfg.reference_timeout):
+                and not self.reflex.stopped and now - self._ref_time > cfg.reference_timeout):
             self.sim.hold()
             self._holding = True
             self.get_logger().warning(f'joint_reference stale (none for '
@@ -414,7 +475,11 @@ class SimNode(Node):
     # -- diagnostics -------------------------------------------------------------------------
     def _state(self):
         cfg, st = self.config, self.sim.stats
-        if self._ref_time is None:
+        if self.reflex.stopped:
+            level, state = ERROR, 'reflex'
+            text = (f'reflex: halted, references refused until ~/reset '
+                    f'({self.reflex.stop_reason})')
+        elif self._ref_time is None:
             level, text, state = OK, 'waiting: holding initial_positions', 'waiting'
         elif self._holding:
             level, state = WARN, 'holding'
@@ -422,7 +487,7 @@ class SimNode(Node):
         else:
             level, text, state = OK, 'tracking joint_reference', 'tracking'
         if st.contacts:
-            level = WARN
+            level = max(level, WARN)
             text += '; contact ' + ', '.join(f'{link}-{obs}' for link, obs, _ in
                                              st.contact_pairs[:3])
         return level, text, state
@@ -439,7 +504,8 @@ class SimNode(Node):
             level, text, state=state, robot=self.config.robot, control=self.config.control,
             obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}', scheduling=self.scheduling,
             real_time_factor=f'{rtf:.3f}' if math.isfinite(rtf) else 'nan',
-            **sim.stats.as_values(), **self.counts, **self.gate.values())
+            **sim.stats.as_values(), **self.counts, **self.reflex.as_values(),
+            **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

@@ -103,7 +103,8 @@ class StreamerNode(Node):
                                                 cfg.robot_description, self.chain)
         self.coupling = self._make_coupling(self.params.configs)
         # position and velocity from the URDF, tighter-of-two with joint_limits.* parameters
-        self.limits = robot_limits(self, cfg.joint_names, self.chain, self.urdf_path)
+        self.limits = robot_limits(self, cfg.joint_names, self.chain.lower, self.chain.upper,
+                                   self.chain.velocity_limits, self.urdf_path)
         self.streamer = ReferenceStreamer(
             self.chain.lower, self.chain.upper, cfg,
             coupling=self.coupling if cfg.coupling_enabled else None, limits=self.limits)

@@ -7,6 +7,8 @@ monitoring.
 - tracks one joint reference ``(q_ref, qd_ref)`` of all controlled joints (``joint_names``
   order; for ``dual_panda`` the joints of ``left`` then ``right``, prefixed ``left_`` /
   ``right_``) with the configured control law, held between two :meth:`set_reference` calls;
+- keeps every joint inside its limits whatever it is commanded, as a real arm does (see
+  *Hard limits* below);
 - keeps its obstacles (spheres, axis-aligned boxes of :mod:`cdmp_ros.core.kinematics.closest`)
   in sync with a named set (:meth:`sync_obstacles`);
 - measures, after every physics step, limit violations, the largest limit usage
@@ -15,6 +17,28 @@ monitoring.
   of several robots, ``dual_panda``, also the robots' links against each other).
 
 Every figure of :class:`SimStats` is what the node reports on ``diagnostics`` (same key names).
+
+Hard limits. Left to pybullet, a flood of references jumping across the range carried joints
+through their limits by up to 76 mrad (measured, panda, position control; 31 passes in a
+fuzz run of the node), for three reasons: nothing bounded the joint speed (the position motors
+and the torque laws drove joints at up to pybullet's default cap of 100 rad/s, 46 times the
+Panda's 2.175 rad/s); pybullet's joint stops act only once a joint is past them (a joint
+arriving at speed ``v`` ends ``v dt`` beyond, then is pushed back slowly, or not at all while
+the motor or gravity pushes on: a wrist joint stayed 75 mrad outside); and a reference at a
+limit with a velocity pointing outward moves the equilibrium of the position motors
+(``velocity_gain qd_ref dt / position_gain`` = 22 mrad at 2.175 rad/s) and of computed torque
+(``kd qd_ref / kp``) beyond it. So:
+
+- joint speeds are capped at the velocity limits (pybullet's ``maxJointVelocity`` is one value
+  per body: the largest limit of its joints), and pybullet's joint stops sit at the limits
+  the sim holds (the tighter of the model's and ``robot_limits``);
+- :meth:`LiveSim.set_reference` clips the position into the limits, and a joint whose
+  reference is at a limit gets no velocity pointing beyond it;
+- after every physics step, an **end stop** puts a joint that crossed its limit during the step
+  back at the limit and removes its outward velocity (an inelastic stop; counted as
+  ``limit_stops``, its depth as ``limit_stop_depth_max_rad``). A joint moved beyond its limit
+  from outside the physics (a teleport) is never let further out, is left to pybullet's stop
+  to come back, and counts as a ``limit_violations`` while it is out.
 
 Typical use::
 
@@ -108,8 +132,13 @@ class SimStats:
         Contact onsets since the start: a pair in contact that was not at the previous
         monitor call.
     limit_violations : int
-        Physics steps in which a measured joint was more than ``limit_tolerance`` outside
-        its URDF limits.
+        Physics steps after which a measured joint (after the end stops acted) was more than
+        ``limit_tolerance`` outside its limits.
+    limit_stops : int
+        Physics steps in which an end stop put a joint that crossed its limit back at it.
+    limit_stop_depth_max_rad : float
+        The largest distance beyond its limit [rad or m] a joint had reached in a step when
+        its end stop put it back.
     max_limit_usage_since_start : float
         Largest ``|q - centre| / half-range`` over joints and steps (1 = at a limit).
     tracking_error_rad : float
@@ -129,6 +158,8 @@ class SimStats:
     contacts: int = 0
     contacts_since_start: int = 0
     limit_violations: int = 0
+    limit_stops: int = 0
+    limit_stop_depth_max_rad: float = 0.0
     max_limit_usage_since_start: float = 0.0
     tracking_error_rad: float = 0.0
     tracking_error_max_rad: float = 0.0
@@ -146,6 +177,8 @@ class SimStats:
             'contacts': str(self.contacts),
             'contacts_since_start': str(self.contacts_since_start),
             'limit_violations': str(self.limit_violations),
+            'limit_stops': str(self.limit_stops),
+            'limit_stop_depth_max_rad': f'{self.limit_stop_depth_max_rad:.6f}',
             'max_limit_usage_since_start': f'{self.max_limit_usage_since_start:.5f}',
             'tracking_error_rad': f'{self.tracking_error_rad:.6f}',
             'tracking_error_max_rad': f'{self.tracking_error_max_rad:.6f}',
@@ -201,6 +234,8 @@ class LiveSim:
                     self.joint_names, lo, hi, self.lower, self.upper)
                 self.velocity_limits = np.minimum(
                     self.velocity_limits, as_array('robot_limits[2]', vmax, (self.n_dofs,)))
+            self._joints = [(r.body_id, j) for r in self.robots for j in r._arm_idx]
+            self._set_stops()
             self._centre = 0.5 * (self.upper + self.lower)
             self._half = 0.5 * (self.upper - self.lower)
             self._inv_half = 1.0 / self._half
@@ -229,6 +264,19 @@ class LiveSim:
         except Exception:
             self.world.close()
             raise
+
+    def _set_stops(self) -> None:
+        """pybullet's joint stops at the limits the sim holds; joint speeds capped at the
+        velocity limits (one cap per body in pybullet: the largest limit of its joints)."""
+        cid = self.world.client_id
+        i = 0
+        for r in self.robots:
+            cap = float(np.max(self.velocity_limits[i:i + r.n_dofs]))
+            for j in r._arm_idx:
+                pybullet.changeDynamics(r.body_id, j, jointLowerLimit=float(self.lower[i]),
+                                        jointUpperLimit=float(self.upper[i]),
+                                        maxJointVelocity=cap, physicsClientId=cid)
+                i += 1
 
     # -- configuration ---------------------------------------------------------------------
     def check_positions(self, name: str, q: ArrayLike) -> NDArray[np.float64]:
@@ -280,15 +328,34 @@ class LiveSim:
 
     def set_reference(self, q: NDArray[np.float64], qd: Optional[NDArray[np.float64]] = None
                       ) -> None:
-        """Track ``(q, qd)`` (``(n_dofs,)`` each, already validated) from the next step on."""
+        """Track ``(q, qd)`` (``(n_dofs,)`` each, finite) from the next step on.
+
+        ``q`` is clipped into the limits; where it is at a limit, a velocity pointing beyond
+        it is dropped (it would move the control law's equilibrium outside: the position
+        motors settle ``velocity_gain qd dt / position_gain`` beyond their target, computed
+        torque ``kd qd / kp``).
+        """
+        lo, hi = self.lower, self.upper
+        if (q < lo).any() or (q > hi).any():
+            q = np.clip(q, lo, hi)
+        if qd is None:
+            qd = np.zeros(self.n_dofs)
+        else:
+            out = ((q >= hi) & (qd > 0.0)) | ((q <= lo) & (qd < 0.0))
+            if out.any():
+                qd = np.where(out, 0.0, qd)
         self.q_ref = q
-        self.qd_ref = np.zeros(self.n_dofs) if qd is None else qd
+        self.qd_ref = qd
         for r, sl in zip(self.robots, self._slices):
             r.set_reference(q[sl], self.qd_ref[sl])
 
     def hold(self) -> None:
         """Keep the reference position with zero velocity (a stale reference)."""
         self.set_reference(self.q_ref, None)
+
+    def halt(self) -> None:
+        """Hold the current measured position at rest (what a Panda does after a reflex)."""
+        self.set_reference(self._q.copy(), None)
 
     def _read(self):
         if len(self.robots) == 1:
@@ -309,15 +376,22 @@ class LiveSim:
         """``n_steps`` physics steps; after each, update the limit and tracking figures."""
         st = self.stats
         centre, inv_half = self._centre, self._inv_half
+        lower, upper = self.lower, self.upper
         outside = self._half + self.config.limit_tolerance
         step = self.world.step
+        # the state before the first step as pybullet holds it (a joint may have been moved
+        # from outside since the last step: it did not cross its limit in the physics)
+        prev = self._read()[0] if n_steps > 0 else self._q
         for _ in range(int(n_steps)):
             step(1)
             self.n_steps += 1
             q, qd, effort = self._read()
+            if (q > upper).any() or (q < lower).any():  # rare: a joint beyond a limit
+                q, qd = self._end_stops(prev, q, qd)
             dev = np.abs(q - centre)
             if (dev > outside).any():
                 st.limit_violations += 1
+            prev = q
             usage = float((dev * inv_half).max())
             if usage > st.max_limit_usage_since_start:
                 st.max_limit_usage_since_start = usage
@@ -327,6 +401,38 @@ class LiveSim:
                 st.tracking_error_max_rad = err
         if n_steps > 0:
             self._q, self._qd, self._effort = q, qd, effort
+
+    def _end_stops(self, prev: NDArray[np.float64], q: NDArray[np.float64],
+                   qd: NDArray[np.float64]) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The end stops after a physics step: a joint beyond its limit and further out than
+        before the step (``prev``) is put back at the limit (or where it was, if it was
+        already beyond: moved there from outside the physics) without its outward velocity;
+        returns ``(q, qd)``."""
+        hi = np.maximum(self.upper, prev)
+        lo = np.minimum(self.lower, prev)
+        above = q > hi
+        below = q < lo
+        crossed = np.flatnonzero(above | below)
+        if crossed.size == 0:
+            return q, qd
+        q, qd = q.copy(), qd.copy()
+        cid = self.world.client_id
+        depth = 0.0
+        for i in crossed.tolist():
+            if above[i]:
+                depth = max(depth, q[i] - self.upper[i])
+                q[i], qd[i] = hi[i], min(qd[i], 0.0)
+            else:
+                depth = max(depth, self.lower[i] - q[i])
+                q[i], qd[i] = lo[i], max(qd[i], 0.0)
+            body, joint = self._joints[i]
+            pybullet.resetJointState(body, joint, float(q[i]), float(qd[i]),
+                                     physicsClientId=cid)
+        st = self.stats
+        st.limit_stops += 1
+        if depth > st.limit_stop_depth_max_rad:
+            st.limit_stop_depth_max_rad = float(depth)
+        return q, qd
 
     def ee_pose(self) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Position ``(3,)`` [m] and quaternion ``(4,)`` (x, y, z, w) of the end effector of

@@ -12,6 +12,7 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, m
                                          obstacle_distance_param, obstacle_size_param,
                                          param as _param, stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.reflex import DEFAULT_TOLERANCE, MODES as REFLEX_MODES
 from cdmp_ros.core.validation import as_array
 
 #: Robots the sim node can load (see :func:`cdmp_ros.sim.live.build_robots`).
@@ -109,7 +110,19 @@ class SimConfig:
         0.01, 100.0)
     limit_tolerance: float = _param(
         1e-4, 'A physics step counts as a limit violation when a measured joint is more '
-        'than this [rad or m] outside its URDF limits.', 0.0, 0.1)
+        'than this [rad or m] outside its URDF limits (after the end stops acted).', 0.0, 0.1)
+    reflex: str = _param(
+        'count', 'What the sim does with a joint_reference that breaks the limits in force '
+        '(joint_limits.* with the URDF, as the streamer keeps them): a position outside them, '
+        'or a velocity, acceleration or jerk of the references differenced on their header '
+        'stamps above its limit by more than reflex_tolerance. count: counted as '
+        'reflex_errors on diagnostics, applied (clipped into the position limits). stop: the '
+        'robot halts at its measured position and refuses every reference until ~/reset, as '
+        'a Franka Panda does after a reflex.', choices=REFLEX_MODES)
+    reflex_tolerance: float = _param(
+        DEFAULT_TOLERANCE, 'Relative slack of the reflex check of velocity, acceleration and '
+        'jerk (stamps are rounded to the nanosecond): a difference counts when above '
+        '(1 + reflex_tolerance) times its limit.', 0.0, 0.5)
     max_stamp_age: float = stamp_age_param()
     max_stamp_lead: float = stamp_lead_param()
     accept_unstamped: bool = accept_unstamped_param()
