@@ -22,7 +22,6 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
         [--rates 500 1000] [--duration 45] [--seed 0] [--domain 75] [--stage on|off]
 """
 import argparse
-import io
 import os
 import sys
 import tempfile
@@ -69,10 +68,11 @@ def run_demos(args, limits):
     for rate in args.rates:
         for kind in ('cdmp', 'promp'):
             out = os.path.join(args.out, f'demo_{kind}_{rate:g}')
-            log = io.StringIO()
+            os.makedirs(out, exist_ok=True)
             t0 = time.monotonic()
-            s = run_demo(out, kind=kind, log=log, streamer_parameters={
-                'rate': float(rate), 'output_stage': args.stage == 'on'})
+            with open(os.path.join(out, 'demo.log'), 'w') as log:
+                s = run_demo(out, kind=kind, log=log, streamer_parameters={
+                    'rate': float(rate), 'output_stage': args.stage == 'on'})
             S, Q, names = _joint_arrays(os.path.join(out, 'bag'), '/joint_reference',
                                         header_stamps=True)
             rep = kinematic_report(S, Q, limits.subset(names))
