@@ -5,7 +5,7 @@
         [--dt-ms 20] [--trials 5] [--domain-id 144]
 
 **Player timing fidelity.** A bag of ``--messages`` std_msgs/String ``--dt-ms`` apart is
-played by the real ``player`` node (separate process, ``wait_for_subscribers: 1``) at each
+played by the real ``player`` node (separate process, ``wait_subscribers``) at each
 ``--rates`` factor; an in-process subscriber stamps every arrival with the monotonic clock.
 Printed: the expected gap (dt / rate), the median gap, the median and largest absolute gap
 error, and the error of the whole span (last - first arrival against (n - 1) dt / rate).
@@ -115,8 +115,8 @@ def player_fidelity(node, tmp, rate, n, dt_ns, domain_id, run):
     node.node.create_subscription(
         String, f'/timed{run}', lambda _m: got.append(time.monotonic()),
         QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE), raw=True)
-    play = start_node('player', {'bag': bag, 'rate': float(rate), 'wait_for_subscribers': 1,
-                                 'wait_timeout': WAIT_S}, domain_id,
+    play = start_node('player', {'bag': bag, 'rate': float(rate),
+                                 'wait_subscribers': float(WAIT_S)}, domain_id,
                       os.path.join(tmp, f'play{run}.log'))
     try:
         play.wait(timeout=WAIT_S + n * dt_ns / 1e9 / rate + 30)

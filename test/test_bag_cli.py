@@ -30,9 +30,23 @@ def test_info_on_truncated_bag_fails_with_a_clear_error(tmp_path, capsys):
     assert 'recover' in capsys.readouterr().err
 
 
-def test_play_refuses_a_non_positive_wait_timeout(capsys):
-    assert main(['bag', 'play', DEMO, '--wait-for-subscribers', '1', '--wait-timeout', '0']) == 2
-    assert '--wait-timeout' in capsys.readouterr().err
+@pytest.mark.parametrize('option', ['--wait-subscribers', '--ack-timeout'])
+@pytest.mark.parametrize('value', ['-1', 'nan', '1e9'])
+def test_play_refuses_a_wait_out_of_range(capsys, option, value):
+    assert main(['bag', 'play', DEMO, option, value]) == 2
+    assert option in capsys.readouterr().err
+
+
+def test_play_help_documents_the_waits(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(['bag', 'play', '--help'])
+    assert exit_.value.code == 0
+    text = ' '.join(capsys.readouterr().out.split())
+    assert '--wait-subscribers S before playing, wait up to S seconds until every played ' \
+        'topic (and /clock with --clock) has a subscriber' in text
+    assert '0 = play at once' in text
+    assert '--ack-timeout S after the last message, wait up to S seconds until every ' \
+        'reliable subscriber acknowledged every message' in text
 
 
 def test_recover_command_reports_loss(tmp_path, capsys):
@@ -73,8 +87,8 @@ def test_record_and_play_commands(tmp_path):
         assert wait_for(lambda: rec_lines.seen('recording to'), WAIT_S), rec_lines.text(0)
         # ... and the player starts once it subscribed: a reliable writer then delivers all
         play = subprocess.run(cdmp + ['play', DEMO, '--rate', '4', '--remap',
-                                      '/demonstration:=/replayed', '--wait-for-subscribers',
-                                      '1', '--wait-timeout', str(WAIT_S)],
+                                      '/demonstration:=/replayed', '--wait-subscribers',
+                                      str(WAIT_S)],
                               env=ros_env(), capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stdout + play.stderr
         # every message is on disk before the recorder is stopped

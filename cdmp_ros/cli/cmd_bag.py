@@ -10,6 +10,10 @@ import sys
 import time
 
 NAME = 'bag'
+#: ``play``: default of --wait-subscribers and --ack-timeout, and their upper bound [s] (the
+#: player node's ``wait_subscribers`` / ``ack_timeout``, cdmp_ros/ros/bag_bridge.py).
+WAIT_S = 10.0
+MAX_WAIT_S = 86400.0
 HELP = 'inspect (info), record, play and recover rosbag2 MCAP bags'
 
 
@@ -40,14 +44,17 @@ def add_arguments(parser):
     p.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO',
                    help='topic remappings, e.g. /demonstration:=/goal')
     p.add_argument('--clock', action='store_true', help='publish /clock')
-    p.add_argument('--wait-for-subscribers', type=int, default=0, metavar='N',
-                   help='wait (up to --wait-timeout s) until every topic has N subscribers')
-    p.add_argument('--wait-timeout', type=float, default=10.0, metavar='S',
-                   help='longest wait for the subscribers of --wait-for-subscribers, s '
-                        '(default 10); then the player warns and plays anyway. Also the '
-                        'longest wait after the last message for reliable subscribers to '
-                        'acknowledge every sample')
-    p.add_argument('--start-delay', type=float, default=0.0, help='seconds before playing')
+    p.add_argument('--wait-subscribers', type=float, default=WAIT_S, metavar='S',
+                   help='before playing, wait up to S seconds until every played topic (and '
+                        '/clock with --clock) has a subscriber; then play anyway and name '
+                        'the topics without one (log and /diagnostics). Default %(default)g; '
+                        '0 = play at once')
+    p.add_argument('--ack-timeout', type=float, default=WAIT_S, metavar='S',
+                   help='after the last message, wait up to S seconds until every reliable '
+                        'subscriber acknowledged every message, then exit, naming the topics '
+                        'not acknowledged. Default %(default)g; 0 = exit at once')
+    p.add_argument('--start-delay', type=float, default=0.0, metavar='S',
+                   help='seconds before the first message, after the subscriber wait')
     p.set_defaults(_bag=_play)
 
     p = sub.add_parser('recover', help='make a crashed recording readable and report the loss')
@@ -141,12 +148,15 @@ def _record(args) -> int:
 def _play(args) -> int:
     from cdmp_ros.bag import BagReader
     BagReader(args.bag).verify()  # refuse a bad bag here with a clear message
-    if not args.wait_timeout > 0.0:
-        from cdmp_ros.core.errors import ValidationError
-        raise ValidationError(f'--wait-timeout: expected seconds > 0, got {args.wait_timeout}')
+    for option in ('wait_subscribers', 'ack_timeout'):
+        value = getattr(args, option)
+        if not 0.0 <= value <= MAX_WAIT_S:  # also refuses nan
+            from cdmp_ros.core.errors import ValidationError
+            raise ValidationError(f'--{option.replace("_", "-")}: expected seconds in '
+                                  f'[0, {MAX_WAIT_S:g}], got {value}')
     params = {'bag': os.path.abspath(args.bag), 'rate': float(args.rate), 'loop': args.loop,
-              'clock': args.clock, 'wait_for_subscribers': args.wait_for_subscribers,
-              'wait_timeout': float(args.wait_timeout), 'start_delay': float(args.start_delay)}
+              'clock': args.clock, 'wait_subscribers': float(args.wait_subscribers),
+              'ack_timeout': float(args.ack_timeout), 'start_delay': float(args.start_delay)}
     if args.topics:
         params['topics'] = args.topics
     for r in args.remap:

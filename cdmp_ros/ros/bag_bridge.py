@@ -2,15 +2,19 @@
 
 :class:`RecorderNode` subscribes with serialized (``raw=True``) subscriptions and hands the
 CDR bytes untouched to :class:`cdmp_ros.bag.BagWriter`; :class:`PlayerNode` verifies a whole
-bag (every CRC) before it publishes anything, then publishes the stored bytes with the
-original timing.  Parameters are declared with descriptors; topic remapping is the standard
+bag (every CRC) before it publishes anything, waits (bounded) for a subscriber on every topic
+it plays, then publishes the stored bytes with the original timing and, before it ends, waits
+(bounded) for the reliable subscribers' acknowledgements.  The decisions of those waits are
+the ROS-free functions :func:`poll_until_done`, :func:`without_subscriber` and
+:func:`player_state`.  Parameters are declared with descriptors; topic remapping is the standard
 ``--ros-args -r from:=to``.
 """
 import importlib
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -19,8 +23,9 @@ from rclpy.qos import QoSProfile
 from cdmp_ros.bag import BagError, BagReader, BagWriter
 from cdmp_ros.bag.cdr import encode_clock
 from cdmp_ros.bag.schemas import normalize_type
-from cdmp_ros.ros.qos import (RECORDER_DEPTH, adapted_subscription_profile, playback_profile,
-                              profile_to_dict)
+from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
+from cdmp_ros.ros.qos import (COMMAND, RECORDER_DEPTH, adapted_subscription_profile,
+                              playback_profile, profile_to_dict)
 from cdmp_ros.ros.realtime import check_priority
 from cdmp_ros.ros.recorder_take import (TakeThread, ThreadTakenGroup, drain_subscription,
                                         never_called, write_taken)
@@ -201,8 +206,86 @@ class RecorderNode(Node):
               f'{len(meta.topics)} topics', flush=True)
 
 
+#: Topic of the player's clock (rosgraph_msgs/Clock), absolute as every ROS 2 tool expects.
+CLOCK_TOPIC = '/clock'
+#: Default of ``wait_subscribers`` and ``ack_timeout`` [s].
+DEFAULT_WAIT_S = 10.0
+#: Upper bound of ``wait_subscribers`` and ``ack_timeout`` [s] (cmd_bag checks the same).
+MAX_WAIT_S = 86400.0
+#: Poll period of the player's waits [s]: a stop request is honoured within it.
+WAIT_PERIOD = 0.01
+#: Period of the player's diagnostics [s] (also published at each change of its state).
+PLAYER_DIAGNOSTICS_PERIOD = 1.0
+
+
+def without_subscriber(counts: Iterable[Tuple[str, int]]) -> List[str]:
+    """The topics (sorted, once each) of ``counts`` (pairs topic, matched subscriptions of one
+    publisher; two bag topics remapped to one name give two pairs) that lack a subscriber."""
+    return sorted({t for t, n in counts if n < 1})
+
+
+def topic_list(topics: Iterable[str]) -> str:
+    """``'/a, /clock'``: topics as the player's log and diagnostics name them."""
+    return ', '.join(topics)
+
+
+def poll_until_done(pending: Callable[[], Iterable[str]], timeout: float, stop,
+                    on_change: Optional[Callable[[List[str]], None]] = None,
+                    period: float = WAIT_PERIOD,
+                    clock: Callable[[], float] = time.monotonic) -> List[str]:
+    """Poll ``pending()`` (what is still awaited) until it is empty, ``timeout`` seconds have
+    passed or ``stop`` (a :class:`threading.Event`) is set; return what is still pending
+    (sorted; empty = done).
+
+    ``pending`` is called at least once, also with ``timeout`` 0; ``on_change`` gets every
+    new pending list after the first one (a topic got its subscriber, or lost it).
+    """
+    deadline = clock() + timeout
+    last = None
+    while True:
+        now = sorted(pending())
+        if last is not None and now != last and on_change is not None:
+            on_change(now)
+        last = now
+        if not now or stop.is_set():
+            return now
+        left = deadline - clock()
+        if left <= 0:
+            return now
+        stop.wait(min(period, left))
+
+
+def player_state(no_subscriber: Sequence[str], not_acknowledged: Optional[Sequence[str]],
+                 finished: bool) -> Tuple[bool, str]:
+    """``(ok, message)`` of the player's diagnostics state (after the subscriber wait).
+
+    Parameters
+    ----------
+    no_subscriber : sequence of str
+        Those still without a subscriber when the wait ended (played anyway).
+    not_acknowledged : sequence of str or None
+        Reliable topics whose subscribers did not acknowledge every message within the
+        acknowledgement timeout (None: not checked yet, or not at all).
+    finished : bool
+        The bag has been played (and the acknowledgement wait is over).
+    """
+    parts = ['finished' if finished else 'playing']
+    if no_subscriber:
+        parts.append(f'played without subscriber on {topic_list(no_subscriber)}')
+    if not_acknowledged:
+        parts.append(f'not acknowledged on {topic_list(not_acknowledged)}')
+    return not (no_subscriber or not_acknowledged), '; '.join(parts)
+
+
 class PlayerNode(Node):
     """Replay a bag with its original timing.
+
+    Before the first message the player waits until every topic it plays (remapped names),
+    and ``/clock`` with ``clock``, has at least one matched subscription, at most
+    ``wait_subscribers`` seconds; then it plays anyway and names the topics that had none
+    (log and ``diagnostics``). After the last message (not looping) it waits, at most
+    ``ack_timeout`` seconds, until every reliable subscriber acknowledged every message,
+    names the topics not acknowledged, and ends. A stop signal ends every wait at once.
 
     Parameters (ROS)
     ----------------
@@ -216,14 +299,17 @@ class PlayerNode(Node):
         Topics to play (as recorded); empty = all.
     clock : bool
         Publish ``/clock`` (rosgraph_msgs/Clock) with the bag time before every message.
-    wait_for_subscribers : int
-        Before playing, wait until every publisher has at least this many subscribers.
-    wait_timeout : float
-        Longest wait for those subscribers (s), then play anyway; and, after the last
-        message, longest wait (all publishers together) for the reliable subscribers to
-        acknowledge every sample.
+    wait_subscribers : float
+        Longest wait for a subscriber on every played topic and ``/clock`` (s); 0 = play
+        at once.
+    ack_timeout : float
+        Longest wait after the last message for the reliable subscribers to acknowledge
+        every message, all topics together (s); 0 = end at once.
     start_delay : float
-        Seconds to wait before the first message (lets late subscribers match).
+        Seconds to wait before the first message, after the subscriber wait.
+
+    ``wait_for_subscribers`` and ``wait_timeout`` (before issue 31) are no longer used: set,
+    they give a warning that names their replacement.
     """
 
     def __init__(self, **kwargs):
@@ -235,11 +321,23 @@ class PlayerNode(Node):
         self.loop = _describe(self, 'loop', False, 'loop the bag')
         selected = _describe(self, 'topics', [], 'topics to play; empty = all')
         self.clock = _describe(self, 'clock', False, 'publish /clock')
-        self.wait_subs = _describe(self, 'wait_for_subscribers', 0,
-                                   'subscribers each publisher waits for')
-        self.wait_timeout = _describe(self, 'wait_timeout', 10.0, 'subscriber wait limit, '
-                                      'and acknowledgement wait at the end (s)')
+        seconds = [FloatingPointRange(from_value=0.0, to_value=MAX_WAIT_S)]
+        self.wait_subscribers = _describe(
+            self, 'wait_subscribers', DEFAULT_WAIT_S, 'longest wait before playing for a '
+            'subscriber on every played topic and /clock (s); 0 = play at once',
+            floating_point_range=seconds)
+        self.ack_timeout = _describe(
+            self, 'ack_timeout', DEFAULT_WAIT_S, 'longest wait after the last message for '
+            'the reliable subscribers to acknowledge every message (s); 0 = end at once',
+            floating_point_range=seconds)
         self.start_delay = _describe(self, 'start_delay', 0.0, 'delay before playing (s)')
+        for old, new in (('wait_for_subscribers', 'wait_subscribers (seconds)'),
+                         ('wait_timeout', 'wait_subscribers and ack_timeout')):
+            desc = ParameterDescriptor(description=f'no longer used: see {new}',
+                                       dynamic_typing=True)
+            if self.declare_parameter(old, None, desc).value is not None:
+                self.get_logger().warning(f'parameter {old} is no longer used (ignored): the '
+                                          f'player now takes {new}')
         self.exit_code = 0
         self._done = False
         self._closed = False
@@ -271,8 +369,21 @@ class PlayerNode(Node):
         self.clock_pub = None
         if self.clock:
             from rosgraph_msgs.msg import Clock
-            self.clock_pub = self.create_publisher(Clock, '/clock', QoSProfile(depth=10))
+            self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, QoSProfile(depth=10))
+        # (name on the wire (remapped), publisher), /clock included: what subscribers see
+        self.outputs = [(p.topic_name, p) for p in [*self.pubs.values(), self.clock_pub]
+                        if p is not None]
         self.published = 0
+        self.waited: List[str] = []
+        self.no_subscriber: List[str] = []
+        self.not_acknowledged: Optional[List[str]] = None
+        self._diag_lock = threading.Lock()
+        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', COMMAND)
+        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'player')
+        self.reporter.set_state(OK, 'starting', bag=self.bag,
+                                wait_subscribers=self.wait_subscribers,
+                                ack_timeout=self.ack_timeout)
+        self.create_timer(PLAYER_DIAGNOSTICS_PERIOD, self._publish_diagnostics)
         self._stop = threading.Event()
         self.get_logger().info(f'playing {self.bag}: {sorted(self.pubs)} at rate {self.rate}')
         self._thread = threading.Thread(target=self._run, name='player', daemon=True)
@@ -283,13 +394,17 @@ class PlayerNode(Node):
         messages and during every wait."""
         try:
             self._wait_for_subscribers()
-            if self._stop.wait(self.start_delay):
+            if self._stop.is_set() or self._stop.wait(self.start_delay):
                 return
+            self._report(False)
             while True:
                 self._play_once()
                 if not self.loop or self._stop.is_set():
                     break
+            if self._stop.is_set():
+                return
             self._wait_acked()
+            self._report(True, flush=True)
         except BagError as exc:
             self.get_logger().error(f'playback stopped: {exc}')
             self.exit_code = 1
@@ -300,31 +415,85 @@ class PlayerNode(Node):
         finally:
             self._done = True
 
-    def _wait_acked(self) -> None:
-        """Before the node ends: every reliable subscriber has acknowledged every sample
-        (destroying a writer drops what a slow reader has not received yet), all publishers
-        together waiting at most ``wait_timeout``."""
-        from rclpy.duration import Duration
-        deadline = time.monotonic() + self.wait_timeout
-        for name, pub in self.pubs.items():
-            # in 0.1 s slices: a stop request (close) is honoured within 0.1 s
-            while not pub.wait_for_all_acked(Duration(seconds=0.1)):
-                if self._stop.is_set():
-                    return
-                if time.monotonic() > deadline:
-                    self.get_logger().warning(f'{name}: not every sample was acknowledged '
-                                              f'within {self.wait_timeout} s')
-                    break
-
     def _wait_for_subscribers(self) -> None:
-        if self.wait_subs <= 0:
+        """Wait (at most ``wait_subscribers`` s) for a subscriber on every output topic."""
+        if self.wait_subscribers <= 0 or not self.outputs:
             return
-        deadline = time.monotonic() + self.wait_timeout
-        while time.monotonic() < deadline and not self._stop.is_set():
-            if all(p.get_subscription_count() >= self.wait_subs for p in self.pubs.values()):
-                return
-            self._stop.wait(0.01)
-        self.get_logger().warning('not every publisher got its subscribers; playing anyway')
+        self.waited = sorted({t for t, _ in self.outputs})
+        log = self.get_logger()
+        log.info(f'waiting up to {self.wait_subscribers:g} s for a subscriber on '
+                 f'{topic_list(self.waited)}')
+        with self._diag_lock:
+            self.reporter.set_state(OK, f'waiting for a subscriber on '
+                                    f'{topic_list(self.waited)}')
+        self._publish_diagnostics()
+
+        def still_waiting(now: List[str]) -> None:
+            if now:
+                log.info(f'still waiting for a subscriber on {topic_list(now)}')
+        missing = poll_until_done(
+            lambda: without_subscriber((t, p.get_subscription_count())
+                                       for t, p in self.outputs),
+            self.wait_subscribers, self._stop, still_waiting)
+        if self._stop.is_set():
+            return
+        self.no_subscriber = missing
+        if missing:
+            log.warning(f'no subscriber on {topic_list(missing)} after '
+                        f'{self.wait_subscribers:g} s; playing anyway')
+        else:
+            log.info('every topic has a subscriber')
+
+    def _wait_acked(self) -> None:
+        """Before the node ends: every reliable subscriber has acknowledged every message (a
+        destroyed writer drops what a slow reader has not received yet), all topics together
+        waiting at most ``ack_timeout``."""
+        from rclpy.duration import Duration
+        from rclpy.qos import ReliabilityPolicy
+        if self.ack_timeout <= 0:
+            return
+        reliable = [(t, p) for t, p in self.outputs
+                    if p.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                    and p.get_subscription_count() > 0]
+        if not reliable:  # no reliable subscriber: nothing to wait for
+            self.not_acknowledged = []
+            return
+        now = Duration(seconds=0)
+        left = poll_until_done(
+            lambda: {t for t, p in reliable if not p.wait_for_all_acked(now)},
+            self.ack_timeout, self._stop)
+        if self._stop.is_set():
+            return
+        self.not_acknowledged = left
+        if left:
+            self.get_logger().warning(
+                f'not acknowledged within {self.ack_timeout:g} s on {topic_list(left)}: a '
+                'reliable subscriber may have missed messages')
+        else:
+            self.get_logger().info('every reliable subscriber acknowledged every message on '
+                                   f'{topic_list(sorted({t for t, _ in reliable}))}')
+
+    def _report(self, finished: bool, flush: bool = False) -> None:
+        """Set and publish the diagnostics state; with ``flush``, wait (bounded) until the
+        diagnostics subscribers acknowledged it (the node is about to end)."""
+        ok, text = player_state(self.no_subscriber, self.not_acknowledged, finished)
+        values = {'no_subscriber': topic_list(self.no_subscriber),
+                  'waited_for': topic_list(self.waited)}
+        if self.not_acknowledged is not None:
+            values['not_acknowledged'] = topic_list(self.not_acknowledged)
+        with self._diag_lock:
+            self.reporter.set_state(OK if ok else WARN, text, **values)
+        self._publish_diagnostics()
+        if flush and self.ack_timeout > 0:
+            from rclpy.duration import Duration
+            poll_until_done(lambda: [] if self.diag_pub.wait_for_all_acked(
+                Duration(seconds=0)) else ['diagnostics'], min(self.ack_timeout, 1.0),
+                self._stop)
+
+    def _publish_diagnostics(self) -> None:
+        with self._diag_lock:
+            self.reporter.values['published'] = str(self.published)
+            self.reporter.publish(self.get_clock().now().to_msg())
 
     def _play_once(self) -> None:
         t0_bag: Optional[int] = None
