@@ -3,11 +3,12 @@ analytic gradient: KL objective, smoothness regulariser, and the constraints thr
 marginals of z_t, the points of interest (linear maps or the unscented transform through the
 kinematics) and the Cholesky parameterisation Sigma = L L^T, L = L_tril + diag(exp(gamma)).
 """
-from typing import List, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cdmp_ros.core.adaptation.batched import BatchedLagrangian
 from cdmp_ros.core.adaptation.config import AdaptationConfig
 from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
 from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint, StackedChainPoints
@@ -109,11 +110,30 @@ class _PointMoments:
         g.g_S[:, self.dofs[:, None], self.dofs[None, :]] += g_S
 
 
+#: Evaluations of the Lagrangian (:class:`Problem`'s ``evaluator``): the batched one
+#: (:mod:`cdmp_ros.core.adaptation.batched`) or the reference (its test oracle).
+EVALUATORS = ('batched', 'reference')
+#: The evaluation a Problem uses unless told otherwise. The reference: the batched one is
+#: 1.3-1.5x cheaper on the Panda problem and no cheaper on Table II (benchmarks/RESULTS.md,
+#: "Lagrangian evaluation batched"), and its different rounding changes the outcome of
+#: rounding-sensitive Panda solves (so do perturbations of 1e-15 of the prior with the
+#: reference itself), which test_core_adapt_requests.py pins.
+DEFAULT_EVALUATOR = 'reference'
+
+
 class Problem:
     """The adaptation problem: prior p0, constraints and objective, with the analytic
-    Lagrangian and its gradient over theta = (mu, L_tril, gamma) (Eq. 23)."""
+    Lagrangian and its gradient over theta = (mu, L_tril, gamma) (Eq. 23).
 
-    def __init__(self, prior: ProMP, constraints: Sequence, config: AdaptationConfig):
+    ``evaluator``: ``'batched'`` or ``'reference'`` (:data:`EVALUATORS`; default
+    :data:`DEFAULT_EVALUATOR`)."""
+
+    def __init__(self, prior: ProMP, constraints: Sequence, config: AdaptationConfig,
+                 evaluator: Optional[str] = None):
+        evaluator = DEFAULT_EVALUATOR if evaluator is None else evaluator
+        if evaluator not in EVALUATORS:
+            raise ValidationError(f'evaluator: expected one of {list(EVALUATORS)}, got '
+                                  f'{evaluator!r}')
         self.prior = prior
         self.config = config
         n = prior.n_weights
@@ -207,6 +227,10 @@ class Problem:
         self._glo, self._ghi = self.gamma_limits()
         self._last = None
         self.n_evaluations = 0
+        self.evaluator = evaluator
+        self._batched = None
+        if evaluator == 'batched':
+            self._batched = BatchedLagrangian(self)
 
     def _build_batches(self):
         """Constraints of one ``batch_kind`` and output size, evaluated in one call."""
@@ -409,7 +433,20 @@ class Problem:
             parts[i] = (None, dm, dS)
 
     def lagrangian(self, theta, lam):
-        """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta."""
+        """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta (batched:
+        :class:`~cdmp_ros.core.adaptation.batched.BatchedLagrangian`; the reference
+        :meth:`lagrangian_reference` with ``evaluator='reference'``)."""
+        if self._batched is None:
+            return self.lagrangian_reference(theta, lam)
+        self.n_evaluations += 1
+        value, grad, F_true = self._batched.evaluate(theta, lam)
+        if F_true is not None:
+            self._last = (theta.copy(), F_true)
+        return value, grad
+
+    def lagrangian_reference(self, theta, lam):
+        """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta, evaluated constraint
+        by constraint: the test oracle of the batched :meth:`lagrangian`."""
         self.n_evaluations += 1
         first, T, gamma = self._factors(theta)
         whiten = self.config.whiten
