@@ -181,13 +181,10 @@ class KinematicLimits:
         ValidationError
             Other joints, or position limits whose intersection is empty.
         """
-        try:
-            idx = [other.joint_names.index(n) for n in self.joint_names]
-            if len(other.joint_names) != len(idx):
-                raise ValueError
-        except ValueError:
+        if sorted(other.joint_names) != sorted(self.joint_names):
             raise ValidationError(f'joint limits: expected the joints {list(self.joint_names)}, '
-                                  f'got {list(other.joint_names)}') from None
+                                  f'got {list(other.joint_names)}')
+        idx = [other.joint_names.index(n) for n in self.joint_names]
         lo = np.maximum(self.lower, other.lower[idx])
         hi = np.minimum(self.upper, other.upper[idx])
         return KinematicLimits(self.joint_names, lo, hi,
