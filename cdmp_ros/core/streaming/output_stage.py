@@ -257,12 +257,17 @@ class OutputStage:
                     ra_ff = ra * lin / ea
                 else:
                     ra_ff = ra
+                ep_next = ep + ev * dt   # where the last error drifts in this tick
             else:
+                # not fed forward: the error is taken against the new target at once, so the
+                # stage reacts on this tick (an obstacle's coupling is reflected at once)
                 ra_ff = 0.0
+                rvc = V if rv > V else (-V if rv < -V else rv)
+                ep_next, ev = pd + vd * dt - r, vd - rvc
             R[d], RV[d], RA[d] = r, rv, ra
             ra = ra_ff
             a_err = max(ERROR_AUTHORITY * (A - abs(ra)), MIN_AUTHORITY * A)
-            ev_des = -sqrt_controller(ep + ev * dt, k_p, a_err)
+            ev_des = -sqrt_controller(ep_next, k_p, a_err)
             ea_des = sqrt_controller(ev_des - ev, k_v, ERROR_AUTHORITY * J)
             a_des = ra + ea_des
             j = (a_des - ad) * inv
