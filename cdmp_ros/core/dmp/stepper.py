@@ -2,9 +2,25 @@
 
 The tick is small-vector work, so it runs on plain Python floats over preallocated lists: no
 numpy call, no allocation of arrays. Everything that depends only on the phase is precomputed
-when the stepper is (re)configured: the forcing profile ``phi_d(u) = sum_j phi_j(u) w_dj`` on
-the grid ``u_k = k * dt / tau`` (linear interpolation between grid points when the phase is
-slowed by the velocity-limit coupling).
+when the stepper is (re)configured: the forcing profile ``phi_d(u) = sum_j phi_j(u) w_dj``
+(Eq. 15-16/23-24) with its first and second derivatives at the nodes of a grid over the
+normalised time ``u``, and the tick evaluates the quintic Hermite interpolant between two nodes
+(six multiply-adds per joint). Beyond the last node the exponential tail of the basis is
+evaluated exactly.
+
+The grid's size does not depend on the duration: it is the coarser of
+
+- the phase grid: ``m`` equal intervals over ``[0, U_END]``, ``m`` the smallest power of two
+  from :data:`MIN_GRID_INTERVALS` to :data:`MAX_GRID_INTERVALS` at which the interpolation error
+  of every basis feature (each in ``[0, 1]``) is at most :data:`FEATURE_TOL` (2048 for the
+  default 30 kernels; :func:`grid_intervals`, a property of the basis alone), so the forcing of
+  joint ``d`` is within ``FEATURE_TOL * sum_j |w_dj|`` of its exact value at every phase;
+- the grid of the steps ``u_k = k dt / tau`` up to ``U_END`` when it has no more intervals (a
+  short primitive): the forcing is then exact at every nominal step, as in earlier versions.
+
+So a stepper holds at most ``3 (m + 1) n_dims`` floats whatever ``tau`` and ``dt`` (earlier
+versions precomputed ``2 tau / dt`` rows: 165 MB for 300 s at 1 ms); ``feature_error`` reports
+the interpolation error of its grid between the nodes.
 
 The tick never raises: non-finite coupling entries are replaced by zero
 (``StepStatus.INPUT_REJECTED``), accelerations and velocities are clamped to huge finite bounds,
@@ -19,20 +35,30 @@ once when a joint would exceed its limit and recovers towards nominal speed at
 limits.
 """
 import enum
+import functools
 import math
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.dmp.basis import U_END
+from cdmp_ros.core.dmp.basis import PhaseBasis, U_END
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.validation import as_array, check_positive
 
 #: Relative back-off of the velocity-limited time scaling: reported |yd| <= vmax exactly.
 VMAX_BACKOFF = 1.0 - 1e-12
-#: Largest forcing profile precomputed by a stepper (2 tau / dt rows of n_dims floats).
-MAX_TABLE_ROWS = 2_000_000
+#: Largest interpolation error of a basis feature (each in [0, 1]) on the forcing grid; the
+#: forcing of joint d is then within FEATURE_TOL * sum_j |w_dj| of its exact value.
+FEATURE_TOL = 1e-12
+#: Fewest and most intervals of the forcing grid over [0, U_END] (powers of two).
+MIN_GRID_INTERVALS = 256
+MAX_GRID_INTERVALS = 16384
+#: Largest normalised time accepted by :meth:`DmpStepper.reset` (larger ``phase_u`` is clamped
+#: to it; the forcing has long vanished there).
+MAX_PHASE_U = 1e9
+#: Basis evaluations per chunk while building a grid (bounds the temporary memory).
+_CHUNK = 1 << 16
 #: Floor of ``1 - tanh(xi)^2`` in :func:`joint_coupling_to_exogenous` (the cap of the coupling
 #: term near saturation).
 SATURATION_FLOOR = 1e-2
@@ -106,6 +132,123 @@ def joint_coupling_to_exogenous(dq_dd: Sequence[float], xi: Sequence[float], tau
         out[d] = tau2 * a / max(y_delta[d] * s, 1e-300)  # Eq. (21)/(29), paper 000
 
 
+def feature_derivatives(basis: PhaseBasis, u: ArrayLike):
+    """Basis features and their first and second derivatives in the normalised time.
+
+    With ``r_j = psi_j / sum_k psi_k`` (Eq. 17/25), ``q_j = d log psi_j / ds = -h_j (s - c_j)``
+    and the ``r``-weighted mean ``q_bar`` and variance ``v`` of ``q``:
+    ``dr_j/ds = r_j (q_j - q_bar)``, ``d2r_j/ds2 = r_j ((q_j - q_bar)^2 - h_j - v + sum_k r_k
+    h_k)``; ``phi_j = s r_j`` (Eq. 16/24) and ``ds/du = -alpha_s s`` (Eq. 18/26) give
+    ``dphi/du = -alpha_s s phi_s`` and ``d2phi/du2 = alpha_s^2 s (phi_s + s phi_ss)``. Beyond
+    ``U_END`` the exponential tail of :class:`~cdmp_ros.core.dmp.basis.PhaseBasis`:
+    ``-alpha_s phi`` and ``alpha_s^2 phi``.
+
+    Parameters
+    ----------
+    basis : PhaseBasis
+    u : array-like, shape (n,)
+        Normalised times (>= 0).
+
+    Returns
+    -------
+    Phi, dPhi, ddPhi : ndarray, shape (n, n_weights_per_dim)
+    """
+    u = np.maximum(np.asarray(u, dtype=np.float64), 0.0)
+    a = basis.alpha_s
+    s = np.exp(-a * np.minimum(u, U_END))[:, None]
+    h, c = basis.widths, basis.centers
+    logpsi = -0.5 * h * (s - c) ** 2  # Eq. (17), paper 000
+    logpsi -= logpsi.max(axis=1, keepdims=True)
+    r = np.exp(logpsi)
+    r /= r.sum(axis=1, keepdims=True)
+    dq = -h * (s - c)
+    dq -= (r * dq).sum(axis=1, keepdims=True)  # q - q_bar
+    var = (r * dq * dq).sum(axis=1, keepdims=True)
+    h_bar = (r * h).sum(axis=1, keepdims=True)
+    r1 = r * dq
+    r2 = r * (dq * dq - h - var + h_bar)
+    phi_s = r + s * r1
+    Phi = s * r  # Eq. (16), paper 000
+    dPhi = -a * s * phi_s
+    ddPhi = a * a * s * (phi_s + s * (2.0 * r1 + s * r2))
+    tail = u > U_END
+    if np.any(tail):
+        Phi[tail] *= np.exp(-a * (u[tail] - U_END))[:, None]
+        dPhi[tail] = -a * Phi[tail]
+        ddPhi[tail] = a * a * Phi[tail]
+    return Phi, dPhi, ddPhi
+
+
+def hermite_weights(t: float) -> Tuple[float, float, float, float, float, float]:
+    """Quintic Hermite basis on ``[0, 1]`` at ``t``: the weights of (value, first, second
+    derivative) at 0, then (value, first, second derivative) at 1 (derivatives in units of
+    the interval). The tick evaluates the same expressions inline."""
+    t2 = t * t
+    t3 = t2 * t
+    s = 1.0 - t
+    w3 = t3 * (10.0 - 15.0 * t + 6.0 * t2)
+    return (1.0 - w3, t * s * s * s * (1.0 + 3.0 * t), 0.5 * t2 * s * s * s,
+            w3, -t3 * s * (4.0 - 3.0 * t), 0.5 * t3 * s * s)
+
+
+def _chunks(n: int, width: int):
+    step = max(1, _CHUNK // max(width, 1))
+    return [(i, min(i + step, n)) for i in range(0, n, step)]
+
+
+def _grid_error(basis: PhaseBasis, m: int, H: float) -> float:
+    """Largest interpolation error of the features on the grid of ``m`` intervals of ``H``
+    from 0, at the middle of every interval (where the error term of the quintic Hermite
+    interpolant, ``t^3 (1 - t)^3 H^6 phi^(6) / 720``, peaks)."""
+    w = hermite_weights(0.5)
+    err = 0.0
+    with np.errstate(over='ignore', invalid='ignore', under='ignore'):
+        for lo, hi in _chunks(m, 4 * basis.n_weights_per_dim):
+            P, D, E = feature_derivatives(basis, np.arange(lo, hi + 1) * H)
+            approx = (w[0] * P[:-1] + w[1] * H * D[:-1] + w[2] * H * H * E[:-1]
+                      + w[3] * P[1:] + w[4] * H * D[1:] + w[5] * H * H * E[1:])
+            e = float(np.max(np.abs(approx - basis.features((np.arange(lo, hi) + 0.5) * H))))
+            err = max(err, e if math.isfinite(e) else math.inf)
+    return err
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_intervals_cached(alpha_s: float, centers: bytes, widths: bytes) -> Tuple[int, float]:
+    basis = PhaseBasis.from_arrays(np.frombuffer(centers), np.frombuffer(widths), alpha_s)
+    m = MIN_GRID_INTERVALS
+    while True:
+        err = _grid_error(basis, m, U_END / m)
+        if err <= FEATURE_TOL or m >= MAX_GRID_INTERVALS:
+            return m, err
+        m *= 2
+
+
+def grid_intervals(basis: PhaseBasis) -> Tuple[int, float]:
+    """Intervals of the forcing grid over ``[0, U_END]`` for ``basis`` and the interpolation
+    error of its features there: the smallest power of two from :data:`MIN_GRID_INTERVALS` to
+    :data:`MAX_GRID_INTERVALS` whose error is at most :data:`FEATURE_TOL` (else the largest).
+    Depends on the basis only (cached per basis)."""
+    return _grid_intervals_cached(float(basis.alpha_s),
+                                  np.ascontiguousarray(basis.centers, np.float64).tobytes(),
+                                  np.ascontiguousarray(basis.widths, np.float64).tobytes())
+
+
+def _forcing_nodes(basis: PhaseBasis, weights: NDArray[np.float64], u: NDArray[np.float64],
+                   H: float):
+    """Forcing profile, ``H`` times its first and ``H^2`` times its second derivative at the
+    nodes ``u`` (lists of rows of n_dims floats), finite whatever the weights."""
+    n_w = basis.n_weights_per_dim
+    rows = ([], [], [])
+    with np.errstate(over='ignore', invalid='ignore', under='ignore'):
+        for lo, hi in _chunks(len(u), 4 * n_w):
+            for out, M, scale in zip(rows, feature_derivatives(basis, u[lo:hi]),
+                                     (1.0, H, H * H)):
+                # Eq. (15)-(16)/(23)-(24); clipped: keeps phi * (g - x0) finite for any weights
+                V = np.clip(np.nan_to_num((M @ weights.T) * scale, nan=0.0), -1e290, 1e290)
+                out.extend(V.tolist())
+    return rows
+
+
 class StepInput:
     """Per-tick input. ``coupling``: list of n_dims floats, the coupling term ``P`` of
     Eq. 13/21 in the internal space (``tau^2`` times an internal acceleration)."""
@@ -154,6 +297,19 @@ class DmpStepper:
         Per-tick exploration forcing ``phi(u_k) . eps_k`` added to the forcing profile (PI2).
     goal_noise : array-like, shape (n_dims,), optional
         Exploration noise on the internal goal target (Eq. 33).
+
+    Attributes
+    ----------
+    n_grid_intervals : int
+        Intervals of the forcing grid (see the module docstring): at most
+        :func:`grid_intervals` of the basis, whatever ``tau`` and ``dt``.
+    grid_step : float
+        Their length in normalised time (``dt / tau`` when the nodes are the steps).
+    feature_error : float
+        Interpolation error of the basis features between the nodes.
+    table_floats : int
+        Floats held by the forcing grid, ``3 (n_grid_intervals + 1) n_dims``. (``noise_phi``,
+        a rollout's exploration, is held as given: ``n_steps x n_dims``.)
     """
 
     def __init__(self, prim, dt: float, start_y: Optional[ArrayLike] = None,
@@ -173,11 +329,6 @@ class DmpStepper:
         self._ag = cfg.alpha_g
         self._alpha_s = cfg.alpha_s
         self._h = self.dt / self.tau
-        if not U_END * self.tau <= MAX_TABLE_ROWS * self.dt:
-            raise ValidationError(f'dt: the forcing profile needs {U_END:g} * tau / dt = '
-                                  f'{U_END * self.tau / self.dt:.6g} rows, more than '
-                                  f'{MAX_TABLE_ROWS}; use a larger dt or a shorter tau')
-        self._inv_h = 1.0 / self._h
         # The semi-implicit Euler recursion x_{k+1} = tr x_k - det x_{k-1} + ... must be stable.
         h = self._h
         roots = np.roots([1.0, -(2.0 - h * cfg.alpha_y - h * h * cfg.alpha_y * cfg.beta_y),
@@ -207,16 +358,23 @@ class DmpStepper:
         if noise_phi is not None:
             noise = np.nan_to_num(np.asarray(noise_phi, dtype=np.float64), nan=0.0)
             self._noise = np.clip(noise, -1e290, 1e290).tolist()
-        # Forcing profile on the grid u_k = k h up to U_END (+1 row), Eq. (15)-(16)/(23)-(24).
-        n_rows = int(math.ceil(U_END / self._h)) + 2
-        u_grid = np.arange(n_rows) * self._h
-        with np.errstate(over='ignore', invalid='ignore'):
-            table = prim.basis.features(u_grid) @ prim.weights_.T  # (n_rows, n_dims)
-        # Keeps phi * (g - x0) finite for any finite weights.
-        table = np.clip(np.nan_to_num(table, nan=0.0), -1e290, 1e290)
-        self._table = table.tolist()
-        self._n_rows = n_rows
-        self._u_last = float(u_grid[-1])
+        # Forcing profile on a grid of the phase whose size does not depend on tau or dt,
+        # Eq. (15)-(16)/(23)-(24) (see the module docstring).
+        m = grid_intervals(prim.basis)[0]
+        n_steps = int(math.ceil(U_END / self._h))
+        self._on_steps = n_steps <= m
+        if self._on_steps:  # the nominal steps u_k = k h are the nodes: exact at every one
+            m, H = n_steps, self._h
+        else:
+            H = U_END / m
+        self.n_grid_intervals = m
+        self.grid_step = H
+        self._feature_error = None
+        self._inv_H = 1.0 / H
+        self._F, self._D, self._E = _forcing_nodes(prim.basis, prim.weights_,
+                                                   np.arange(m + 1) * H, H)
+        self._n_int = m
+        self._u_last = m * H
         self.input = StepInput(n)
         self.output = StepOutput(n)
         self._x = [0.0] * n
@@ -236,9 +394,10 @@ class DmpStepper:
 
         ``phase_u`` > 0 continues a movement instead of starting one: the state is
         ``start_y``/``start_yd`` at normalised time ``phase_u`` (``t / tau``, rounded to the
-        grid of ``dt``), and the forcing term scales with ``g - origin_y`` (Eq. 15-16; default
-        the primitive's own start, so from a state on its trajectory the stepper reproduces the
-        rest of it). At ``phase_u = 0`` with no ``origin_y`` the start is the origin, as before.
+        grid of ``dt``, at most :data:`MAX_PHASE_U`), and the forcing term scales with
+        ``g - origin_y`` (Eq. 15-16; default the primitive's own start, so from a state on its
+        trajectory the stepper reproduces the rest of it). At ``phase_u = 0`` with no
+        ``origin_y`` the start is the origin, as before.
         """
         prim, n = self.prim, self.n_dims
         sy = prim.start_y_ if start_y is None else as_array('start_y', start_y, (n,))
@@ -260,12 +419,12 @@ class DmpStepper:
         self._z[:] = np.clip(self.tau * xd0, -1e12, 1e12).tolist()
         self._g[:] = g.tolist()
         self._g0[:] = g0.tolist()
-        k = min(int(round(u_start / self._h)), MAX_TABLE_ROWS)
+        k = int(round(min(u_start, MAX_PHASE_U) / self._h))
         self._k = k
         self._u = k * self._h
         self._kappa = 1.0
         self._t = k * self.dt
-        self._lookup(self._u, k)
+        self._forcing_into(self._u, self._phi, k)
         self._finish_outputs(self._zeros, init=True)
         out = self.output
         self._lists = (self._x, self._z, self._g, self._g0, self._x0, self._base, out.y,
@@ -273,7 +432,7 @@ class DmpStepper:
         self._consts = (self._a, self._ab, self._h, self._h * self._ag, self._xclamp,
                         self._inv_tau, self._inv_tau * self._inv_tau, self._cdmp)
         out.xi = self._x  # the exogenous state itself (read-only for users)
-        if self._vmax is None:
+        if self._vmax is None and self._noise is None:
             self.update = self._update_fast
 
     def set_goal(self, goal_y: ArrayLike) -> None:
@@ -312,28 +471,48 @@ class DmpStepper:
         return CouplingResult.APPLIED if any(vals) else CouplingResult.ZERO
 
     # -- the tick -----------------------------------------------------------------------------
-    def _row(self, u: float, k: int):
-        """Grid rows, interpolation fraction and tail decay of the forcing profile at u."""
-        pos = u * self._inv_h
-        i = int(pos)
-        if i + 1 < self._n_rows:
-            return self._table[i], self._table[i + 1], pos - i, 1.0, self._noise_row(k)
-        r = self._table[-1]
-        return r, r, 0.0, math.exp(-self._alpha_s * (u - self._u_last)), self._noise_row(k)
+    def _node_weights(self, u: float):
+        """Nodes and quintic Hermite weights of the forcing profile at u (outside the tick;
+        the ticks inline the same)."""
+        pos = u * self._inv_H
+        if pos < self._n_int:
+            i = int(pos)
+            return i, i + 1, hermite_weights(pos - i)
+        decay = math.exp(-self._alpha_s * (u - self._u_last))  # the basis' exponential tail
+        return self._n_int, self._n_int, (decay, 0.0, 0.0, 0.0, 0.0, 0.0)
 
-    def _noise_row(self, k: int):
+    def _forcing_into(self, u: float, out: List[float], k: Optional[int] = None) -> None:
+        """Forcing profile at normalised time u into ``out`` (+ the exploration of tick k)."""
+        i, j, w = self._node_weights(u)
+        F, D, E = self._F, self._D, self._E
         noise = self._noise
-        if noise is not None and k < len(noise):
-            return noise[k]
-        return self._zeros
-
-    def _lookup(self, u: float, k: int) -> None:
-        """Forcing profile at normalised time u into self._phi (+ exploration of tick k)."""
-        r0, r1, fr, decay, nk = self._row(u, k)
-        phi = self._phi
+        nk = noise[k] if noise is not None and k is not None and k < len(noise) else self._zeros
         for d in range(self.n_dims):
-            a = r0[d]
-            phi[d] = (a + fr * (r1[d] - a)) * decay + nk[d]
+            out[d] = (w[0] * F[i][d] + w[1] * D[i][d] + w[2] * E[i][d] + w[3] * F[j][d]
+                      + w[4] * D[j][d] + w[5] * E[j][d]) + nk[d]
+
+    def forcing_profile(self, u: float) -> List[float]:
+        """The interpolated forcing profile ``phi_d(u) = sum_j phi_j(u) w_dj`` (no exploration
+        noise) at normalised time ``u`` [per joint]; within ``feature_error * sum_j |w_dj|`` of
+        the exact value."""
+        out = [0.0] * self.n_dims
+        self._forcing_into(max(float(u), 0.0), out)
+        return out
+
+    @property
+    def feature_error(self) -> float:
+        """Largest interpolation error of a basis feature between the nodes of the forcing
+        grid (computed on first use; the forcing is exact at the nodes)."""
+        if self._feature_error is None:
+            basis = self.prim.basis
+            self._feature_error = (_grid_error(basis, self.n_grid_intervals, self.grid_step)
+                                   if self._on_steps else grid_intervals(basis)[1])
+        return self._feature_error
+
+    @property
+    def table_floats(self) -> int:
+        """Floats held by the forcing grid (value and two derivatives per node and joint)."""
+        return 3 * (self._n_int + 1) * self.n_dims
 
     def update(self, inp: StepInput):
         """Advance one step of ``dt``; returns ``(output, status)``. Never raises."""
@@ -355,18 +534,35 @@ class DmpStepper:
         xc = self._xclamp
         u = self._u + hk
         k = self._k + 1
-        pos = u * self._inv_h
-        i = int(pos)
-        if i + 1 < self._n_rows:
-            table = self._table
-            r0 = table[i]
-            r1 = table[i + 1]
+        pos = u * self._inv_H
+        if pos < self._n_int:  # quintic Hermite between two nodes (as hermite_weights)
+            i = int(pos)
             fr = pos - i
-            decay = 1.0
-            noise = self._noise
-            nk = noise[k] if noise is not None and k < len(noise) else self._zeros
-        else:
-            r0, r1, fr, decay, nk = self._row(u, k)
+            F, D, E = self._F, self._D, self._E
+            f0 = F[i]
+            d0 = D[i]
+            e0 = E[i]
+            i += 1
+            f1 = F[i]
+            d1 = D[i]
+            e1 = E[i]
+            fr2 = fr * fr
+            fr3 = fr2 * fr
+            om = 1.0 - fr
+            om2 = om * om
+            w3 = fr3 * (10.0 - 15.0 * fr + 6.0 * fr2)
+            w0 = 1.0 - w3
+            w1 = fr * om2 * om * (1.0 + 3.0 * fr)
+            w2 = 0.5 * fr2 * om2 * om
+            w4 = -fr3 * om * (4.0 - 3.0 * fr)
+            w5 = 0.5 * fr3 * om2
+        else:  # the exponential tail of the basis beyond the grid
+            f0 = f1 = self._F[-1]
+            d0 = d1 = e0 = e1 = self._zeros
+            w0 = math.exp(-self._alpha_s * (u - self._u_last))
+            w1 = w2 = w3 = w4 = w5 = 0.0
+        noise = self._noise
+        nk = noise[k] if noise is not None and k < len(noise) else self._zeros
         fast = self._vmax is None
         out = self.output
         y, yd, ydd, xo, xdo = out.y, out.yd, out.ydd, out.xi, out.xid
@@ -396,9 +592,9 @@ class DmpStepper:
             gd = g[d]
             gd += hkag * (g0[d] - gd)  # Eq. (14)/(22)
             g[d] = gd
-            f0 = r0[d]
-            b = (ab * (gd - xv) - a * zv
-                 + ((f0 + fr * (r1[d] - f0)) * decay + nk[d]) * (gd - x0[d]))  # Eq. (15)-(16)
+            fv = (w0 * f0[d] + w1 * d0[d] + w2 * e0[d] + w3 * f1[d] + w4 * d1[d] + w5 * e1[d]
+                  + nk[d])
+            b = ab * (gd - xv) - a * zv + fv * (gd - x0[d])  # Eq. (15)-(16)
             base[d] = b
             if fast:  # kappa == 1: joint-space outputs in the same pass
                 vel = zv * inv_tau
@@ -441,14 +637,34 @@ class DmpStepper:
         x, z, g, g0, x0, base, y, yd, ydd, xdo, yo, ydel = self._lists
         a, ab, hk, hkag, xc, inv_tau, inv_tau2, cdmp = self._consts
         k = self._k + 1
-        decay = 1.0
-        if self._noise is not None:
-            row = self._row_at(k * self._h, k)
-        elif k < self._n_rows:
-            row = self._table[k]
-        else:  # exponential tail of the basis beyond U_END
-            row = self._table[-1]
-            decay = math.exp(-self._alpha_s * (k * self._h - self._u_last))
+        u = k * self._h
+        pos = u * self._inv_H
+        if pos < self._n_int:  # quintic Hermite between two nodes (as hermite_weights)
+            i = int(pos)
+            fr = pos - i
+            F, D, E = self._F, self._D, self._E
+            f0 = F[i]
+            d0 = D[i]
+            e0 = E[i]
+            i += 1
+            f1 = F[i]
+            d1 = D[i]
+            e1 = E[i]
+            fr2 = fr * fr
+            fr3 = fr2 * fr
+            om = 1.0 - fr
+            om2 = om * om
+            w3 = fr3 * (10.0 - 15.0 * fr + 6.0 * fr2)
+            w0 = 1.0 - w3
+            w1 = fr * om2 * om * (1.0 + 3.0 * fr)
+            w2 = 0.5 * fr2 * om2 * om
+            w4 = -fr3 * om * (4.0 - 3.0 * fr)
+            w5 = 0.5 * fr3 * om2
+        else:  # the exponential tail of the basis beyond the grid
+            f0 = f1 = self._F[-1]
+            d0 = d1 = e0 = e1 = self._zeros
+            w0 = math.exp(-self._alpha_s * (u - self._u_last))
+            w1 = w2 = w3 = w4 = w5 = 0.0
         tanh = math.tanh
         for d in range(self.n_dims):
             p = P[d]
@@ -467,7 +683,8 @@ class DmpStepper:
             gd = g[d]
             gd += hkag * (g0[d] - gd)  # Eq. (14)/(22)
             g[d] = gd
-            b = ab * (gd - xv) - a * zv + row[d] * decay * (gd - x0[d])  # Eq. (15)-(16)
+            fv = w0 * f0[d] + w1 * d0[d] + w2 * e0[d] + w3 * f1[d] + w4 * d1[d] + w5 * e1[d]
+            b = ab * (gd - xv) - a * zv + fv * (gd - x0[d])  # Eq. (15)-(16)
             base[d] = b
             vel = zv * inv_tau
             xdo[d] = vel
@@ -483,7 +700,6 @@ class DmpStepper:
                 yd[d] = vel
                 ydd[d] = (b + p) * inv_tau2
         self._k = k
-        u = k * self._h
         self._u = u
         t_now = k * self.dt
         self._t = t_now
@@ -492,11 +708,6 @@ class DmpStepper:
         out.u = u
         out.phase = math.exp(-self._alpha_s * u)
         return out, _STATUS[status | (1 if u < 1.0 else 2)]
-
-    def _row_at(self, u: float, k: int) -> List[float]:
-        """Forcing profile row at u, with the tail and the exploration of tick k."""
-        r0, r1, fr, decay, nk = self._row(u, k)
-        return [(a + fr * (b - a)) * decay + e for a, b, e in zip(r0, r1, nk)]
 
     def _sanitize(self, P) -> List[float]:
         """Coupling of the wrong length or with non-finite/huge entries -> safe list."""
