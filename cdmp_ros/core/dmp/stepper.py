@@ -472,8 +472,8 @@ class DmpStepper:
 
     # -- the tick -----------------------------------------------------------------------------
     def _node_weights(self, u: float):
-        """Nodes and quintic Hermite weights of the forcing profile at u (outside the tick;
-        the ticks inline the same)."""
+        """Nodes and quintic Hermite weights of the forcing profile at u (outside the tick; the
+        ticks use :meth:`_tick_interpolants`, the same on Python floats)."""
         pos = u * self._inv_H
         if pos < self._n_int:
             i = int(pos)
@@ -514,26 +514,10 @@ class DmpStepper:
         """Floats held by the forcing grid (value and two derivatives per node and joint)."""
         return 3 * (self._n_int + 1) * self.n_dims
 
-    def update(self, inp: StepInput):
-        """Advance one step of ``dt``; returns ``(output, status)``. Never raises."""
-        status = 0
-        P = inp.coupling
-        n = self.n_dims
-        try:
-            bad = len(P) != n or not (-1e300 < sum(P) < 1e300)
-        except TypeError:
-            bad = True
-        if bad:
-            P = self._sanitize(P)
-            status |= 8  # INPUT_REJECTED
-        x, z, g, g0, x0, base = self._x, self._z, self._g, self._g0, self._x0, self._base
-        a, ab = self._a, self._ab
-        kappa = self._kappa
-        hk = self._h * kappa
-        hkag = hk * self._ag
-        xc = self._xclamp
-        u = self._u + hk
-        k = self._k + 1
+    def _tick_interpolants(self, u: float):
+        """The two grid nodes around normalised time ``u`` (forcing, first and second phase
+        derivatives) and their quintic Hermite weights (as :func:`hermite_weights`); beyond the
+        grid, the last node decayed by the basis' exponential tail."""
         pos = u * self._inv_H
         if pos < self._n_int:  # quintic Hermite between two nodes (as hermite_weights)
             i = int(pos)
@@ -561,6 +545,29 @@ class DmpStepper:
             d0 = d1 = e0 = e1 = self._zeros
             w0 = math.exp(-self._alpha_s * (u - self._u_last))
             w1 = w2 = w3 = w4 = w5 = 0.0
+        return f0, f1, d0, d1, e0, e1, w0, w1, w2, w3, w4, w5
+
+    def update(self, inp: StepInput):
+        """Advance one step of ``dt``; returns ``(output, status)``. Never raises."""
+        status = 0
+        P = inp.coupling
+        n = self.n_dims
+        try:
+            bad = len(P) != n or not (-1e300 < sum(P) < 1e300)
+        except TypeError:
+            bad = True
+        if bad:
+            P = self._sanitize(P)
+            status |= 8  # INPUT_REJECTED
+        x, z, g, g0, x0, base = self._x, self._z, self._g, self._g0, self._x0, self._base
+        a, ab = self._a, self._ab
+        kappa = self._kappa
+        hk = self._h * kappa
+        hkag = hk * self._ag
+        xc = self._xclamp
+        u = self._u + hk
+        k = self._k + 1
+        f0, f1, d0, d1, e0, e1, w0, w1, w2, w3, w4, w5 = self._tick_interpolants(u)
         noise = self._noise
         nk = noise[k] if noise is not None and k < len(noise) else self._zeros
         fast = self._vmax is None
@@ -638,33 +645,7 @@ class DmpStepper:
         a, ab, hk, hkag, xc, inv_tau, inv_tau2, cdmp = self._consts
         k = self._k + 1
         u = k * self._h
-        pos = u * self._inv_H
-        if pos < self._n_int:  # quintic Hermite between two nodes (as hermite_weights)
-            i = int(pos)
-            fr = pos - i
-            F, D, E = self._F, self._D, self._E
-            f0 = F[i]
-            d0 = D[i]
-            e0 = E[i]
-            i += 1
-            f1 = F[i]
-            d1 = D[i]
-            e1 = E[i]
-            fr2 = fr * fr
-            fr3 = fr2 * fr
-            om = 1.0 - fr
-            om2 = om * om
-            w3 = fr3 * (10.0 - 15.0 * fr + 6.0 * fr2)
-            w0 = 1.0 - w3
-            w1 = fr * om2 * om * (1.0 + 3.0 * fr)
-            w2 = 0.5 * fr2 * om2 * om
-            w4 = -fr3 * om * (4.0 - 3.0 * fr)
-            w5 = 0.5 * fr3 * om2
-        else:  # the exponential tail of the basis beyond the grid
-            f0 = f1 = self._F[-1]
-            d0 = d1 = e0 = e1 = self._zeros
-            w0 = math.exp(-self._alpha_s * (u - self._u_last))
-            w1 = w2 = w3 = w4 = w5 = 0.0
+        f0, f1, d0, d1, e0, e1, w0, w1, w2, w3, w4, w5 = self._tick_interpolants(u)
         tanh = math.tanh
         for d in range(self.n_dims):
             p = P[d]
