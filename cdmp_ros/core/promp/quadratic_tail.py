@@ -9,27 +9,54 @@ exactly where a confidence alpha = 0.999 lives, so constraints met "with probabi
 the Gamma match are violated 1.4-2.5 times more often than asked (see ../shared/design.md,
 Numerics notes).
 
-This module evaluates P(Q <= x) by the Lugannani-Rice saddle-point approximation, whose relative
-error in the 1e-4 ... 1e-2 tails is a few per cent (checked against Monte Carlo sampling and an
-exact cubature of the Gaussian over the ball in test/test_core_quadratic_tail.py: at most 7 %
-over 72 tails where the Gamma match errs by up to 600 %), with analytic gradients with respect to
-the mean and the covariance.
+This module evaluates P(Q <= x) by the Lugannani-Rice saddle-point approximation, with Daniels'
+second-order term in the upper tail, and analytic gradients with respect to the mean and the
+covariance.
 
 Cumulant generating function of Q, with b_i = 1 / (1 - 2 s lam_i), for s < 1 / (2 max lam):
 
-    K(s)   = sum_i [ -1/2 log(1 - 2 s lam_i) + s delta_i^2 b_i ]
-    K'(s)  = sum_i [ lam_i b_i + delta_i^2 b_i^2 ]
-    K''(s) = sum_i [ 2 lam_i^2 b_i^2 + 4 lam_i delta_i^2 b_i^3 ]
+    K(s)     = sum_i [ -1/2 log(1 - 2 s lam_i) + s delta_i^2 b_i ]
+    K^(j)(s) = sum_i [ 2^(j-1) (j-1)! (lam_i b_i)^j + 2^(j-1) j! lam_i^(j-1) delta_i^2 b_i^(j+1) ]
 
-The saddle point s_hat solves K'(s_hat) = x; then w = sign(s_hat) sqrt(2 (s_hat x - K(s_hat))),
-u = s_hat sqrt(K''(s_hat)) and
+(j >= 1; K' = sum_i [lam_i b_i + delta_i^2 b_i^2]). The saddle point s_hat solves K'(s_hat) = x;
+then w = sign(s_hat) sqrt(2 (s_hat x - K(s_hat))), u = s_hat sqrt(K2), lambda_3 = K3 / K2^(3/2),
+lambda_4 = K4 / K2^2 (K_j = K^(j)(s_hat)) and
 
-    P(Q <= x) ~= Phi(w) + phi(w) (1/w - 1/u)            (Lugannani and Rice, 1980)
+    P(Q <= x) ~= Phi(w) + phi(w) (1/w - 1/u)                       (Lugannani and Rice, 1980)
+                 - phi(w) [ (lambda_4/8 - 5 lambda_3^2/24) / u - lambda_3 / (2 u^2)
+                            - 1/u^3 + 1/w^3 ]                      (Daniels, 1987)
+
+The second line (``second_order``) is used above the mean of Q (s_hat > 0) by default, on both
+sides or nowhere on request; near the mean it is blended in smoothly (see _W2_LO).
+
+Accuracy (benchmarks/bench_quadratic_tail.py: relative error of the tail against an exact
+reference, nested 1-D integrals of closed-form normal probabilities cross-checked against Imhof's
+integral; 3528 tails at levels 1e-4 ... 5e-2, k = 2 and 3, eigenvalue ratios 1 ... 1e-6 with one
+or two small eigenvalues, offsets 0 ... 5 standard deviations along the large, the small and the
+diagonal direction; test/test_core_quadratic_tail.py holds the bounds):
+
+- upper tail P(Q > x) (waypoints, the smoothness bound): -6.3 % ... +0.8 % at every ratio (the
+  first-order formula: -9.6 % ... +8.2 %);
+- lower tail P(Q <= x) (repellers), first order: -3.2 % ... +7.3 % at ratios >= 0.1, up to
+  +26.6 % (tail overestimated: conservative) at smaller ratios, with the worst case a
+  needle-shaped covariance (second and third eigenvalues < 1 % of the first) whose offset from c
+  lies across the needle; -4.7 % is the largest underestimate. There Daniels' term overcorrects
+  (``second_order='both'``: -13.2 % ... +6.1 %, the tail underestimated by up to 13 % at ratios
+  <= 1e-2), so it is not used below the mean by default;
+- k = 1: lower tail -3.7 % ... +15.6 %, upper -3.4 % ... +0.8 %.
+
+Tiny eigenvalues are not treated as degenerate: the offset along their direction makes Q vary
+linearly, by 2 |delta_i| sqrt(lam_i) per standard deviation, which is the scale of x - E[Q] in
+the lower tail of a needle (ratio 1e-6, offset 1 along the thin axis: dropping the thin axis
+gives P = 0 where the exact tail is 1e-2). The saddle point needs no such threshold (the
+eigenvalues are floored only at 1e-12 of the row's scale).
 
 Gradients: with theta any entry of (m, S), the envelope theorem gives dw/dtheta =
--(dK/dtheta) / w, and d s_hat / dtheta = -(dK'/dtheta) / K''(s_hat); the partial derivatives of
-K, K' and K'' at fixed s are closed-form matrix functions of S (written here in the eigenbasis of
-S, where they need no divided differences, so repeated eigenvalues are harmless).
+-(dK/dtheta) / w, and d s_hat / dtheta = -(dK'/dtheta) / K''(s_hat), so dP = sum_j A_j dK^(j)|_s
+with scalars A_j per row. Each K^(j) = tr F_j(S) + d^T F_j'(S) d (d = m - c), so dP/dd =
+2 f(S) d and dP/dS = f(S) + the Frechet derivative of d^T f(S) d, f = sum_j A_j F_j': in the
+eigenbasis of S, diag(f(lam)) + (delta delta^T) o f[lam_p, lam_q], the divided differences
+written as sums of products (no cancellation for close or repeated eigenvalues).
 """
 from typing import Optional, Tuple
 
@@ -44,6 +71,16 @@ from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 # constraint asks for; continuous across the switch up to O(_W_CENTER)).
 _W_CENTER = 2e-4
 _MAX_ITER = 200
+# alpha_j = 2^(j-1) (j-1)! and beta_j = 2^(j-1) j! = j alpha_j of the cumulant formulas (index j)
+_ALPHA = (0.0, 1.0, 2.0, 8.0, 48.0, 384.0)
+_BETA = (0.0, 1.0, 4.0, 24.0, 192.0, 1920.0)
+# The second-order term's 1/w^3 - 1/u^3 cancels to O(1) as w -> 0 (the mean of Q): it enters
+# with a smoothstep weight that rises from 0 at w = _W2_LO (|w| with second_order='both') to 1
+# at _W2_HI, so it is evaluated only where that cancellation costs < 1e-11; on the band P lies
+# between about 0.3 and 0.8 (measured, k = 1 ... 30), far from any confidence level a
+# constraint asks for.
+_W2_LO = 0.02
+_W2_HI = 0.2
 _FAR = 9.0          # chi2_3 tail: P(chi2_3 > 81) < 1e-17
 _FAR_DIR = 7.5      # normal tail: Phi(-7.5) < 4e-14
 
@@ -54,18 +91,21 @@ def _rowsum(a: NDArray) -> NDArray:
     return a @ np.ones(a.shape[-1])
 
 
-def _cgf(s, lam, d2):
-    """K, K', K'', K''' at s (rows), and b = 1 / (1 - 2 s lam)."""
-    b = 1.0 / (1.0 - 2.0 * s[:, None] * lam)
+def _cgf(s, lam, d2, nder=5):
+    """b = 1 / (1 - 2 s lam) and the rows' K, K', ..., K^(nder) at s, stacked (nder + 1, n):
+    K^(j)(s) = sum_i (lam_i b_i)^(j-1) [alpha_j lam_i b_i + beta_j delta_i^2 b_i^2], j >= 1."""
+    sc = s[:, None]
+    b = 1.0 / (1.0 - 2.0 * sc * lam)
     lb = lam * b
-    d2b = d2 * b
-    t = d2b * b
-    lb2 = lb * lb
-    K = _rowsum(-0.5 * np.log1p(-2.0 * s[:, None] * lam) + s[:, None] * d2b)
-    K1 = _rowsum(lb + t)
-    K2 = _rowsum(2.0 * lb2 + 4.0 * lb * t)
-    K3 = _rowsum(8.0 * lb2 * lb + 24.0 * lb2 * t)
-    return b, K, K1, K2, K3
+    t = d2 * b * b
+    terms = np.empty((nder + 1,) + lam.shape)
+    terms[0] = -0.5 * np.log1p(-2.0 * sc * lam) + sc * d2 * b
+    terms[1] = lb + t
+    p = lb                                      # (lam b)^(j-1)
+    for j in range(2, nder + 1):
+        terms[j] = p * (_ALPHA[j] * lb + _BETA[j] * t)
+        p = p * lb
+    return b, terms @ np.ones(lam.shape[-1])
 
 
 def _log1p_plus(t):
@@ -227,7 +267,8 @@ def _eigh3(S):
 
 
 def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
-                       state: Optional[dict] = None) -> Tuple[NDArray, NDArray, NDArray]:
+                       state: Optional[dict] = None, second_order: str = 'upper'
+                       ) -> Tuple[NDArray, NDArray, NDArray]:
     """P(|x - center|^2 <= x) for x ~ N(m, S), saddle-point approximation, with gradients.
 
     Parameters
@@ -245,6 +286,12 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
         moments): the saddle points of the previous call start the root search of this one
         (key ``'s'``), which cuts the Newton iterations from about 8 to 2-3. The result does
         not depend on it (each root is solved to 1e-13 in log K').
+    second_order : {'upper', 'both', 'none'}
+        Where Daniels' second-order term is added to the Lugannani-Rice formula: above the mean
+        of Q only (default: the upper tail, where it is more accurate on both sides), on both
+        sides (most accurate on average, but it underestimates lower tails of needle-shaped
+        covariances by up to 14 %), or nowhere (the first-order formula). See the module
+        docstring for the measured errors.
 
     Returns
     -------
@@ -253,6 +300,9 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
     dP_dS : ndarray, shape (n, k, k)
         Symmetric gradient (for symmetric perturbations of S).
     """
+    if second_order not in ('upper', 'both', 'none'):
+        raise ValueError("second_order: expected 'upper', 'both' or 'none', got "
+                         f'{second_order!r}')
     m = np.asarray(m, float)
     S = np.asarray(S, float)
     n, k = m.shape
@@ -280,7 +330,7 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
         if np.any(skip):
             act = ~skip
     if act is None:
-        P, dP_dm, dP_dS, s = _saddle_cdf(m, S, center, x, s0)
+        P, dP_dm, dP_dS, s = _saddle_cdf(m, S, center, x, s0, second_order)
     else:
         P = inside.astype(float)
         dP_dm = np.zeros((n, k))
@@ -288,13 +338,14 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
         s = np.zeros(n) if s0 is None else s0.copy()
         if np.any(act):
             P[act], dP_dm[act], dP_dS[act], s[act] = _saddle_cdf(
-                m[act], S[act], center[act], x[act], None if s0 is None else s0[act])
+                m[act], S[act], center[act], x[act], None if s0 is None else s0[act],
+                second_order)
     if state is not None:
         state['s'] = s
     return P, dP_dm, dP_dS
 
 
-def _saddle_cdf(m, S, center, x, s0):
+def _saddle_cdf(m, S, center, x, s0, second_order='upper'):
     """quadratic_form_cdf on rows that need it; also returns the saddle points."""
     n, k = m.shape
     d = m - center
@@ -304,41 +355,96 @@ def _saddle_cdf(m, S, center, x, s0):
     delta = np.matmul(d[:, None, :], U)[:, 0, :]
     d2 = delta * delta
     s = saddle_point(lam, d2, x, s0)
-    b, K, K1, K2, K3 = _cgf(s, lam, d2)
+    order2 = second_order != 'none'
+    b, K = _cgf(s, lam, d2, 5 if order2 else 3)
     w2 = np.maximum(_w2(s, lam, d2, b), 0.0)
     w = np.sign(s) * np.sqrt(w2)
+    K2 = K[2]
     sqK2 = np.sqrt(K2)
     u = s * sqK2
+    l3 = K[3] / (K2 * sqK2)
     center_rows = np.abs(w) < _W_CENTER
     with np.errstate(divide='ignore', invalid='ignore'):
         pw = normal_pdf(w)
-        P = normal_cdf(w) + pw * (1.0 / w - 1.0 / u)
-        # dP/dw and dP/du of the Lugannani-Rice formula
-        P_w = pw * (w / u - 1.0 / (w * w))
-        P_u = pw / (u * u)
-        a_K = -P_w / w
-        a_1 = -P_u * (sqK2 + s * K3 / (2.0 * sqK2)) / K2
-        a_2 = P_u * s / (2.0 * sqK2)
-    a_K, a_1, a_2 = (np.where(center_rows, 0.0, a)[:, None] for a in (a_K, a_1, a_2))
-    # eigenbasis gradient: dP/d delta = c * delta; dP/dS_eig = G = X + X^T + diag(g) with
-    # X = p alpha^T + v beta^T (p = b delta, q = b p, r = b q, v = lam q, y = lam r)
+        iw = 1.0 / w
+        iu = 1.0 / u
+        P = normal_cdf(w) + pw * (iw - iu)
+        # dP/dw and dP/du (then dP/dlambda3, dP/dlambda4 of the second-order term)
+        P_w = pw * (w * iu - iw * iw)
+        P_u = pw * iu * iu
+        # dP = sum_j A_j dK^(j) at fixed s (envelope theorem for w; ds = -dK' / K'')
+        A0 = -P_w * iw
+        D_s = P_u * (sqK2 + 0.5 * s * K[3] / sqK2)
+        A2 = 0.5 * P_u * s / sqK2
+        if order2 and (second_order == 'both' or np.any(w > _W2_LO)):
+            # T2 = -phi(w) C, C = (l4/8 - 5 l3^2/24)/u - l3/(2 u^2) - 1/u^3 + 1/w^3, weighted by
+            # the smoothstep h(|w|) ('both') or h(w) ('upper': 0 below the mean); see _W2_LO
+            l4 = K[4] / (K2 * K2)
+            l5 = K[5] / (K2 * K2 * sqK2)
+            wa = np.abs(w) if second_order == 'both' else w
+            a = np.minimum(np.maximum((wa - _W2_LO) * (1.0 / (_W2_HI - _W2_LO)), 0.0), 1.0)
+            h = a * a * (3.0 - 2.0 * a)
+            dh = (6.0 / (_W2_HI - _W2_LO)) * a * (1.0 - a)
+            if second_order == 'both':
+                dh = dh * np.sign(w)
+            if not np.all(a > 0.0):
+                iw = np.where(a > 0.0, iw, 0.0)
+                iu = np.where(a > 0.0, iu, 0.0)
+            iu2 = iu * iu
+            iu3 = iu2 * iu
+            iw3 = iw * iw * iw
+            c4 = l4 / 8.0 - (5.0 / 24.0) * l3 * l3
+            C = c4 * iu - 0.5 * l3 * iu2 - iu3 + iw3
+            hp = h * pw
+            T2 = -pw * C
+            P = P + h * T2
+            P_w2 = dh * T2 + hp * (w * C + 3.0 * iw3 * iw)
+            P_u2 = hp * (c4 * iu2 - l3 * iu3 - 3.0 * iu3 * iu)
+            P_3 = hp * ((5.0 / 12.0) * l3 * iu + 0.5 * iu2)
+            P_4 = (-1.0 / 8.0) * hp * iu
+            A0 = A0 - P_w2 * np.where(a > 0.0, 1.0 / w, 0.0)
+            D_s = D_s + P_u2 * (sqK2 + 0.5 * s * K[3] / sqK2) \
+                + sqK2 * (P_3 * (l4 - 1.5 * l3 * l3) + P_4 * (l5 - 2.0 * l3 * l4))
+            A2 = A2 + 0.5 * P_u2 * s / sqK2 - (1.5 * P_3 * l3 + 2.0 * P_4 * l4) / K2
+            A = (A0, -D_s / K2, A2, P_3 / (K2 * sqK2), P_4 / (K2 * K2))
+        else:
+            A = (A0, -D_s / K2, A2, 0.0 * A2, 0.0 * A2)
+    if np.any(center_rows):
+        A = [np.where(center_rows, 0.0, a_j) for a_j in A]
+    A = [a_j[:, None] for a_j in A]
+    # Every K^(j) = tr F_j(S) + d^T F_j'(S) d with F_j' = beta_j S^(j-1) B^(j+1) (F_0' = s B),
+    # B = (I - 2 s S)^-1, so with f = A_0 s B + sum_j A_j beta_j S^(j-1) B^(j+1):
+    # dP/dd = 2 f(S) d, and dP/dS = f(S) + the Frechet derivative of d^T f(S) d, in the
+    # eigenbasis diag(f(lam)) + (delta delta^T) o f[lam_p, lam_q] (divided differences).
+    # With y = lam b: f = A_0 s b + b^2 poly(y), poly(y) = sum_j c_j y^(j-1), c_j = A_j beta_j;
+    # b[p, q] = 2 s b_p b_q and y[p, q] = b_p b_q give f[p, q] = b_p b_q T_pq,
+    #   T_pq = 2 A_0 s^2 + 2 s (b_p + b_q) poly(y_q) + b_p^2 (c_2 + c_3 (y_p + y_q)
+    #          + c_4 (y_p^2 + y_p y_q + y_q^2)),
+    # sums of products (no cancellation for close or repeated eigenvalues). dP/dS is
+    # symmetrised, so a term g h^T may be written h g^T: T ~ (P1 + 2 s b poly) 1^T
+    # + 2 s b poly^T + P2 y^T + P3 (y^2)^T, P1 = 2 A_0 s^2 + b^2 (c_2 + c_3 y + c_4 y^2),
+    # P2 = b^2 (c_3 + c_4 y), P3 = c_4 b^2, and U G U^T = sym(Vp Vq^T) with the columns
+    # Vp = [U (e o (P1 + 2 s b poly)), U (e o 2 s b), U (e o P2), U (e o P3), U diag(f)],
+    # Vq = [U e, U (e o poly), U (e o y), U (e o y^2), U], e = delta o b.
     sc = s[:, None]
+    c1, c2, c3, c4 = (A[j] * _BETA[j] for j in range(1, 5))
+    y = lam * b
+    c34 = c3 + y * c4
+    poly = c1 + y * (c2 + y * c34)
     b2 = b * b
-    lb2 = lam * b2
-    p = b * delta
-    q = b * p
-    r = b * q
-    v = lam * q
-    g = a_K * sc * b + a_1 * b2 + 4.0 * a_2 * lb2 * b
-    c = 2.0 * g
-    alpha = (sc * sc * a_K) * p + (2.0 * sc * a_1) * q + 2.0 * a_2 * r \
-        + (4.0 * sc * a_2) * (lam * r)
-    beta = (4.0 * sc * a_2) * q
-    # back to the original basis with one batched product: U [p v alpha beta c*delta]
-    V = np.matmul(U, np.stack([p, v, alpha, beta, c * delta], axis=2))     # (n, k, 5)
-    Y = V[:, :, 0, None] * V[:, None, :, 2] + V[:, :, 1, None] * V[:, None, :, 3]
-    dP_dS = Y + np.swapaxes(Y, 1, 2) + np.matmul(U * g[:, None, :], np.swapaxes(U, 1, 2))
-    dP_dm = V[:, :, 4]
+    f = A[0] * sc * b + b2 * poly
+    e = delta * b
+    e2sb = e * (2.0 * sc * b)
+    ep = e * poly
+    ey = e * y
+    V = np.matmul(U, np.stack((e * (2.0 * A[0] * sc * sc + b2 * (c2 + y * c34)) + e2sb * poly,
+                               e2sb, e * (b2 * c34), e * (c4 * b2), e, ep, ey, ey * y,
+                               2.0 * f * delta), axis=2))                  # (n, k, 9)
+    Vp = np.concatenate([V[:, :, :4], U * f[:, None, :]], axis=2)
+    Vq = np.concatenate([V[:, :, 4:8], U], axis=2)
+    Y = np.matmul(Vp, np.swapaxes(Vq, 1, 2))
+    dP_dS = 0.5 * (Y + np.swapaxes(Y, 1, 2))
+    dP_dm = V[:, :, 8]
     if np.any(center_rows):
         P, dP_dm, dP_dS = _center_edgeworth(m, S, center, x, center_rows, P, dP_dm, dP_dS)
     return np.clip(P, 0.0, 1.0), dP_dm, dP_dS, s
