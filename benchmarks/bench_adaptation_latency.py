@@ -26,7 +26,7 @@ diagnostics key ``start``) is printed.
 
 For each event it records the latency from the obstacle stamp (= publish time, same host
 clock) to the stamp of the first ``joint_reference`` computed from the adaptation it caused.
-After the change of issue 13 the streamer reports that stamp on ``diagnostics``
+After the change of issue 13 the streamer reports that stamp on ``/diagnostics``
 (``adapted_reference_stamp_ns`` with ``adapted_trigger_stamp_ns`` = the obstacle stamp); the
 benchmark checks it received a ``joint_reference`` with that stamp and also gives the time at
 which it received it. ``--before`` measures code without those keys (``--code DIR``: a tree

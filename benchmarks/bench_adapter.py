@@ -9,8 +9,8 @@ at a random phase in [0.3, 0.7]. For each obstacle message it records the time u
 ``adapted_primitive`` caused by it arrives (matched by the marker stamp the adapter copies into
 ``metadata.adapter.trigger_stamp_ns``), and the adapter's own ``solve_time_ms`` (wall clock),
 ``solve_cpu_ms`` (CPU time of its solver thread: what the solve costs on an idle core) and
-outcome from ``diagnostics``. An obstacle whose solve does not converge publishes no primitive (the
-last good one stays latched); it is counted, not timed.
+outcome from ``/diagnostics``. An obstacle whose solve does not converge publishes no primitive
+(the last good one stays latched); it is counted, not timed.
 
 Target (issue 5): adapted 7-DoF ProMP published <= 300 ms after the obstacle message.
 
@@ -63,6 +63,7 @@ class User:
     def __init__(self, domain, js_rate=50.0):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
+        from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
         from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
@@ -82,7 +83,7 @@ class User:
         self.pub_js = n.create_publisher(JointState, 'joint_states', qos.COMMAND)
         n.create_subscription(String, 'adapted_primitive', self._on_adapted,
                               qos.LATCHED)
-        n.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 50)
+        n.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diag, 50)
         n.create_timer(1.0 / js_rate, self._js)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(n)

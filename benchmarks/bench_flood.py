@@ -201,12 +201,13 @@ class Observer:
 
     def __init__(self, node):
         from diagnostic_msgs.msg import DiagnosticArray
+        from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
         self.lock = threading.Lock()
         self.status = {}   # name -> {key: value}
         self.q = []        # measured positions (7,)
-        node.create_subscription(DiagnosticArray, 'diagnostics', self._diag, 200)
+        node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._diag, 200)
         node.create_subscription(JointState, 'joint_states', self._js,
                                  QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
 

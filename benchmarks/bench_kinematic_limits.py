@@ -91,13 +91,13 @@ class Recorder:
 
     def __init__(self, node):
         from diagnostic_msgs.msg import DiagnosticArray
+        from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
         from sensor_msgs.msg import JointState
         from cdmp_ros.ros import qos
         self.lock = threading.Lock()
         self.status = {}
         self.stamps, self.Q = [], []
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._diag, 200)
-        node.create_subscription(DiagnosticArray, 'diagnostics', self._diag, 200)
+        node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._diag, 200)
         node.create_subscription(JointState, 'joint_reference', self._ref, qos.REFERENCE)
 
     def _diag(self, msg):

@@ -103,7 +103,8 @@ class Peer:
         self.node = rclpy.create_node('bench_shutdown', context=self.ctx)
         self.diag = []
         from diagnostic_msgs.msg import DiagnosticArray
-        self.node.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag, 100)
+        from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
+        self.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diag, 100)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self._stop = threading.Event()

@@ -60,6 +60,7 @@ def step_costs(n=3000):
 def listen(domain, seconds, warmup, markers):
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
+    from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
@@ -77,7 +78,7 @@ def listen(domain, seconds, warmup, markers):
             diag[s.name] = {kv.key: kv.value for kv in s.values}
     node.create_subscription(JointState, 'joint_states', on_js,
                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
-    node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 10)
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_diag, 10)
     pub = node.create_publisher(MarkerArray, 'obstacles', 10)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)

@@ -88,6 +88,7 @@ def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
     import gc
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
+    from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
@@ -115,7 +116,7 @@ def listen(seconds, rate, obstacle, warmup, priority=0, graph=False):
             if st.name == 'streamer: timing':  # not the sim's or adapter's timings
                 timing.update({v.key: v.value for v in st.values})
 
-    node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_diag, 50)
     try:  # the listener must not be the bottleneck at 1 kHz
         from rclpy.experimental import EventsExecutor
         ex = EventsExecutor()
@@ -180,6 +181,7 @@ def listen_latency(reps, priority=0, graph=False):
     import pybullet_data
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
+    from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
@@ -215,7 +217,7 @@ def listen_latency(reps, priority=0, graph=False):
             if st.name.startswith('streamer') and 'obstacle_latency_n' in kv:
                 inside.update(kv)
 
-    node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, 50)
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_diag, 50)
     ex = EventsExecutor()
     ex.add_node(node)
     prim_pub.publish(String(data=panda_primitive_json()))

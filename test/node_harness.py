@@ -5,7 +5,7 @@
   the test's private domain id); :func:`stop_process` stops it (SIGINT, then SIGKILL).
 - :class:`NodeHarness` is a test-side node in its own rclpy context on a private domain id
   (:func:`conftest.module_domain`), spun by a background thread, with publishers and
-  subscriptions helpers, the record of every ``diagnostics`` status (:class:`Diag`, the
+  subscriptions helpers, the record of every ``/diagnostics`` status (:class:`Diag`, the
   records :mod:`conftest`'s evidence helpers read) and the waits on them, Trigger and
   parameter service calls, and stamped JointState messages. The per-node harnesses
   (``streamer_harness``, ``adapter_harness``, ``sim_harness``, ``learner_harness``,
@@ -24,6 +24,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from conftest import REPO_ROOT, ros_env, wait_for
 
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
@@ -151,7 +152,8 @@ class NodeHarness:
     domain_id : int, optional
         Private domain id (default: the session's ``ROS_DOMAIN_ID``).
     diagnostics : str or None
-        Topic whose statuses are recorded in :attr:`diag_messages` (None: none).
+        Topic whose statuses are recorded in :attr:`diag_messages` (default ``/diagnostics``,
+        every node's; None: none).
     diagnostics_depth : int
         Queue depth of that subscription.
     spin_period : float
@@ -170,7 +172,7 @@ class NodeHarness:
     """
 
     def __init__(self, name: str, domain_id: Optional[int] = None,
-                 diagnostics: Optional[str] = 'diagnostics', diagnostics_depth: int = 50,
+                 diagnostics: Optional[str] = DIAGNOSTICS_TOPIC, diagnostics_depth: int = 50,
                  spin_period: float = 0.05, spin: bool = True):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor

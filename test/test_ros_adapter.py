@@ -690,7 +690,7 @@ def test_startup_bad_parameters_exit_nonzero_and_a_restarted_adapter_gets_the_pr
     log = tmp_path / 'restart.log'
     second = start_adapter(DOMAIN, PARAMS, log_path=str(log),
                            remaps=['__node:=adapter_restart', 'adapted_primitive:=adapted_restart',
-                                   'visualization:=viz_restart', 'diagnostics:=diag_restart'])
+                                   'visualization:=viz_restart', '/diagnostics:=/diag_restart'])
     try:
         for p, text, i in procs:
             code = p.wait(STARTUP)

@@ -51,6 +51,27 @@ def test_commands_carry_params_remaps_and_namespace(tmp_path):
         assert piece in cmd
 
 
+def test_the_documented_graph_format_is_the_parsed_one():
+    """The example graph of the module docstring parses and names every key the parser
+    accepts, no other; a node is renamed by a ``__node`` remapping (there is no other key)."""
+    import textwrap
+    from cdmp_ros.cli import cmd_bringup
+    block = cmd_bringup.__doc__.split('A graph file::', 1)[1].split('\n\n', 2)[1]
+    data = yaml.safe_load(textwrap.dedent(block))
+    spec, = parse_graph(data).nodes
+    assert set(data) == cmd_bringup._GRAPH_KEYS
+    assert set(data['nodes'][0]) == cmd_bringup._NODE_KEYS
+    cmd = spec.command()
+    assert cmd[cmd.index('--ros-args') - 1] == 'cdmp_ros.nodes.sim'
+    for arg in ['publish_rate:=250.0', 'joint_reference:=/arm/joint_reference', '__ns:=/arm']:
+        assert arg in cmd, cmd
+    renamed, = parse_graph({'nodes': [{'name': 'left', 'executable': 'sim',
+                                       'remappings': {'__node': 'left_sim'}}]}).nodes
+    assert renamed.command()[-2:] == ['-r', '__node:=left_sim']
+    with pytest.raises(ValidationError, match="unknown keys \\['rename'\\]"):
+        parse_graph({'nodes': [{'executable': 'sim', 'rename': True}]})
+
+
 def test_unreadable_graph_file(tmp_path):
     p = tmp_path / 'g.yaml'
     p.write_text('nodes: [\n')

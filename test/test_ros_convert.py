@@ -238,6 +238,62 @@ def test_parameters_mirror_the_config_with_descriptors(node):
     assert not r.successful and 'stop_time' in r.reason
 
 
+def test_empty_string_arrays_are_declared_with_a_value(tmp_path):
+    """A tuple-of-str field is a STRING_ARRAY parameter that has a value, ``[]`` included (as
+    ``ros2 param get`` and the get_parameters service see it): by default, from an untyped
+    empty list in a parameter file and from ``-p name:=[]``; a list given stays; read-only
+    fields stay read-only, writable ones writable."""
+    import dataclasses
+    import rclpy
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.parameter import Parameter
+    from cdmp_ros.core.config_fields import param
+    from cdmp_ros.core.streaming.config import StreamerConfig
+    from cdmp_ros.ros.params import ConfigParameters
+    from conftest import module_domain
+
+    @dataclasses.dataclass(frozen=True)
+    class Writable:
+        names: tuple = param((), 'Names, writable.')
+
+    path = tmp_path / 'arrays.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    coupling_links: []\n')
+    default_links = list(StreamerConfig().coupling_links)
+    assert default_links and StreamerConfig().controller_joints == ()
+    runs = [([], {'controller_joints': [], 'coupling_capsule_links': [],
+                  'coupling_links': default_links, 'w.names': []}),
+            (['--params-file', str(path), '-p', 'controller_joints:=[]',
+              '-p', 'coupling_capsule_links:=[panda_link4]', '-p', 'w.names:=[]'],
+             {'controller_joints': [], 'coupling_capsule_links': ['panda_link4'],
+              'coupling_links': [], 'w.names': []})]
+    for args, expected in runs:
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=module_domain(1), args=['--ros-args', *args])
+        try:
+            node = rclpy.create_node('params_arrays', context=ctx)
+            p = ConfigParameters(node, [('', StreamerConfig), ('w', Writable)])
+            for name, value in expected.items():
+                got = node.get_parameter(name)
+                assert got.type_ == Parameter.Type.STRING_ARRAY and list(got.value) == value, (
+                    args, name, got.type_, got.value)
+                # what the get_parameters service answers (ros2 param get)
+                msg = got.get_parameter_value()
+                assert msg.type == ParameterType.PARAMETER_STRING_ARRAY, (args, name)
+                assert list(msg.string_array_value) == value, (args, name)
+                d = node.describe_parameter(name)
+                assert d.type == ParameterType.PARAMETER_STRING_ARRAY, (args, name)
+                assert d.read_only == (name != 'w.names'), (args, name)
+                prefix, _, field = name.rpartition('.')
+                assert getattr(p[prefix], field) == tuple(value), (args, name)
+            r = node.set_parameters([Parameter('controller_joints', value=['panda_joint1'])])[0]
+            assert not r.successful and 'read-only' in r.reason
+            r = node.set_parameters([Parameter('w.names', value=['a', 'b'])])[0]
+            assert r.successful and p['w'].names == ('a', 'b')
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=ctx)
+
+
 def test_every_node_parameter_has_its_descriptor_in_code():
     """Every parameter of every node takes its description from the field metadata (no
     docstring is parsed): a field without one is refused at declaration."""
@@ -310,6 +366,40 @@ def test_diagnostics_reporter_summarises_rejections_and_timings(node):
     st = {s.name: s for s in sent[-1].status}
     assert st['streamer: state'].level == DiagnosticStatus.OK
     assert st['streamer: input goal'].message == 'ok'
+
+
+def test_diagnostics_status_names_start_with_the_fully_qualified_node_name(node):
+    """Every node shares /diagnostics: the status-name prefix is the node's fully qualified name
+    without the leading slash (the node name in the root namespace), ``__ns`` and ``__node``
+    remaps included."""
+    import rclpy
+    from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
+    from cdmp_ros.ros.diagnostics import OK, DiagnosticsReporter
+    from conftest import module_domain
+    assert DIAGNOSTICS_TOPIC == '/diagnostics'  # absolute (design.md, Topics)
+
+    class Pub:
+        def publish(self, m):
+            pass
+
+    assert DiagnosticsReporter(node, Pub()).name == 'params_test'
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=module_domain(1),
+               args=['--ros-args', '-r', '__ns:=/left/arm', '-r', '__node:=streamer2'])
+    try:
+        n = rclpy.create_node('streamer', context=ctx)
+        r = DiagnosticsReporter(n, Pub())
+        r.set_state(OK, 'running')
+        r.reject('goal', 'bad')
+        r.timing('tick', 1e-4)
+        arr = r.build(n.get_clock().now().to_msg())
+        assert [s.name for s in arr.status] == ['left/arm/streamer2: state',
+                                                'left/arm/streamer2: input goal',
+                                                'left/arm/streamer2: timing']
+        assert {s.hardware_id for s in arr.status} == {'/left/arm/streamer2'}
+        n.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
 
 
 def test_config_file_mirrors_every_parameter_with_its_default():

@@ -207,7 +207,7 @@ def test_wait_subscribers_0_plays_at_once(tmp_path):
 def test_the_timeout_names_the_topics_without_subscriber_and_plays_anyway(tmp_path):
     """Nobody subscribes to /a or /clock: after ``wait_subscribers`` the player says which
     topics had no subscriber, in the log and on diagnostics (WARN), and plays anyway."""
-    h = NodeHarness('player_wait_diag', diagnostics='diagnostics', spin_period=0.02)
+    h = NodeHarness('player_wait_diag', spin_period=0.02)  # /diagnostics
     bag = str(tmp_path / 'nobody')
     _bag(bag, n=20)
     log = str(tmp_path / 'play.log')

@@ -75,19 +75,28 @@ class Observer(NodeHarness):
 
     def __init__(self):
         super().__init__('shutdown_test', DOMAIN, diagnostics=None)
-        self.diags = {}     # namespace -> list of (status name, message, {key: value})
+        self.diags = {}     # namespace -> list of (status name in it, message, {key: value})
         self.counts = {}    # topic -> messages received
+        self._diag_sub = None
 
     def watch_diagnostics(self, ns):
+        """Record the statuses of the nodes in namespace ``ns``: every node publishes on
+        ``/diagnostics``, its status names start with its name (``sd_sim_sigint/sim: state``)."""
         from diagnostic_msgs.msg import DiagnosticArray
-        self.diags[ns] = []
+        from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
+        with self.lock:
+            self.diags[ns] = []
+        if self._diag_sub is None:
+            self._diag_sub = self.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+                                                           self._on_ns_diag, 100)
 
-        def on_diag(msg):
-            with self.lock:
-                for st in msg.status:
-                    self.diags[ns].append((st.name, st.message,
-                                           {kv.key: kv.value for kv in st.values}))
-        self.node.create_subscription(DiagnosticArray, f'{ns}/diagnostics', on_diag, 100)
+    def _on_ns_diag(self, msg):
+        with self.lock:
+            for st in msg.status:
+                ns = st.name.split(':')[0].rpartition('/')[0]
+                if '/' + ns in self.diags:  # 'sd_sim_sigint/sim: state' -> 'sim: state'
+                    self.diags['/' + ns].append((st.name[len(ns) + 1 if ns else 0:], st.message,
+                                                 {kv.key: kv.value for kv in st.values}))
 
     def diag_values(self, ns):
         with self.lock:
@@ -413,8 +422,8 @@ def test_bringup_forwards_the_signal_and_exits_0(tmp_path, sig):
                                 start_new_session=True)
 
         def both_up():
-            names = {name.split(':')[0] for name, _, _ in obs.diags[ns]}
-            return {'sim', 'streamer'} <= names
+            with obs.lock:
+                return {'sim', 'streamer'} <= {name.split(':')[0] for name, _, _ in obs.diags[ns]}
         assert wait_for(both_up), [name for name, _, _ in obs.diags[ns]]
         proc.send_signal(SIGNALS[sig])
         out, _ = proc.communicate(timeout=TIMEOUT)

@@ -5,19 +5,21 @@ them cleanly (Ctrl-C stops it); ``config/graphs/`` holds the graphs shipped with
 There is no ``ros2 launch`` on PyPI, so ``cdmp bringup GRAPH.yaml`` does the part of it this
 package needs. A graph file::
 
-    # every key but ``nodes`` is optional
+    # every key but ``nodes`` is optional, and in a node every key but ``executable``
     environment:                 # added to every process (values are strings)
       ROS_DOMAIN_ID: '42'
-    stop_timeout: 5.0            # s between SIGINT and SIGKILL at shutdown
+    stop_timeout: 5.0            # s between SIGINT and SIGKILL at shutdown, in [0.1, 120]
     nodes:
-      - name: sim                # process label (and ``__node`` remap when ``rename: true``)
-        executable: sim          # a cdmp_ros executable: learner, adapter, streamer, sim, ...
-        params_file: streamer.yaml   # relative to the graph file, else to config/ of the package
-        parameters: {rate: 500.0}    # -p name:=value (YAML scalars or lists)
-        remappings: {joint_reference: /arm/joint_reference}
-        namespace: /arm          # optional
+      - name: sim                # process label, unique (default: the executable); the ROS
+                                 # node name is unchanged: rename with remappings {__node: ...}
+        executable: sim          # learner, adapter, streamer, sim, recorder or player
+        params_file: sim.yaml    # relative to the graph file, else to config/ of the package
+        parameters: {publish_rate: 250.0}   # -p name:=value (YAML scalars or lists)
+        remappings: {joint_reference: /arm/joint_reference}   # -r from:=to
+        namespace: /arm          # -r __ns:=/arm
+        arguments: []            # command-line arguments before --ros-args
         required: true           # the graph stops when this process exits (default true)
-        delay: 0.0               # s after the previous node was started
+        delay: 0.0               # s after the previous node was started, in [0, 600]
 
 Each process is ``python -m cdmp_ros.nodes.<executable> --ros-args ...`` with the environment
 of the caller plus ``environment``. If ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset it is set
@@ -32,6 +34,12 @@ installed its handlers, see :mod:`cdmp_ros.ros.node_main`). If the launching pro
 without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kernel
 (``PR_SET_PDEATHSIG``; Linux): the thread that calls :meth:`Bringup.start` must live as long
 as the graph.
+
+``--wait-ready SECONDS`` waits for every learner, adapter, streamer and sim of the graph to log
+its first ``ready ... s after start`` line (:mod:`cdmp_ros.ros.readiness_probe`: its topics
+matched by peers; streamer and adapter: a primitive received), prints ``bringup: graph ready``
+and runs on; when they are not ready in time it names them, stops the graph and exits with
+code 3. A launch file waits on the same line with an ``OnProcessIO`` event handler.
 """
 import contextlib
 import os
@@ -48,9 +56,15 @@ import yaml
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.node_signals import DUMP_SIGNAL
 from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
+from cdmp_ros.core.readiness import READY_LINE
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
 EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
+#: Executables that report readiness (:mod:`cdmp_ros.ros.readiness_probe`): their first
+#: ``ready ... s after start`` log line (:data:`cdmp_ros.core.readiness.READY_LINE`).
+READY_EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim')
+#: Exit code of ``cdmp bringup --wait-ready`` when the graph was not ready in time.
+NOT_READY_EXIT_CODE = 3
 #: Exit codes of a clean stop: 0, or killed by the SIGINT / SIGTERM we sent before the process
 #: had installed its handlers (the interpreter still starting).
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
@@ -234,14 +248,49 @@ class Bringup:
         self.procs: Dict[str, subprocess.Popen] = {}
         self._threads: List[threading.Thread] = []
         self._lock = threading.Lock()
+        #: process name -> seconds after start at which the node said it was ready
+        self.ready: Dict[str, float] = {}
+        self._ready_changed = threading.Event()
 
     def _pump(self, name: str, stream) -> None:
         width = max(len(n.name) for n in self.graph.nodes)
         for line in iter(stream.readline, ''):
+            if name not in self.ready:
+                m = READY_LINE.search(line)
+                if m is not None:
+                    self.ready[name] = float(m.group(1))
+                    self._ready_changed.set()
             with self._lock:
                 self.log.write(f'[{name:<{width}}] {line}')
                 self.log.flush()
         stream.close()
+
+    def not_ready(self) -> List[str]:
+        """The started processes of :data:`READY_EXECUTABLES` that have not said they are
+        ready yet."""
+        return [s.name for s in self.graph.nodes
+                if s.executable in READY_EXECUTABLES and s.name in self.procs
+                and s.name not in self.ready]
+
+    def wait_ready(self, timeout: float, stop_event: Optional[threading.Event] = None
+                   ) -> Optional[str]:
+        """Block until every node of :data:`READY_EXECUTABLES` said it is ready; returns
+        None then, else why not: ``'timeout'``, ``'stopped'`` (``stop_event``) or the name of
+        a required process that exited."""
+        end = time.monotonic() + timeout
+        required = {s.name for s in self.graph.nodes if s.required}
+        while self.not_ready():
+            for name in self.exited():
+                if name in required:
+                    return name
+            if stop_event is not None and stop_event.is_set():
+                return 'stopped'
+            remaining = end - time.monotonic()
+            if remaining <= 0.0:
+                return 'timeout'
+            self._ready_changed.wait(min(0.05, remaining))
+            self._ready_changed.clear()
+        return None
 
     def start(self) -> None:
         for spec in self.graph.nodes:
@@ -370,18 +419,41 @@ def signal_flag(*signums: int):
             signal.signal(s, h)
 
 
-def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
+def run_graph(path: str, duration: Optional[float] = None, log=None,
+              wait_ready: Optional[float] = None) -> int:
     """``cdmp bringup``: start, wait for Ctrl-C / SIGTERM / a required exit / ``duration``,
-    stop; 0 when every process ended cleanly."""
+    stop; 0 when every process ended cleanly. With ``wait_ready`` [s], print
+    ``bringup: graph ready ...`` once every node of :data:`READY_EXECUTABLES` said it is
+    ready, or stop the graph and return :data:`NOT_READY_EXIT_CODE` when they did not within
+    that time."""
     graph = load_graph(path)
     out = log if log is not None else sys.stdout
+    not_ready = False
     with signal_flag(signal.SIGINT, signal.SIGTERM) as (stop, received):  # received: forwarded
         b = Bringup(graph, log=out)
         out.write(f'bringup: starting {len(graph.nodes)} nodes from {path} '
                   f'(ROS_DOMAIN_ID={b.env.get("ROS_DOMAIN_ID", "0")}, discovery '
                   f'{b.env["ROS_AUTOMATIC_DISCOVERY_RANGE"]}); Ctrl-C stops them\n')
+        t0 = time.monotonic()
         b.start()
-        ended = b.wait(stop, duration)
+        ended = None
+        if wait_ready is not None:
+            why = b.wait_ready(wait_ready, stop)
+            if why is None:
+                each = ', '.join(f'{n} {t:.2f} s' for n, t in b.ready.items())
+                out.write(f'bringup: graph ready {time.monotonic() - t0:.2f} s after the start '
+                          f'(each node after its own start: {each})\n')
+            elif why == 'timeout':
+                not_ready = True
+                out.write(f'bringup: not ready within {wait_ready:g} s: {", ".join(b.not_ready())}'
+                          f' (their /diagnostics status says what they wait for: waiting_for); '
+                          f'stopping the graph\n')
+            elif why != 'stopped':
+                ended = why
+        out.flush()
+        if ended is None and not not_ready:
+            ended = b.wait(stop, None if duration is None
+                           else max(0.0, duration - (time.monotonic() - t0)))
         if ended is not None:
             out.write(f'bringup: required node {ended!r} exited with code '
                       f'{b.procs[ended].returncode}; stopping the graph\n')
@@ -390,18 +462,27 @@ def run_graph(path: str, duration: Optional[float] = None, log=None) -> int:
     out.write('bringup: ' + ('all nodes stopped cleanly\n' if not bad else
                              f'nodes that did not stop cleanly: {bad}\n'))
     out.flush()
-    return 0 if not bad else 1
+    if bad:
+        return 1
+    return NOT_READY_EXIT_CODE if not_ready else 0
 
 
 def add_arguments(parser):
-    parser.add_argument('graph', help='graph file (YAML: nodes with executable, params_file, '
-                                      'parameters, remappings, namespace, required, delay), or '
+    parser.add_argument('graph', help='graph file (YAML: nodes with name, executable, '
+                                      'params_file, parameters, remappings, namespace, '
+                                      'arguments, required, delay), or '
                                       'the name of a graph in config/graphs (e.g. "demo")')
     parser.add_argument('--duration', type=float, default=None,
                         help='stop the graph after this many seconds (default: run until '
                              'Ctrl-C or until a required node exits)')
     parser.add_argument('--check', action='store_true',
                         help='validate the graph file, print the commands and exit')
+    parser.add_argument('--wait-ready', type=float, default=None, metavar='SECONDS',
+                        help='wait up to SECONDS for every learner, adapter, streamer and sim '
+                             'to say it is ready (its topics matched; streamer and adapter: a '
+                             'primitive received), print "bringup: graph ready ...", then run '
+                             f'on; not ready in time: stop the graph, exit code '
+                             f'{NOT_READY_EXIT_CODE}')
 
 
 def resolve_graph(name: str) -> str:
@@ -419,4 +500,7 @@ def run(args):
         for spec in graph.nodes:
             print(f'{spec.name}: {" ".join(spec.command())}')
         return 0
-    return run_graph(path, duration=args.duration)
+    if args.wait_ready is not None and not (args.wait_ready > 0.0):
+        raise ValidationError(f'--wait-ready: expected a positive number of seconds, got '
+                              f'{args.wait_ready}')
+    return run_graph(path, duration=args.duration, wait_ready=args.wait_ready)

@@ -33,6 +33,7 @@ from cdmp_ros.core.adaptation.requests import ee_band
 from cdmp_ros.core.kinematics import PointOfInterest
 from cdmp_ros.core.promp.primitive_file import promp_from_dict
 from cdmp_ros.core.primitive_io import validate_primitive_dict
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 
 #: Trajectories sampled per distribution and phases per trajectory in the violation check.
 N_SAMPLES = 2000
@@ -82,7 +83,7 @@ def _diagnostic_values(bag: str, prefix: str) -> List[Dict[str, str]]:
     """Key/values of every recorded diagnostics status whose name starts with ``prefix``."""
     from cdmp_ros.bag.cdr import decode_diagnostic_array
     out = []
-    for m in BagReader(bag).messages(['/diagnostics']):
+    for m in BagReader(bag).messages([DIAGNOSTICS_TOPIC]):
         for st in decode_diagnostic_array(m.data):
             if st['name'].split(':')[0].strip().lstrip('/').startswith(prefix):
                 out.append(st['values'])

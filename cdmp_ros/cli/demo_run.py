@@ -48,13 +48,14 @@ from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.joint_limits import shipped_limits
 from cdmp_ros.core.run_metrics import kinematic_report, tracking_error
 from cdmp_ros.core.dmp.dmp import limit_usage
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 
 #: What the learner fits: ``cdmp`` (obstacle drop and goal change) or ``promp`` (constrained
 #: adaptation on every obstacle message).
 KINDS = ('cdmp', 'promp')
 #: Topics the demo records.
 RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primitive',
-            '/adapted_primitive', '/ee_pose', '/diagnostics', '/visualization']
+            '/adapted_primitive', '/ee_pose', DIAGNOSTICS_TOPIC, '/visualization']
 
 
 def _joint_arrays(bag: str, topic: str, header_stamps: bool = False):

@@ -8,7 +8,8 @@ from cdmp_ros.core.errors import ValidationError
 
 __all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lead_param',
            'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
-           'obstacle_distance_param', 'max_json_bytes_param', 'robot_description_param']
+           'obstacle_distance_param', 'max_json_bytes_param', 'robot_description_param',
+           'robot_description_timeout_param']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -91,7 +92,22 @@ def max_json_bytes_param():
                  'a longer message is rejected before it is parsed.', 100, 100_000_000)
 
 
-def robot_description_param():
+def robot_description_param(topic: bool = True):
+    """``topic``: the node also reads the ``robot_description`` topic
+    (:func:`robot_description_timeout_param`)."""
+    over = 'the robot_description topic and urdf_path' if topic else 'urdf_path'
     return param('', 'The robot URDF as XML text, as a ROS system passes it to its nodes; when '
-                 'non-empty it takes precedence over urdf_path for the joint limits and the '
+                 f'non-empty it takes precedence over {over} for the joint limits and the '
                  'kinematics (diagnostics: limits_source).', read_only=True)
+
+
+def robot_description_timeout_param(what: str = 'the joint limits and the kinematics'):
+    return param(0.0, 'With the robot_description parameter empty: wait up to this long [s] at '
+                 'start-up for the URDF on the latched robot_description topic (as '
+                 f'robot_state_publisher publishes it) and take {what} from it '
+                 "(limits_source: 'robot_description topic'); none, or a rejected one, within "
+                 'the time: urdf_path (logged). The wait ends as soon as the message arrives. '
+                 '0: no wait, urdf_path. Either way a description arriving later is only '
+                 'compared with the model in use (diagnostics: robot_description_topic; a '
+                 'different one is a warning, applied by a restart), never swapped in.',
+                 0.0, 3600.0, read_only=True)

@@ -41,7 +41,7 @@ class LearnerConfig:
     urdf_path: str = param('', 'Robot URDF giving the joint limits (limits.lower/upper, when '
                            'set, only tighten them). Empty: the Panda of pybullet_data.',
                            read_only=True)
-    robot_description: str = robot_description_param()
+    robot_description: str = robot_description_param(topic=False)
     demonstration_bags: Tuple[str, ...] = param(
         DEFAULT_BAGS, 'Bags (or directories of bag directories) fitted with the topic '
         'demonstrations. Relative paths are looked up in the working directory, then in the '

@@ -2,8 +2,9 @@
 
 Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 (MarkerArray), ``goal`` (JointState), ``goal_point`` (PointStamped, base frame),
-``constraints`` (JSON constraint set) and ``joint_states``; publishes ``adapted_primitive``
-(JSON, latched), ``visualization`` (MarkerArray, latched) and ``diagnostics``.
+``constraints`` (JSON constraint set), ``joint_states`` and ``robot_description`` (URDF,
+latched; the robot model, below); publishes ``adapted_primitive``
+(JSON, latched), ``visualization`` (MarkerArray, latched) and ``/diagnostics``.
 
 - DMP / CDMP primitives: a goal (``goal``, or ``goal_point`` through the IK) gives an adapted
   primitive with the new goal and the same weights, published at once
@@ -14,7 +15,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   (:mod:`cdmp_ros.ros.adapter_worker`: latest request wins, stale converged results are still
   published; results for a primitive replaced meanwhile are dropped). Only converged
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
-  ``diagnostics`` with the satisfaction probabilities and the last good primitive stays
+  ``/diagnostics`` with the satisfaction probabilities and the last good primitive stays
   latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
   outer_iterations, backtracks (multiplier steps halved, :mod:`cdmp_ros.core.adaptation.solver`),
   evaluations, start (cold / warm; start_note says why a warm solve was replaced, exceeded
@@ -25,13 +26,26 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
   refinements_started / published / kept_warm / cancelled / failed (not counted among the
   requests) / resumed (started from where a cancelled one was); and
   robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
-  current joint_states); limits_source (the ``robot_description`` parameter or the URDF file
-  the robot's limits came from) and limit_mismatch (every bound on which the primitive's
-  limits differ from the robot's, with both values and the one used, or ``none``).
+  current joint_states); limits_source (``robot_description`` for the parameter,
+  ``robot_description topic`` or the URDF file the robot model came from; see below),
+  robot_description_topic (what the last ``robot_description`` message was) and
+  limit_mismatch (every bound on which the primitive's
+  limits differ from the robot's, with both values and the one used, or ``none``); ready /
+  waiting_for / ready_after_s (:mod:`cdmp_ros.ros.readiness_probe`: ready when a primitive
+  was received, ``adapted_primitive`` has a subscriber and ``joint_states`` a publisher; one
+  ``ready ... s after start`` log line).
 - Joint limits: a primitive is adapted within the tighter of its own limits and the robot's,
   per joint and bound, never wider (:func:`cdmp_ros.ros.adapter_inputs.primitive_limits`);
   they bound the joint-limit constraints of a ProMP adaptation and are written as the
   adapted ProMP's ``limits``. A difference is logged as a warning and reported.
+- The robot model (limits, kinematics of the points of interest and of the IK): the
+  ``robot_description`` parameter when set, else the latched ``robot_description`` topic
+  (robot_state_publisher) when ``robot_description_timeout`` > 0 and a message arrives within
+  that time at start-up, else ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.
+  RobotModelSelector`, :mod:`cdmp_ros.ros.robot_description`). It is fixed for the node's
+  life: a later message is compared with it, a different model is a standing WARN on the
+  state status until a restart applies it (none with the parameter set), one that is not a
+  URDF of ``joint_names`` is rejected like any input.
 - A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
 - Warm starts (``adaptation.warm_start``, :mod:`cdmp_ros.core.adaptation.warm`): a request
   whose problem differs from the last converged one only by obstacles that moved at most
@@ -62,7 +76,7 @@ Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
 size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
 joint count), then the per-element validation (:mod:`cdmp_ros.ros.convert`,
-:mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``diagnostics``.
+:mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``/diagnostics``.
 ``joint_states`` is polled (:meth:`~cdmp_ros.ros.input_gate.InputGate.subscribe_polled`): the
 newest message is taken and checked when a request is formed and at every diagnostics period,
 so a robot publishing at 1 kHz costs the adapter nothing between requests (served by the
@@ -72,7 +86,7 @@ QoS (:mod:`cdmp_ros.ros.qos`): ``primitive`` subscribed and ``adapted_primitive`
 published transient-local (a restarted adapter gets the latched primitive; a restarted
 streamer gets the latest adapted one); ``visualization`` transient-local (a late RViz sees
 the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
-``diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
+``/diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
 """
 import dataclasses
 import json
@@ -99,6 +113,7 @@ from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.core.primitive_io import primitive_from_dict
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
                                          primitive_goal, primitive_limits)
@@ -110,7 +125,9 @@ from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate, joint_names,
                                      json_bytes, marker_count, message_bytes)
 from cdmp_ros.ros.params import ConfigParameters
-from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
+from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers, has_subscribers
+from cdmp_ros.ros.robot_description import RobotDescriptionInput
+from cdmp_ros.ros.robot_model import RobotModelSelector
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: [s] Python's GIL switch interval in the adapter process (default 5 ms): the executor takes a
@@ -137,9 +154,15 @@ class AdapterNode(Node):
                                               ('adaptation', AdaptRequestConfig)],
                                        on_change=self._on_params)
         cfg: AdapterConfig = self.params['']
-        # the limits and kinematics of the robot: robot_description, else urdf_path
-        self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
-        self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
+        # the limits and kinematics of the robot: the robot_description parameter, else the
+        # robot_description topic (robot_description_timeout), else urdf_path
+        self.robot = RobotDescriptionInput(self, RobotModelSelector(
+            cfg.urdf_path, cfg.joint_names, cfg.robot_description,
+            cfg.robot_description_timeout))
+        model = self.robot.load(self.create_subscription(
+            String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
+        self.urdf_path = model.source
+        self.chain = model.chain
         self._check_links(self.params['adaptation'])
         self.joint_names = list(cfg.joint_names)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
@@ -172,12 +195,13 @@ class AdapterNode(Node):
 
         self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
         self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                               qos.COMMAND)
-        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'adapter')
+        self.reporter = DiagnosticsReporter(self, self.diag_pub)
         self.reporter.set_state(OK, 'waiting for a primitive', outcome='none',
                                 limits_source=self.urdf_path, limit_mismatch='none')
         self.gate = InputGate(self, self.reporter, lambda: self.config)
+        self.robot.attach(self.gate, self.reporter)
         self._set_rates(cfg)
         gate, n = self.gate, len(self.joint_names)
         json_size = json_bytes(lambda: self.config.max_json_bytes)
@@ -202,6 +226,12 @@ class AdapterNode(Node):
         self.worker = SolveWorker(self._solve, self._results_ready.trigger)
         self.worker.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.readiness = ReadinessProbe(self, {
+            'primitive': ('a primitive received', lambda: self.primitive is not None),
+            'consumer': ('a subscriber on adapted_primitive',
+                         has_subscribers(self, 'adapted_primitive')),
+            'joint_states': ('a publisher on joint_states (the start of an adaptation)',
+                             has_publishers(self, 'joint_states'))})
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
                                             clock=self._steady)
         self.get_logger().info(
@@ -536,7 +566,7 @@ class AdapterNode(Node):
                                                      'over_guard')}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
                                 **self.worker.summary(), **self.counts, **starts,
-                                **self.gate.values())
+                                **self.readiness.values(), **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def _publish_diagnostics(self) -> None:

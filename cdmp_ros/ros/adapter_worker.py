@@ -10,7 +10,7 @@ it was, ``JobResult.suspended``: the node resumes it after that request);
 Lagrangian (``solve_job(job, chain, should_stop)``). When a solve finishes while a newer
 request is already waiting, its result is marked *stale*; the node still publishes a stale
 result if it converged (a newer plan follows within one solve time, and publishing avoids
-starving the output while obstacles keep moving), and says so on ``diagnostics``. A result
+starving the output while obstacles keep moving), and says so on ``/diagnostics``. A result
 computed for a primitive that has been replaced in the meantime is discarded by the node
 (counted as ``requests_outdated``).
 

@@ -23,6 +23,7 @@ from rclpy.qos import QoSProfile
 from cdmp_ros.bag import BagError, BagReader, BagWriter
 from cdmp_ros.bag.cdr import encode_clock
 from cdmp_ros.bag.schemas import normalize_type
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.qos import (COMMAND, RECORDER_DEPTH, adapted_subscription_profile,
                               playback_profile, profile_to_dict)
@@ -283,7 +284,7 @@ class PlayerNode(Node):
     Before the first message the player waits until every topic it plays (remapped names),
     and ``/clock`` with ``clock``, has at least one matched subscription, at most
     ``wait_subscribers`` seconds; then it plays anyway and names the topics that had none
-    (log and ``diagnostics``). After the last message (not looping) it waits, at most
+    (log and ``/diagnostics``). After the last message (not looping) it waits, at most
     ``ack_timeout`` seconds, until every reliable subscriber acknowledged every message,
     names the topics not acknowledged, and ends. A stop signal ends every wait at once.
 
@@ -378,8 +379,8 @@ class PlayerNode(Node):
         self.no_subscriber: List[str] = []
         self.not_acknowledged: Optional[List[str]] = None
         self._diag_lock = threading.Lock()
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', COMMAND)
-        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'player')
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, COMMAND)
+        self.reporter = DiagnosticsReporter(self, self.diag_pub)
         self.reporter.set_state(OK, 'starting', bag=self.bag,
                                 wait_subscribers=self.wait_subscribers,
                                 ack_timeout=self.ack_timeout)
@@ -487,7 +488,7 @@ class PlayerNode(Node):
         if flush and self.ack_timeout > 0:
             from rclpy.duration import Duration
             poll_until_done(lambda: [] if self.diag_pub.wait_for_all_acked(
-                Duration(seconds=0)) else ['diagnostics'], min(self.ack_timeout, 1.0),
+                Duration(seconds=0)) else [DIAGNOSTICS_TOPIC], min(self.ack_timeout, 1.0),
                 self._stop)
 
     def _publish_diagnostics(self) -> None:

@@ -27,7 +27,7 @@ graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
 4. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
    skipped with ``--no-goal-change``);
 5. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
-   with the event times, the obstacle, and the last ``diagnostics`` status of every node.
+   with the event times, the obstacle, and the last ``/diagnostics`` status of every node.
 """
 import argparse
 import json
@@ -51,6 +51,7 @@ from cdmp_ros.core.kinematics.closest import segment_sphere
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called, take_newest
 from cdmp_ros.ros.robot_model import default_urdf_path
@@ -149,7 +150,7 @@ class DemoDriver(Node):
         self._ref_sub = self.create_subscription(JointState, 'joint_reference', never_called,
                                                  qos.REFERENCE,
                                                  callback_group=ThreadTakenGroup(), raw=True)
-        self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diag,
+        self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diag,
                                  qos.COMMAND)
         self.snap = self.create_client(Trigger, '/sim/snapshot')
         self.refit = self.create_client(Trigger, '/learner/refit')

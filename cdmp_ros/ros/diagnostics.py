@@ -1,19 +1,30 @@
 """``diagnostic_msgs/DiagnosticArray`` reporting shared by the nodes.
 
+Every node publishes on the absolute topic ``/diagnostics``
+(:data:`cdmp_ros.core.topics.DIAGNOSTICS_TOPIC`; design.md, Topics), where
+diagnostic_aggregator and rqt_robot_monitor read it, whatever the node's namespace; the status
+names tell the nodes apart by their fully qualified name (``streamer: state`` in the root
+namespace, ``arm/streamer: state`` under ``-r __ns:=/arm``).
+
 :class:`DiagnosticsReporter` collects, between two publications:
 
 - rejected inputs per topic (count since start, count since the last report, the last reason),
   each also logged (throttled, so that a flood of bad messages does not flood the log);
 - timings (``timing(name, seconds)``): count, mean, p99 and max over a ring buffer of the last
   ``window`` samples (allocation-free when recording);
-- the node's state: level (OK/WARN/ERROR), a message and key/values set by the node.
+- the node's state: level (OK/WARN/ERROR), a message and key/values set by the node;
+- standing conditions (``set_condition``): a problem that holds until the node clears it
+  (a robot model that differs from the ``robot_description`` topic), whatever state the
+  node sets meanwhile: the state status is at least the condition's level and its message
+  ends with the condition's text.
 
-``publish(now)`` sends one ``DiagnosticArray`` with a status ``<node>: state``, one
+``publish(now)`` sends one ``DiagnosticArray`` with a status ``<node>: state`` (``<node>``: the
+node's fully qualified name without the leading slash), one
 ``<node>: input <topic>`` per topic that ever had a rejection (``rejected_total``,
 ``rejected_since_last_report``, ``last_reason`` and ``rejected_<category>`` per reason
 category given) and one ``<node>: timing``.
 ``publish_if_due`` also publishes early (at most every ``min_interval``) when something was
-rejected, so a rejection shows on ``diagnostics`` promptly but a flood is summarised.
+rejected, so a rejection shows on ``/diagnostics`` promptly but a flood is summarised.
 """
 import math
 import time
@@ -24,6 +35,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
 ERROR = DiagnosticStatus.ERROR
+
+
+def _rank(level) -> int:
+    """A DiagnosticStatus level (bytes, as the message module defines them, or int) as int."""
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
 
 
 class _Timing:
@@ -53,6 +69,11 @@ class _Timing:
         return sum(vals) / len(vals), p99, max(vals)
 
 
+def node_prefix(node) -> str:
+    """The status-name prefix of ``node``: its fully qualified name without the leading slash."""
+    return node.get_fully_qualified_name().lstrip('/')
+
+
 class DiagnosticsReporter:
     """Builds and publishes the node's ``DiagnosticArray`` (see the module docstring).
 
@@ -60,19 +81,21 @@ class DiagnosticsReporter:
     ----------
     node : rclpy.node.Node
     publisher : rclpy publisher of DiagnosticArray
-    name : str
-        Prefix of the status names (the node name).
+    name : str, optional
+        Prefix of the status names; default the node's fully qualified name without the
+        leading slash (``streamer``, ``arm/streamer``, or the name given by ``-r __node:=``),
+        which tells apart the nodes that share ``/diagnostics``.
     window : int
         Number of samples kept per timing.
     log_period : float
         Minimum time [s] between two log lines for rejections on the same topic.
     """
 
-    def __init__(self, node, publisher, name: str, window: int = 2000,
+    def __init__(self, node, publisher, name: Optional[str] = None, window: int = 2000,
                  log_period: float = 1.0):
         self.node = node
         self.publisher = publisher
-        self.name = name
+        self.name = node_prefix(node) if name is None else name
         self.window = window
         self.log_period = log_period
         self.level = OK
@@ -81,6 +104,7 @@ class DiagnosticsReporter:
         self._rejected: Dict[str, List] = {}  # topic -> [total, since_report, reason, last_log]
         self._categories: Dict[str, Dict[str, int]] = {}  # topic -> {category: count}
         self._timings: Dict[str, _Timing] = {}
+        self._conditions: Dict[str, Tuple[object, str]] = {}  # name -> (level, text)
         self._dirty = False
         self._last_publish = -math.inf
         self.published = 0
@@ -91,6 +115,15 @@ class DiagnosticsReporter:
         self.message = message
         for k, v in values.items():
             self.values[k] = str(v)
+
+    def set_condition(self, name: str, level, text: Optional[str]) -> None:
+        """A standing condition ``name`` of the node, shown in the state status until it is
+        cleared (``text`` None): the level is at least ``level``, the message ends with
+        ``text``."""
+        if text is None:
+            self._conditions.pop(name, None)
+        else:
+            self._conditions[name] = (level, text)
 
     def reject(self, topic: str, reason: str, category: Optional[str] = None) -> None:
         """Record (and log, throttled) a rejected or sanitised input on ``topic``; with a
@@ -135,6 +168,10 @@ class DiagnosticsReporter:
         if recent and level == OK:
             level = WARN
         msg = self.message
+        for c_level, text in self._conditions.values():
+            if _rank(c_level) > _rank(level):
+                level = c_level
+            msg += '; ' + text
         if recent:
             msg += '; rejected input on ' + ', '.join(sorted(recent))
         arr.status.append(DiagnosticStatus(

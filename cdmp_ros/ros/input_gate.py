@@ -8,13 +8,14 @@ subscription, so that nothing is done for a message before it is admitted. In or
 2. **constant-time size checks** on the CDR bytes, before deserialisation: the message size,
    and the element count read from the CDR header (markers of a ``MarkerArray``, names of a
    ``JointState``, bytes of a ``std_msgs/String``); see :func:`marker_count`,
-   :func:`json_bytes`, :func:`joint_names`, :func:`message_bytes`;
+   :func:`json_bytes` and :func:`description_bytes` (both :func:`string_bytes`),
+   :func:`joint_names`, :func:`message_bytes`;
 3. **deserialisation**, then the header stamp (:func:`~cdmp_ros.ros.convert.check_stamp`);
 4. the node's callback, which runs the per-element validation (:mod:`cdmp_ros.ros.convert`)
    and reports its own rejections through :meth:`InputGate.reject`.
 
 Every rejection is counted by topic and reason category (:data:`REASONS`) and reported on
-``diagnostics`` (:class:`~cdmp_ros.ros.diagnostics.DiagnosticsReporter`): the status
+``/diagnostics`` (:class:`~cdmp_ros.ros.diagnostics.DiagnosticsReporter`): the status
 ``<node>: input <topic>`` carries ``rejected_total``, ``last_reason`` and
 ``rejected_<category>``; :meth:`InputGate.values` gives ``rejected_total`` and
 ``rejected_<category>`` over all topics for the node's state status.
@@ -61,6 +62,10 @@ HEADER_BYTES = 512
 EXTRA_JOINTS = 64
 #: A PointStamped (or any other fixed-size message with a header) is at most this long.
 SMALL_MESSAGE_BYTES = 1024
+#: Largest accepted ``robot_description`` (URDF XML) payload [bytes]: about ten times the
+#: expanded xacro of a large robot (a PR2 is about 0.4 MB, a Panda 11-30 kB). Parsing takes
+#: about 0.2 s per MB here.
+ROBOT_DESCRIPTION_BYTES = 4_000_000
 
 _U32 = {0: struct.Struct('>I'), 1: struct.Struct('<I')}
 
@@ -125,17 +130,41 @@ def marker_count(max_obstacles: Callable[[], int]):
     return check
 
 
-def json_bytes(max_bytes: Callable[[], int]):
-    """Reject a ``std_msgs/String`` whose payload is longer than ``max_bytes()`` (UTF-8)."""
+def string_bytes(max_bytes: Callable[[], int], limit_name: str):
+    """Reject a ``std_msgs/String`` whose payload is longer than ``max_bytes()`` (UTF-8);
+    the reason names the limit ``limit_name``."""
     def check(topic: str, data: bytes) -> Optional[str]:
         lim = max_bytes()
         n = cdr_first_count(data)
         size = (n - 1) if n else len(data)
         if size > lim:
-            return (f'{topic}: payload of {size} bytes exceeds max_json_bytes = {lim}; '
+            return (f'{topic}: payload of {size} bytes exceeds {limit_name} = {lim}; '
                     'rejected unparsed')
         return None
     return check
+
+
+def json_bytes(max_bytes: Callable[[], int]):
+    """Reject a ``std_msgs/String`` whose payload is longer than ``max_bytes()`` (UTF-8)."""
+    return string_bytes(max_bytes, 'max_json_bytes')
+
+
+def description_bytes():
+    """Reject a ``robot_description`` longer than :data:`ROBOT_DESCRIPTION_BYTES`."""
+    return string_bytes(lambda: ROBOT_DESCRIPTION_BYTES, 'ROBOT_DESCRIPTION_BYTES')
+
+
+def read_raw(msg_type, topic: str, data: bytes, size=None):
+    """The size check (``size``, one of the checks above, or None) and the deserialisation of
+    one serialized message: ``(message, None, None)``, or ``(None, reason, category)``."""
+    if size is not None:
+        reason = size(topic, data)
+        if reason is not None:
+            return None, reason, 'oversize'
+    try:
+        return deserialize_message(data, msg_type), None, None
+    except Exception as exc:  # noqa: BLE001 -- a bad payload must not end the node
+        return None, f'{topic}: cannot be deserialized ({exc})', 'malformed'
 
 
 def joint_names(max_names: Callable[[], int]):
@@ -193,6 +222,14 @@ class InputGate:
         """A serialized subscription of ``topic`` whose messages reach ``callback`` only
         through the gate (rate limit, ``size`` check, deserialisation, header stamp when
         ``stamped``). ``topic`` must have a rate (:meth:`set_rates`)."""
+        return self.node.create_subscription(
+            msg_type, topic, self.raw_callback(msg_type, topic, callback, size, stamped), qos,
+            raw=True)
+
+    def raw_callback(self, msg_type, topic: str, callback: Callable, size=None,
+                     stamped: bool = False) -> Callable[[bytes], None]:
+        """The callback of a serialized subscription made elsewhere, passing its messages
+        through the gate as :meth:`subscribe` does."""
         def on_raw(data: bytes) -> None:
             self.received[topic] = self.received.get(topic, 0) + 1
             if not self.admit(topic):
@@ -200,8 +237,7 @@ class InputGate:
             msg = self._checked(msg_type, topic, data, size, stamped)
             if msg is not None:
                 callback(msg)
-
-        return self.node.create_subscription(msg_type, topic, on_raw, qos, raw=True)
+        return on_raw
 
     def subscribe_polled(self, msg_type, topic: str, callback: Callable, qos, size=None,
                          stamped: bool = False) -> Callable[[], None]:
@@ -236,15 +272,9 @@ class InputGate:
     def _checked(self, msg_type, topic: str, data: bytes, size, stamped: bool):
         """The message of ``data`` if it passes the size check, deserialisation and (when
         ``stamped``) the stamp check; else None, the rejection reported."""
-        if size is not None:
-            reason = size(topic, data)
-            if reason is not None:
-                self.reject(topic, reason, 'oversize')
-                return None
-        try:
-            msg = deserialize_message(data, msg_type)
-        except Exception as exc:  # noqa: BLE001 -- a bad payload must not end the node
-            self.reject(topic, f'{topic}: cannot be deserialized ({exc})', 'malformed')
+        msg, reason, category = read_raw(msg_type, topic, data, size)
+        if msg is None:
+            self.reject(topic, reason, category)
             return None
         if stamped and not self.stamp_ok(topic, f'{topic}.header.stamp', msg.header.stamp):
             return None

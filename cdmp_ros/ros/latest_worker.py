@@ -2,7 +2,7 @@
 
 :class:`LatestWorker` runs one request at a time. A request submitted while another waits
 replaces it (latest wins): :meth:`LatestWorker.submit` returns the replaced request, so the
-caller reports it (the streamer rejects it on ``diagnostics`` with the reason ``superseded``,
+caller reports it (the streamer rejects it on ``/diagnostics`` with the reason ``superseded``,
 the adapter counts it as ``requests_dropped``); it is never worked on. A running request is
 never interrupted by a newer one; only :meth:`LatestWorker.stop` (node shutdown) ends the
 thread, and long work may poll :meth:`LatestWorker.stopping` to cancel itself. A result

@@ -6,14 +6,17 @@
   JointState as end marker). Every sample passes :class:`cdmp_ros.ros.input_gate.InputGate`
   (rate limit, then more names than joints rejected before deserialisation) and is validated
   (names mapped in any order, NaN/inf, lengths, unknown/missing/duplicate joints, stamps,
-  non-monotonic time, limits); every rejection is logged and counted on ``diagnostics``; bad
+  non-monotonic time, limits); every rejection is logged and counted on ``/diagnostics``; bad
   bags are reported the same way.
 - ``primitive`` (std_msgs/String JSON, transient-local): published at start (fit from the
   bags when ``fit_on_start``), after ``~/refit`` and after ``~/improve``.
 - Services (std_srvs/Trigger): ``~/refit`` (bags + topic demonstrations so far), ``~/save``
   (writes ``primitive_path``, returns the absolute path), ``~/improve`` (PI2 in a worker
-  thread, :mod:`cdmp_ros.ros.learner_improve`; progress on ``diagnostics``; a second call
+  thread, :mod:`cdmp_ros.ros.learner_improve`; progress on ``/diagnostics``; a second call
   while one runs is refused).
+- Readiness (:mod:`cdmp_ros.ros.readiness_probe`): ready when ``primitive`` has a subscriber
+  and, with ``fit_on_start``, the primitive was published; one ``ready ... s after start`` log
+  line, ``ready`` / ``waiting_for`` / ``ready_after_s`` on diagnostics.
 
 Parameters mirror :class:`~cdmp_ros.core.learning.LearnerConfig` (top level),
 :class:`~cdmp_ros.core.dmp.dmp.DmpConfig` (``dmp.*``), :class:`~cdmp_ros.core.learning.
@@ -52,12 +55,14 @@ from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
 from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig, fit_primitive
 from cdmp_ros.core.primitive_io import primitive_to_dict, save_primitive
 from cdmp_ros.core.validation import check_limits
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import JointStateMapper, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names
 from cdmp_ros.ros.learner_improve import ImproveWorker, load_bag_demonstrations
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_subscribers
 from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
 
 #: ``demonstration``: reliable, volatile, keep last 1000 -- a demonstration streamed at up to
@@ -85,9 +90,9 @@ class LearnerNode(Node):
                                                 cfg.max_samples, cfg.limit_tolerance)
         self.topic_demos = collections.deque(maxlen=cfg.max_demonstrations)
         self.pub = self.create_publisher(String, 'primitive', qos.LATCHED)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                               qos.COMMAND)
-        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'learner')
+        self.reporter = DiagnosticsReporter(self, self.diag_pub)
         self.gate = InputGate(self, self.reporter, lambda: self.config)
         self.gate.set_rates({'demonstration': cfg.max_input_rate})
         n = len(cfg.joint_names)
@@ -102,6 +107,11 @@ class LearnerNode(Node):
         self.counts = {'published': 0, 'samples': 0, 'bag_demonstrations': 0,
                        'improvements': 0}
         self.improve_values = {}
+        ready = {'consumer': ('a subscriber on primitive', has_subscribers(self, 'primitive'))}
+        if cfg.fit_on_start:
+            ready['primitive'] = ('a primitive fitted and published at start',
+                                  lambda: self.primitive is not None)
+        self.readiness = ReadinessProbe(self, ready)
         self.poll_timer = self.create_timer(POLL_PERIOD, self._poll)
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics)
         self.reporter.set_state(WARN, 'no primitive yet',
@@ -363,7 +373,7 @@ class LearnerNode(Node):
             primitive=(f'{prim.kind} ({self.source})' if prim is not None else 'none'),
             topic_demonstrations=len(self.topic_demos),
             pending_samples=self.segmenter.n_pending, **self.counts, **values,
-            **self.gate.values())
+            **self.readiness.values(), **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

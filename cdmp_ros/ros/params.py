@@ -12,7 +12,9 @@ docstring, and a parameter field without a description is a programming error
 reason (:class:`ConfigParameters`, through ``add_on_set_parameters_callback``).
 
 Supported field types: bool, int, float, str, tuples of str and (non-empty) tuples of floats;
-fields of other types (or whose default is None) are not exposed as parameters.
+fields of other types (or whose default is None) are not exposed as parameters. A tuple of str
+is a STRING_ARRAY parameter that always has a value, ``[]`` included (an empty list given in a
+parameter file or by ``-p name:=[]`` arrives untyped and is read as ``[]``).
 """
 import dataclasses
 import math
@@ -116,7 +118,7 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if kind is tuple:
-        if value is None:  # an empty list in a parameter file: no type, no value
+        if value is None:  # no value (declare_config gives every string array one)
             return ()
         if isinstance(value, (list, tuple)):
             return tuple(value)
@@ -126,6 +128,27 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
             return tuple(float(v) for v in value)
         raise ValidationError(f'{name}: expected a list of numbers, got {value!r}')
     return value
+
+
+def _declare_string_array(node, name: str, default: List[str],
+                          desc: ParameterDescriptor) -> Parameter:
+    """Declare a STRING_ARRAY parameter that always has a value, ``[]`` included.
+
+    rclpy infers the declared type from the value, and ``[]`` reads as a BYTE_ARRAY; declared by
+    type alone, the parameter has no value (``ros2 param get``: "not set"), and so has one given
+    an empty list in a parameter file or by ``-p name:=[]`` (untyped: NOT_SET). So it is
+    declared by type with a writable descriptor, set to ``[]`` when it has no value, then given
+    its final descriptor (``set_descriptor``: a read-only parameter refuses ``set_parameters``).
+    """
+    writable = ParameterDescriptor(description=desc.description)
+    p = node.declare_parameter(name, default if default else Parameter.Type.STRING_ARRAY,
+                               writable)
+    if p.type_ == Parameter.Type.NOT_SET:
+        result = node.set_parameters([Parameter(name, Parameter.Type.STRING_ARRAY, [])])[0]
+        if not result.successful:
+            raise ValueError(result.reason)
+    node.set_descriptor(name, desc)
+    return node.get_parameter(name)
 
 
 def declare_config(node, cls: Type, prefix: str = '', overrides: Optional[Dict] = None):
@@ -152,11 +175,12 @@ def declare_config(node, cls: Type, prefix: str = '', overrides: Optional[Dict] 
         name = f'{prefix}.{f.name}' if prefix else f.name
         default = overrides.get(f.name, default)
         desc = descriptor_for(cls, f, kind, name)
-        value = list(default) if kind in (tuple, FloatTuple) else default
-        if kind is tuple and not value:  # [] would be declared as a byte array: type only
-            value = Parameter.Type.STRING_ARRAY
         try:
-            p = node.declare_parameter(name, value, desc)
+            if kind is tuple:
+                p = _declare_string_array(node, name, list(default), desc)
+            else:
+                value = list(default) if kind is FloatTuple else default
+                p = node.declare_parameter(name, value, desc)
         except (ParameterException, TypeError, ValueError) as exc:
             raise ValidationError(f'parameter {name}: {exc}') from None
         values[f.name] = _coerce(name, kind, p.value)

@@ -7,10 +7,11 @@ Topic profiles (design.md, Topics):
   and best-effort controller subscriptions; never replays stale references.
 - ``joint_states`` (subscribed): :data:`SENSOR`, best effort, keep last 5: matches any
   publisher; only the newest sample matters.
-- ``goal``, ``obstacles``, ``diagnostics``: :data:`COMMAND`, reliable, volatile, keep last 10
+- ``goal``, ``obstacles``, ``/diagnostics``: :data:`COMMAND`, reliable, volatile, keep last 10
   (as ``ros2 topic pub`` and ``diagnostic_updater``).
 - ``primitive``, ``adapted_primitive``: :data:`LATCHED`, reliable, transient local, keep last
   1: a late subscriber (a restarted streamer) still gets the current primitive.
+  ``robot_description`` (subscribed) too, as robot_state_publisher publishes it.
 
 The recorder subscribes like ``ros2 bag record``: reliable only if every publisher offers
 reliable, transient-local only if every publisher offers it (so latched topics such as

@@ -1,18 +1,31 @@
-"""The robot model the nodes share: the default URDF and a validated Panda chain.
+"""The robot model the nodes share: the default URDF, a validated Panda chain, and which model
+a node runs with (no ROS here: unit-tested without a ROS graph).
 
-Every node that uses joint limits (streamer, adapter, learner) loads them here, from the same
-``urdf_path`` parameter or, when it is non-empty, from a ``robot_description`` parameter (the
-URDF XML a ROS system already publishes to its nodes), and says on ``diagnostics`` where they
-came from (:func:`limits_source`).
+Every node that uses joint limits (streamer, adapter, learner, sim) loads them here, from the
+same ``urdf_path`` parameter or, when it is non-empty, from a ``robot_description`` parameter
+(the URDF XML a ROS system already publishes to its nodes), and says on ``/diagnostics`` where
+they came from (:func:`limits_source`). The streamer, the adapter and the sim also read the
+latched ``robot_description`` topic (robot_state_publisher in Jazzy); which model they run
+with, and what they make of a description that arrives later, is decided by
+:class:`RobotModelSelector` (the ROS side: :mod:`cdmp_ros.ros.robot_description`).
 """
+import dataclasses
 import os
-from typing import Sequence
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.joint_limits import LIMIT_TOLERANCE
 from cdmp_ros.core.kinematics import panda_chain
+from cdmp_ros.core.kinematics.urdf import parse_urdf_string
 
 #: The name of the limits' source when they come from the ``robot_description`` parameter.
 ROBOT_DESCRIPTION = 'robot_description'
+#: The name of the limits' source when they come from the ``robot_description`` topic.
+ROBOT_DESCRIPTION_TOPIC = 'robot_description topic'
+#: Joint origins, axes and link frames closer than this [m, or rad per unit] are the same.
+KINEMATICS_TOLERANCE = 1e-6
 
 
 def default_urdf_path() -> str:
@@ -83,3 +96,313 @@ def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_descript
                                   mesh_dir=os.getcwd() if text is not None else None)
     except CdmpError as exc:
         raise ValidationError(f'coupling_capsule_links: {exc}') from None
+
+
+# -- which model a node runs with --------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class RobotModel:
+    """The robot model a node runs with.
+
+    Attributes
+    ----------
+    chain : Chain
+        Joint limits, velocity limits and kinematics.
+    source : str
+        Where it came from, as ``limits_source`` reports it: :data:`ROBOT_DESCRIPTION` (the
+        parameter), :data:`ROBOT_DESCRIPTION_TOPIC` or the URDF file's path.
+    text : str or None
+        The URDF XML of a parameter or topic model (None: read from the file ``source``).
+    capsules : tuple of Capsule
+        The collision capsules of the links asked for (the streamer's
+        ``coupling_capsule_links``; empty if none).
+    """
+
+    chain: object
+    source: str
+    text: Optional[str] = None
+    capsules: tuple = ()
+
+
+#: :attr:`DescriptionVerdict.status` values: the model in use came from this message; it
+#: describes the model in use; it describes another robot model; it was rejected.
+USED, SAME, DIFFERS, REJECTED = 'used', 'same', 'differs', 'rejected'
+
+
+@dataclasses.dataclass(frozen=True)
+class DescriptionVerdict:
+    """What a ``robot_description`` message means for a node (:class:`RobotModelSelector`).
+
+    Attributes
+    ----------
+    status : str
+        :data:`USED`, :data:`SAME`, :data:`DIFFERS` or :data:`REJECTED`.
+    message : str
+        One line for the log and for diagnostics (``robot_description_topic``); a rejection
+        names what was wrong.
+    category : str or None
+        A rejection's reason category (``rejected_<category>`` on diagnostics).
+    warn : bool
+        The node runs with another model than the topic describes, by no choice of the user
+        (the ``robot_description`` parameter is empty): a standing warning.
+    repeat : bool
+        The same text as the previous message (judged then, not parsed again).
+    """
+
+    status: str
+    message: str
+    category: Optional[str] = None
+    warn: bool = False
+    repeat: bool = False
+
+
+class _Rejected(Exception):
+    def __init__(self, message: str, category: str):
+        super().__init__(message)
+        self.verdict = DescriptionVerdict(REJECTED, message, category, warn=True)
+
+
+def _strip(exc: Exception, prefix: str) -> str:
+    text = str(exc)
+    return text[len(prefix) + 2:] if text.startswith(prefix + ': ') else text
+
+
+def _same(x: float, y: float, tol: float) -> bool:
+    return x == y or abs(x - y) <= tol
+
+
+def model_differences(used: RobotModel, other: RobotModel) -> List[str]:
+    """What a node would do differently with ``other``'s model than with ``used``'s (both of
+    the same joints): every differing position or velocity limit (``'<joint> <bound> <used>
+    -> <other>'``), the joints whose origin or axis differ, other link frames, other collision
+    capsules. Visual geometry, inertias and whatever else the nodes do not use is not
+    compared."""
+    a, b = used.chain, other.chain
+    out = []
+    for j, name in enumerate(a.joint_names):
+        for label, x, y in (('lower', a.lower[j], b.lower[j]), ('upper', a.upper[j], b.upper[j]),
+                            ('velocity', a.velocity_limits[j], b.velocity_limits[j])):
+            if not _same(float(x), float(y), LIMIT_TOLERANCE):
+                out.append(f'{name} {label} {x:.6g} -> {y:.6g}')
+    tol = KINEMATICS_TOLERANCE
+    moved = [name for j, name in enumerate(a.joint_names)
+             if not np.allclose(a.B[j], b.B[j], rtol=0.0, atol=tol)]
+    if moved:
+        out.append('origin or axis of ' + ', '.join(moved))
+    frames = (set(a.attachments) != set(b.attachments)
+              or not np.allclose(a.base_transform, b.base_transform, rtol=0.0, atol=tol)
+              or not np.allclose(a.ee_offset, b.ee_offset, rtol=0.0, atol=tol)
+              or any(a.attachments[k][0] != b.attachments[k][0]
+                     or not np.allclose(a.attachments[k][1], b.attachments[k][1], rtol=0.0,
+                                        atol=tol) for k in a.attachments))
+    if frames and not moved:
+        out.append('link frames')
+    for ca, cb in zip(used.capsules, other.capsules):
+        if not (np.allclose(ca.start, cb.start, rtol=0.0, atol=tol)
+                and np.allclose(ca.end, cb.end, rtol=0.0, atol=tol)
+                and _same(ca.radius, cb.radius, tol)):
+            out.append(f'collision capsule of {ca.link}')
+    return out
+
+
+class RobotModelSelector:
+    """Which robot model a node runs with, and what a ``robot_description`` message means.
+
+    The sources, first match wins:
+
+    1. the ``robot_description`` parameter (``parameter``), when non-empty: no wait;
+    2. the latched ``robot_description`` topic: a message received within ``timeout`` seconds
+       of the start (:attr:`wait_s`; the node's ``robot_description_timeout``), if it is a
+       URDF of ``joint_names`` (and, with ``capsule_links``, of their collision geometry);
+    3. the file ``urdf_path`` (empty: pybullet_data's Panda).
+
+    The model is chosen once (:meth:`start`). A message arriving later (:meth:`offer`) is
+    compared with it and only reported: rejected (not a URDF, other joints), the same model,
+    or another one, which a restart applies (unless the parameter is set: it takes
+    precedence). The model is never swapped under a running node: its limits, kinematics,
+    coupling capsules and the primitives prepared with them stay consistent.
+
+    Parameters
+    ----------
+    urdf_path : str
+    joint_names : sequence of str
+        The node's joints: a description of other joints is rejected.
+    parameter : str
+        The ``robot_description`` parameter (URDF XML or '').
+    timeout : float
+        ``robot_description_timeout`` [s]; 0: no wait.
+    capsule_links : sequence of str
+        Links whose collision capsules the node needs (loaded with the model; a description
+        whose geometry of them cannot be read is rejected).
+
+    Attributes
+    ----------
+    model : RobotModel or None
+        The model in use (after :meth:`start`).
+    verdict : DescriptionVerdict or None
+        Of the last ``robot_description`` message (None: none so far).
+    """
+
+    def __init__(self, urdf_path: str, joint_names: Sequence[str], parameter: str = '',
+                 timeout: float = 0.0, capsule_links: Sequence[str] = ()):
+        self.urdf_path = urdf_path
+        self.joint_names = list(joint_names)
+        self.parameter = parameter
+        self.timeout = float(timeout)
+        self.capsule_links = tuple(capsule_links)
+        self.model: Optional[RobotModel] = None
+        self.verdict: Optional[DescriptionVerdict] = None
+        self._last_text: Optional[str] = None
+
+    @property
+    def by_parameter(self) -> bool:
+        """The ``robot_description`` parameter is set (and takes precedence)."""
+        return bool(self.parameter.strip())
+
+    @property
+    def wait_s(self) -> float:
+        """How long to wait for the topic at start-up [s] (0 with the parameter set)."""
+        return 0.0 if self.by_parameter else max(0.0, self.timeout)
+
+    @property
+    def topic_state(self) -> str:
+        """The diagnostics value ``robot_description_topic``: what the last message was."""
+        v = self.verdict
+        if v is None:
+            return 'none received'
+        if v.status == REJECTED:
+            return 'rejected: ' + _strip(v.message, ROBOT_DESCRIPTION)
+        return v.message
+
+    def start(self, text: Optional[str] = None,
+              rejection: Optional[DescriptionVerdict] = None) -> Tuple[RobotModel, str, bool]:
+        """Choose the model at start-up.
+
+        Parameters
+        ----------
+        text : str, optional
+            The ``robot_description`` message received while waiting (None: none; ignored
+            with the parameter set).
+        rejection : DescriptionVerdict, optional
+            Of a message rejected before it could be read (:meth:`reject`).
+
+        Returns
+        -------
+        model : RobotModel
+        note : str
+            How it was chosen, for the log ('' when the topic was not waited for).
+        warn : bool
+            The note is a warning (the topic was waited for and is not used).
+
+        Raises
+        ------
+        ValidationError
+            The parameter or ``urdf_path`` cannot be loaded (naming it), or a link of
+            ``capsule_links`` has no usable collision geometry in it.
+        """
+        if self.by_parameter:
+            self.model = self._from_text(self.parameter, ROBOT_DESCRIPTION)
+            return self.model, '', False
+        model = None
+        if text is not None:
+            self._last_text = text
+            try:
+                model = self._from_topic(text)
+            except _Rejected as exc:
+                rejection = exc.verdict
+            else:
+                self.verdict = DescriptionVerdict(USED, 'in use')
+        if rejection is not None:
+            self.verdict = rejection
+        if model is not None:
+            self.model = model
+            return model, (f'robot model from the robot_description topic (waited at most '
+                           f'{self.timeout:g} s)'), False
+        self.model = self._from_file()
+        if rejection is not None:
+            return self.model, (f'{rejection.message}; using urdf_path '
+                                f'{self.model.source}'), True
+        if self.wait_s > 0.0:
+            return self.model, (f'no robot_description message within robot_description_'
+                                f'timeout = {self.timeout:g} s; using urdf_path '
+                                f'{self.model.source}'), True
+        return self.model, '', False
+
+    def reject(self, message: str, category: str) -> DescriptionVerdict:
+        """A message rejected before it could be read (too large, not deserialisable)."""
+        self._last_text = None
+        self.verdict = DescriptionVerdict(REJECTED, message, category,
+                                          warn=not self.by_parameter)
+        return self.verdict
+
+    def offer(self, text: str) -> DescriptionVerdict:
+        """A ``robot_description`` message after :meth:`start`: compared with the model in
+        use, which is kept whatever the message says. A repeat of the previous text is not
+        parsed again (its verdict, with ``repeat`` set)."""
+        if self.model is None:
+            raise RuntimeError('offer() before start()')
+        if text == self._last_text and self.verdict is not None:
+            return dataclasses.replace(self.verdict, repeat=True)
+        self._last_text = text
+        self.verdict = self._judge(text)
+        return self.verdict
+
+    def _judge(self, text: str) -> DescriptionVerdict:
+        model = self.model
+        if model.text is not None and text == model.text:
+            if model.source == ROBOT_DESCRIPTION_TOPIC:
+                return DescriptionVerdict(USED, 'in use')
+            return DescriptionVerdict(SAME, f'matches the model in use ({model.source})')
+        try:
+            other = self._from_topic(text)
+        except _Rejected as exc:
+            return dataclasses.replace(exc.verdict, warn=not self.by_parameter)
+        diffs = model_differences(model, other)
+        if not diffs:
+            return DescriptionVerdict(SAME, f'matches the model in use ({model.source})')
+        shown = '; '.join(diffs[:8]) + (f'; and {len(diffs) - 8} more' if len(diffs) > 8 else '')
+        if self.by_parameter:
+            used, advice = 'the robot_description parameter, which takes precedence', ''
+        elif model.source == ROBOT_DESCRIPTION_TOPIC:
+            used, advice = ('the robot_description topic at start-up',
+                            '; a restart of the node applies it')
+        elif self.wait_s > 0.0:
+            used, advice = (model.source, f'; it came after robot_description_timeout = '
+                                          f'{self.timeout:g} s: a restart of the node applies it')
+        else:
+            used, advice = (model.source, '; a restart of the node with '
+                                          'robot_description_timeout > 0 applies it')
+        return DescriptionVerdict(DIFFERS, f'differs from the model in use ({used}): '
+                                           f'{shown}{advice}', warn=not self.by_parameter)
+
+    # -- loading -----------------------------------------------------------------------------
+    def _from_file(self) -> RobotModel:
+        chain = load_panda_chain(self.urdf_path, self.joint_names)
+        return RobotModel(chain, limits_source(self.urdf_path), None,
+                          tuple(load_collision_capsules(self.urdf_path, self.capsule_links,
+                                                        chain=chain)))
+
+    def _from_text(self, text: str, source: str) -> RobotModel:
+        chain = load_panda_chain(self.urdf_path, self.joint_names, text)
+        return RobotModel(chain, source, text,
+                          tuple(load_collision_capsules(self.urdf_path, self.capsule_links,
+                                                        text, chain)))
+
+    def _from_topic(self, text: str) -> RobotModel:
+        """The model of a topic message, or :class:`_Rejected` naming what is wrong."""
+        try:
+            parse_urdf_string(text, 'URDF')
+        except ValidationError as exc:
+            raise _Rejected(f'robot_description: not a valid URDF: {_strip(exc, "URDF")}',
+                            'malformed') from None
+        try:
+            chain = panda_chain('URDF', urdf_text=text)
+        except ValidationError as exc:
+            raise _Rejected(f'robot_description: not a robot of the configured joint_names: '
+                            f'{_strip(exc, "URDF")}', 'joint_names') from None
+        if list(chain.joint_names) != self.joint_names:
+            raise _Rejected(f'robot_description: its joints {list(chain.joint_names)} are not '
+                            f'the configured joint_names {self.joint_names}', 'joint_names')
+        try:
+            return self._from_text(text, ROBOT_DESCRIPTION_TOPIC)
+        except ValidationError as exc:  # the collision geometry of capsule_links
+            raise _Rejected(f'robot_description: {exc}', 'malformed') from None

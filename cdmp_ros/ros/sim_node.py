@@ -3,18 +3,23 @@
 Topics (relative names, remappable):
 
 - subscribes ``joint_reference`` (sensor_msgs/JointState; QoS reliable, volatile, keep last
-  10 = :data:`~cdmp_ros.ros.qos.REFERENCE`, lossless from the streamer) and
-  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos.COMMAND`);
+  10 = :data:`~cdmp_ros.ros.qos.REFERENCE`, lossless from the streamer),
+  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos.COMMAND`) and,
+  with ``robot`` panda, ``robot_description`` (std_msgs/String, the URDF;
+  :data:`~cdmp_ros.ros.qos.LATCHED`; see *Joint limits* below);
 - publishes ``joint_states`` (names, position, velocity, effort) and ``ee_pose``
   (geometry_msgs/PoseStamped of the tool centre point, in ``base_frame``) at
   ``publish_rate`` of simulated time (QoS :data:`~cdmp_ros.ros.qos.SIM_STATE`:
   reliable, volatile, keep last 50, so the burst of one late tick, up to
   ``max_catch_up * publish_rate`` messages, reaches a reliable subscriber whole; matches
-  reliable and best-effort subscribers), ``diagnostics`` (COMMAND) and, with
+  reliable and best-effort subscribers), ``/diagnostics`` (COMMAND) and, with
   ``publish_clock``, ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects;
   reliable, keep last 1).
 - services ``~/snapshot`` (std_srvs/Trigger: TinyRenderer PNG, the path in the message) and
   ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest; clears a reflex stop).
+- readiness (:mod:`cdmp_ros.ros.readiness_probe`): ready when ``joint_reference`` has a
+  publisher; one ``ready ... s after start`` log line, ``ready`` / ``waiting_for`` /
+  ``ready_after_s`` on diagnostics.
 
 Stepping: one steady-clock timer. With ``real_time`` it fires every publish period and steps
 the physics up to the wall clock (catch-up of at most ``max_catch_up`` s, beyond which the
@@ -27,7 +32,7 @@ Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then 
 size checks: a MarkerArray of more than ``max_obstacles + 1`` markers, a joint_reference of more
 names than the robot has joints, is rejected before it is deserialised), then the per-element
 validation (:mod:`cdmp_ros.ros.convert`); each rejection or sanitisation is logged and counted
-per topic and per reason on ``diagnostics``; the node keeps running. A reference outside the
+per topic and per reason on ``/diagnostics``; the node keeps running. A reference outside the
 joint limits is clipped into them, a velocity above the URDF velocity limit is clipped (both
 reported). Whatever it receives, the simulated joints never pass their limits (the end stops of
 :class:`~cdmp_ros.sim.live.LiveSim`).
@@ -66,15 +71,23 @@ velocity, acceleration, jerk), ``reflex_last_error``, ``reflex_stopped``,
 (``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
 
 Joint limits (``robot`` panda): the simulated robot holds the tighter of its pybullet model's
-limits and those of the robot that runs, read as in the other nodes from
-``robot_description`` (when non-empty) or ``urdf_path`` (:mod:`cdmp_ros.ros.robot_model`);
-``limits_source`` names that source, ``limit_mismatch`` lists every bound on which it differs
-from the pybullet model (also logged as a warning). The pybullet body itself stays the model
-of ``robot``: pybullet loads a URDF file with its meshes and inertias, and a robot_description
-refers to its meshes by ``package://`` URIs that only a ROS installation resolves (the Panda's
-model is also a generated copy with fixed fingers); so the limits, not the geometry, come
-from ``robot_description``. For ``dual_panda`` and ``planar4`` the limits are those of the
-URDF files pybullet loads (``limits_source``: those files).
+limits and those of the robot that runs, read as in the streamer and the adapter from the
+``robot_description`` parameter when set, else from the latched ``robot_description`` topic
+(robot_state_publisher) when ``robot_description_timeout`` > 0 and a message arrives within
+that time at start-up, else from ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.
+RobotModelSelector`, :mod:`cdmp_ros.ros.robot_description`); ``limits_source`` names that
+source (``robot_description``, ``robot_description topic`` or the file), ``limit_mismatch``
+lists every bound on which it differs from the pybullet model (also logged as a warning).
+A ``robot_description`` message arriving later is compared with the limits in use, never
+swapped in: ``robot_description_topic`` says what the last one was, a different model is a
+standing WARN on the state status until a restart applies it (none with the parameter set),
+one that is not a URDF of the Panda joints is rejected like any input. The pybullet body
+itself stays the model of ``robot``: pybullet loads a URDF file with its meshes and inertias,
+and a robot_description (parameter or topic alike) refers to its meshes by ``package://``
+URIs that only a ROS installation resolves (the Panda's model is also a generated copy with
+fixed fingers); so the limits, not the geometry, come from ``robot_description``. For
+``dual_panda`` and ``planar4`` the limits are those of the URDF files pybullet loads
+(``limits_source``: those files); the ``robot_description`` topic is not read.
 """
 import math
 import time
@@ -87,20 +100,24 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.joint_limits import LimitMismatch
 from cdmp_ros.core.reflex import REFUSED, STOP, VIOLATION, ReflexMonitor
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers
 from cdmp_ros.ros.realtime import process_thread_ids, set_threads_fifo
-from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
+from cdmp_ros.ros.robot_description import RobotDescriptionInput
+from cdmp_ros.ros.robot_model import RobotModelSelector
 from cdmp_ros.sim.live import limit_clip, LiveSim
 from cdmp_ros.sim.node_config import SimConfig
 from cdmp_ros.sim.robot_specs import PANDA_JOINTS
@@ -123,13 +140,19 @@ class SimNode(Node):
         super().__init__('sim', **kwargs)
         self.params = ConfigParameters(self, [('', SimConfig)], on_change=self._on_params)
         cfg: SimConfig = self.params['']
-        urdf_limits = None
-        if cfg.robot == 'panda':  # the limits of the robot that runs (see the module docstring)
-            chain = load_panda_chain(cfg.urdf_path, PANDA_JOINTS, cfg.robot_description)
+        urdf_limits, self.robot = None, None
+        if cfg.robot == 'panda':  # the limits of the robot that runs (see the module docstring):
+            # the robot_description parameter, else the robot_description topic
+            # (robot_description_timeout), else urdf_path
+            self.robot = RobotDescriptionInput(self, RobotModelSelector(
+                cfg.urdf_path, PANDA_JOINTS, cfg.robot_description,
+                cfg.robot_description_timeout))
+            model = self.robot.load(self.create_subscription(
+                String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
+            chain = model.chain
             urdf_limits = (chain.lower, chain.upper, chain.velocity_limits)
         self.sim = LiveSim(cfg, urdf_limits)
-        self.limits_source = (limits_source(cfg.urdf_path, cfg.robot_description)
-                              if urdf_limits is not None
+        self.limits_source = (model.source if urdf_limits is not None
                               else ', '.join(r.spec.urdf_path for r in self.sim.robots))
         try:
             # the limits the reflex checks: the simulated robot's position and velocity limits
@@ -205,14 +228,14 @@ class SimNode(Node):
                                      cfg.max_obstacle_distance)
         self.js_pub = self.create_publisher(JointState, 'joint_states', qos.SIM_STATE)
         self.pose_pub = self.create_publisher(PoseStamped, 'ee_pose', qos.SIM_STATE)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                               qos.COMMAND)
         self.clock_pub = None
         if cfg.publish_clock:
             from rosgraph_msgs.msg import Clock as ClockMsg
             self._clock_msg = ClockMsg()
             self.clock_pub = self.create_publisher(ClockMsg, '/clock', qos.CLOCK)
-        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'sim')
+        self.reporter = DiagnosticsReporter(self, self.diag_pub)
         mismatch = '; '.join(describe_sim_mismatch(m) for m in sim.limit_mismatches) or 'none'
         self.reporter.set_state(OK, 'starting', limits_source=self.limits_source,
                                 limit_mismatch=mismatch, limits=self.limits.describe(),
@@ -222,6 +245,8 @@ class SimNode(Node):
                                       f'pybullet model on {len(sim.limit_mismatches)} bounds, '
                                       f'the tighter are used: {mismatch}')
         self.gate = InputGate(self, self.reporter, lambda: self.config, now_ns=self._now_ns)
+        if self.robot is not None:
+            self.robot.attach(self.gate, self.reporter)
         self._set_rates(cfg)
         self.gate.subscribe(JointState, 'joint_reference', self._on_reference,
                             qos.REFERENCE, size=joint_names(lambda: len(sim.joint_names)),
@@ -246,6 +271,8 @@ class SimNode(Node):
         self._rtf = (time.monotonic(), sim.t, float('nan'))
         self.timer = None
         self._make_timer(cfg)
+        self.readiness = ReadinessProbe(self, {'references': (
+            'a publisher on joint_reference', has_publishers(self, 'joint_reference'))})
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
                                             clock=self._steady)
         self.get_logger().info(
@@ -505,7 +532,7 @@ class SimNode(Node):
             obstacles=len(self.obstacles), sim_time=f'{sim.t:.3f}', scheduling=self.scheduling,
             real_time_factor=f'{rtf:.3f}' if math.isfinite(rtf) else 'nan',
             **sim.stats.as_values(), **self.counts, **self.reflex.as_values(),
-            **self.gate.values())
+            **self.readiness.values(), **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def close(self) -> None:

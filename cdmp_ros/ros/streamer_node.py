@@ -5,20 +5,24 @@ and with ``controller_output`` the same references for a ros2_control controller
 order (std_msgs/Float64MultiArray on ``forward_position_controller/commands`` or
 trajectory_msgs/JointTrajectory, one point per tick, on
 ``joint_trajectory_controller/joint_trajectory``; ``controller_topic``, ``controller_joints``);
-subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``
-and ``obstacles``; reports on ``diagnostics``. Primitive messages are parsed and prepared in a
-worker thread (the latest one wins), so a large primitive never delays a tick; the tick only
-switches the prepared stepper in. Every input passes
+subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``,
+``obstacles`` and ``robot_description`` (URDF, latched; the robot model, below); reports on
+``/diagnostics``. Primitive messages are parsed and prepared in a worker thread (the latest
+one wins), so a large primitive never delays a tick; the tick only switches the prepared
+stepper in. Every input passes
 :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time size checks before
 deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint count), then the
 per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
-``diagnostics``. Which prepared primitive is switched in is decided by
+``/diagnostics``. Which prepared primitive is switched in is decided by
 :class:`cdmp_ros.core.streaming.selection.AdaptationSelector` (issue 13: only the newest
 adaptation of the current ``primitive``, in any arrival order; counters
 ``adapted_ignored_*``, ``adapted_held``, ``primitive_awaiting_adaptation`` with
 ``stream_unadapted`` false); per switched-in adaptation the node reports the latency from its
 trigger stamp to the stamp of the first reference computed from it
-(``adaptation_latency_ms_*``, ``adapted_reference_stamp_ns``).
+(``adaptation_latency_ms_*``, ``adapted_reference_stamp_ns``). The node is *ready*
+(:mod:`cdmp_ros.ros.readiness_probe`: one ``ready ... s after start`` log line, ``ready`` and
+``waiting_for`` on diagnostics) when a primitive is in force, the references have a subscriber
+(``joint_reference`` or the controller topic) and, closed loop, ``joint_states`` a publisher.
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
 deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
@@ -35,6 +39,20 @@ of the fixed grid, each slot is published exactly once. The deadlines, the catch
 tick (``max_catch_up``), the late/early/missed counts and the stamps are
 :class:`cdmp_ros.core.streaming.schedule.TickSchedule` (ROS-free, unit-tested with a fake
 clock). ``tick_thread: false`` falls back to a steady-clock executor timer.
+
+The robot model (position and velocity limits, kinematics of the coupling terms, the capsules
+of ``coupling_capsule_links``) comes from the ``robot_description`` parameter when it is set,
+else from the latched ``robot_description`` topic (robot_state_publisher) when
+``robot_description_timeout`` > 0 and a message arrives within that time at start-up, else
+from ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.RobotModelSelector`,
+:mod:`cdmp_ros.ros.robot_description`); ``limits_source`` says which (``robot_description``,
+``robot_description topic`` or the file). It is fixed for the node's life: a
+``robot_description`` message arriving later is bounded in size, parsed and compared with it,
+never swapped in under a running stream; ``robot_description_topic`` on diagnostics says what
+the last one was, a different model is a standing WARN on the state status until a restart
+applies it (no warning when the parameter is set: it takes precedence), and one that is not a
+URDF or describes other joints is rejected like any input (``streamer: input
+robot_description``, ``rejected_malformed`` / ``rejected_joint_names``).
 """
 import gc
 import sys
@@ -63,6 +81,7 @@ from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
                                               StreamState, streamer_coupling)
+from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
                                   JointTrajectoryWriter, ObstacleSet)
@@ -72,9 +91,10 @@ from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_
 from cdmp_ros.ros.latest_worker import LatestWorker
 from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
+from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers, has_subscribers
 from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
-from cdmp_ros.ros.robot_model import (limits_source, load_collision_capsules,
-                                      load_panda_chain)
+from cdmp_ros.ros.robot_description import RobotDescriptionInput
+from cdmp_ros.ros.robot_model import RobotModelSelector
 
 PRIMITIVE_TOPICS = ('primitive', 'adapted_primitive')
 #: GIL switch interval of the streamer process, as a fraction of the tick period: a thread
@@ -96,11 +116,16 @@ class StreamerNode(Node):
                    ('box_field', ConstantField), ('board_field', BoardField)],
             on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
-        # the limits and kinematics of the robot: robot_description, else urdf_path
-        self.urdf_path = limits_source(cfg.urdf_path, cfg.robot_description)
-        self.chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
-        self.capsules = load_collision_capsules(cfg.urdf_path, cfg.coupling_capsule_links,
-                                                cfg.robot_description, self.chain)
+        # the limits, kinematics and capsules of the robot: the robot_description parameter,
+        # else the robot_description topic (robot_description_timeout), else urdf_path
+        self.robot = RobotDescriptionInput(self, RobotModelSelector(
+            cfg.urdf_path, cfg.joint_names, cfg.robot_description,
+            cfg.robot_description_timeout, cfg.coupling_capsule_links))
+        model = self.robot.load(self.create_subscription(
+            String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
+        self.urdf_path = model.source
+        self.chain = model.chain
+        self.capsules = list(model.capsules)
         self.coupling = self._make_coupling(self.params.configs)
         # position and velocity from the URDF, tighter-of-two with joint_limits.* parameters
         self.limits = robot_limits(self, cfg.joint_names, self.chain.lower, self.chain.upper,
@@ -114,9 +139,9 @@ class StreamerNode(Node):
                                      cfg.max_obstacle_distance)
 
         self.pub = self.create_publisher(JointState, 'joint_reference', qos.REFERENCE)
-        self.diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics',
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                               qos.COMMAND)
-        self.reporter = DiagnosticsReporter(self, self.diag_pub, 'streamer')
+        self.reporter = DiagnosticsReporter(self, self.diag_pub)
         self.reporter.values['limits_source'] = self.urdf_path
         self.reporter.values['limits'] = self.limits.describe()
         self.reporter.values['limits_sources'] = '; '.join(self.limits.sources)
@@ -125,6 +150,7 @@ class StreamerNode(Node):
         # writes without a lock
         self._report_lock = threading.Lock()
         self.gate = InputGate(self, self.reporter, lambda: self.config, lock=self._report_lock)
+        self.robot.attach(self.gate, self.reporter)
         self._set_rates(cfg)
         self.writer = JointStateWriter(JointState(), cfg.joint_names, cfg.base_frame)
         self.controller_pub, self.controller_writer = self._controller_output(cfg)
@@ -189,6 +215,7 @@ class StreamerNode(Node):
             self._report_scheduling(cfg)
         else:
             self.timer = self.create_timer(cfg.dt, self._locked_tick, clock=self._steady)
+        self.readiness = ReadinessProbe(self, self._readiness_conditions(cfg))
         self.diag_timer = self.create_timer(cfg.diagnostics_period, self._publish_diagnostics,
                                             clock=self._steady)
         self.get_logger().info(
@@ -196,6 +223,20 @@ class StreamerNode(Node):
             f'{self.resolve_topic_name("joint_reference")}; robot {self.urdf_path}')
 
     # -- setup -------------------------------------------------------------------------------
+    def _readiness_conditions(self, cfg: StreamerConfig):
+        """Ready: a primitive in force, a consumer of the references and, closed loop, a
+        publisher of joint_states."""
+        consumers = ('joint_reference',) + ((self.controller_pub.topic_name,)
+                                            if self.controller_pub is not None else ())
+        out = {'primitive': ('a primitive received and in force',
+                             lambda: self.streamer.active is not None),
+               'consumer': (f'a subscriber on {" or ".join(consumers)}',
+                            has_subscribers(self, *consumers))}
+        if cfg.joint_states_timeout > 0.0:
+            out['joint_states'] = ('a publisher on joint_states (closed loop)',
+                                   has_publishers(self, 'joint_states'))
+        return out
+
     def _make_coupling(self, configs) -> ObstacleCoupling:
         return streamer_coupling(self.chain, configs[''], configs['coupling'],
                                  configs['damping'], configs['repeller'], configs['box_field'],
@@ -505,7 +546,7 @@ class StreamerNode(Node):
                 coupling_peak_rad_s2=f'{peak:.4g}',
                 rate_hz=f'{self.config.rate:g}', **latency, **adaptation,
                 **extra,
-                **extra_limits,
+                **extra_limits, **self.readiness.values(),
                 **counts, **self.gate.values())
             self.reporter.publish(self.get_clock().now().to_msg())
 

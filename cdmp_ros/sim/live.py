@@ -16,7 +16,7 @@ monitoring.
   :meth:`monitor` is called, the minimum link-obstacle distance and the contacts (in a cell
   of several robots, ``dual_panda``, also the robots' links against each other).
 
-Every figure of :class:`SimStats` is what the node reports on ``diagnostics`` (same key names).
+Every figure of :class:`SimStats` is what the node reports on ``/diagnostics`` (same key names).
 
 Hard limits. Left to pybullet, a flood of references jumping across the range carried joints
 through their limits by up to 76 mrad (measured, panda, position control; 31 passes in a
@@ -114,7 +114,7 @@ def _same_rotation(q1, q2) -> bool:
 
 @dataclass
 class SimStats:
-    """Figures since the start (or the current value), reported on ``diagnostics``.
+    """Figures since the start (or the current value), reported on ``/diagnostics``.
 
     Attributes
     ----------

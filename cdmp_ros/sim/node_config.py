@@ -10,7 +10,8 @@ from typing import Optional, Tuple
 
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, max_obstacles_param,
                                          obstacle_distance_param, obstacle_size_param,
-                                         param as _param, stamp_age_param, stamp_lead_param)
+                                         param as _param, robot_description_timeout_param,
+                                         stamp_age_param, stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.reflex import DEFAULT_TOLERANCE, MODES as REFLEX_MODES
 from cdmp_ros.core.validation import as_array
@@ -40,8 +41,10 @@ class SimConfig:
         read_only=True)
     robot_description: str = _param(
         '', 'The robot URDF as XML text, as a ROS system passes it to its nodes; when '
-        'non-empty it takes precedence over urdf_path for the joint limits (diagnostics: '
-        'limits_source).', read_only=True)
+        'non-empty it takes precedence over the robot_description topic and urdf_path for '
+        'the joint limits (robot panda only; diagnostics: limits_source).', read_only=True)
+    robot_description_timeout: float = robot_description_timeout_param(
+        'the joint limits (robot panda only; ignored for the others)')
     control: str = _param(
         'position', 'Tracking law: position (pybullet position motors), computed_torque '
         '(Eq. 2, paper 000), exogenous (joint-limit-avoiding law in tanh coordinates, Eq. 4, '

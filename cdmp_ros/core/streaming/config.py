@@ -7,7 +7,8 @@ from typing import Tuple
 from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
                                          max_json_bytes_param, max_obstacles_param,
                                          obstacle_distance_param, obstacle_size_param,
-                                         param as _param, robot_description_param, stamp_age_param,
+                                         param as _param, robot_description_param,
+                                         robot_description_timeout_param, stamp_age_param,
                                          stamp_lead_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_EE_OFFSET, PANDA_JOINTS
@@ -63,6 +64,7 @@ class StreamerConfig:
         '', 'Robot URDF (limits, kinematics for the coupling). Empty: the Panda of '
         'pybullet_data.', read_only=True)
     robot_description: str = robot_description_param()
+    robot_description_timeout: float = robot_description_timeout_param()
     base_frame: str = _param(
         'panda_link0', 'Robot base frame: obstacles must be given in it (or with an empty '
         'frame_id).', read_only=True)
