@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 from cdmp_ros.ros.robot_model import (DIFFERS, REJECTED, ROBOT_DESCRIPTION,
                                       ROBOT_DESCRIPTION_TOPIC, SAME, USED, RobotModelSelector,
@@ -208,5 +208,5 @@ def test_collision_capsules_are_part_of_the_model(tmp_path, monkeypatch):
 
 
 def test_offer_before_start_is_a_programming_error():
-    with pytest.raises(RuntimeError):
+    with pytest.raises(CdmpError, match='before start'):
         RobotModelSelector('', PANDA_JOINTS).offer(PANDA)

@@ -146,7 +146,7 @@ def _declare_string_array(node, name: str, default: List[str],
     if p.type_ == Parameter.Type.NOT_SET:
         result = node.set_parameters([Parameter(name, Parameter.Type.STRING_ARRAY, [])])[0]
         if not result.successful:
-            raise ValueError(result.reason)
+            raise ValidationError(f'parameter {name}: {result.reason}')
     node.set_descriptor(name, desc)
     return node.get_parameter(name)
 

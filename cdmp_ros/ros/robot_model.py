@@ -339,7 +339,7 @@ class RobotModelSelector:
         use, which is kept whatever the message says. A repeat of the previous text is not
         parsed again (its verdict, with ``repeat`` set)."""
         if self.model is None:
-            raise RuntimeError('offer() before start()')
+            raise CdmpError('RobotModelSelector.offer() called before start()')
         if text == self._last_text and self.verdict is not None:
             return dataclasses.replace(self.verdict, repeat=True)
         self._last_text = text

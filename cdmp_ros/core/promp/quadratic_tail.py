@@ -63,6 +63,7 @@ from typing import Optional, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.gaussian import normal_cdf, normal_pdf
 
 # Below this |w| the saddle point is at the mean of Q and Lugannani-Rice is 0/0 in floating
@@ -301,8 +302,8 @@ def quadratic_form_cdf(m: NDArray, S: NDArray, center: NDArray, x: NDArray,
         Symmetric gradient (for symmetric perturbations of S).
     """
     if second_order not in ('upper', 'both', 'none'):
-        raise ValueError("second_order: expected 'upper', 'both' or 'none', got "
-                         f'{second_order!r}')
+        raise ValidationError("second_order: expected 'upper', 'both' or 'none', got "
+                              f'{second_order!r}')
     m = np.asarray(m, float)
     S = np.asarray(S, float)
     n, k = m.shape
