@@ -929,3 +929,70 @@ def test_switching_the_stage_on_next_to_a_limit_recovers():
     ratio_v = (np.abs(np.diff(late, axis=0)) / DT / P_V).max()
     ratio_a = (np.abs(np.diff(late, 2, axis=0)) / DT ** 2 / P_A).max()
     assert ratio_v <= 1.0 + 1e-6 and ratio_a <= 1.0 + 1e-6, (ratio_v, ratio_a, rs.stage.clamped)
+
+
+def _stalled_stream(chain, stalls, honour_skipped=True):
+    """The published (stamp, positions) of the node's tick loop (TickSchedule + the streamer,
+    ``max_catch_up`` 10) on a fake clock: a tick every period, except at the ticks of
+    ``stalls`` (tick index -> periods the tick thread is late, beyond the catch-up). A sphere
+    beside the tool and a goal change make the reference move hard during the stalls."""
+    from cdmp_ros.core.streaming.schedule import TickSchedule
+    rs, prep = _streamer(chain)
+    sched = TickSchedule(1.0 / DT, 0.0, 0)
+    published = []
+
+    def publish(i):
+        published.append((sched.stamp_ns(first + i), list(rs.out_y)))
+
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    now = 0.0
+    for k in range(1500):
+        now += DT * (1 + stalls.get(k, 0))
+        if k == 300:
+            rs.obstacles = (_tool_sphere(chain),)
+        if k == 500:
+            rs.set_goal(np.array([-0.4, -0.1, -0.15, -1.5, -0.1, 1.0, -0.15]))
+        rs.note_joint_states(list(rs.out_y), now)
+        first, steps, skipped = sched.advance(now + 1e-9, 10)
+        rs.advance(steps, now, publish, skipped if honour_skipped else 0)
+    return rs, sched, published
+
+
+@pytest.mark.parametrize('stalls', [
+    {320: 15, 330: 40, 520: 25, 600: 11, 700: 200},          # gaps of 5-190 skipped slots
+    {k: 12 + (k % 7) for k in range(300, 900, 37)},           # many short stalls in motion
+])
+def test_slots_skipped_by_a_late_tick_keep_the_published_stamps_within_the_limits(chain, stalls):
+    """A tick later than max_catch_up skips slots (never published): the output stage runs
+    through them, so the references published after the gap, differenced on their stamps as a
+    robot differences them (ReflexMonitor), stay within every limit. Without it (the skipped
+    slots ignored, as before) the same stream breaks the acceleration limit."""
+    from cdmp_ros.core.reflex import ReflexMonitor
+    rs, sched, published = _stalled_stream(chain, stalls)
+    assert sched.counts['missed_ticks'] == sum(v - 9 for v in stalls.values())
+    monitor = ReflexMonitor(rs.limits, tolerance=1e-6)
+    for stamp, q in published:
+        monitor.update(stamp, q)
+    assert monitor.errors == 0, (monitor.counts, monitor.worst, monitor.last_error)
+    assert monitor.checked == len(published) and len(published) < 1500 + sum(stalls.values())
+    # the same stream with the skipped slots ignored: stamps jump, positions do not
+    rs_old, _, published_old = _stalled_stream(chain, stalls, honour_skipped=False)
+    before = ReflexMonitor(rs_old.limits, tolerance=1e-6)
+    for stamp, q in published_old:
+        before.update(stamp, q)
+    assert before.counts['acceleration'] > 0, before.worst
+
+
+def test_skipped_stage_steps_are_bounded(chain):
+    """A stall of more than MAX_SKIPPED_STAGE_STEPS periods runs the stage through that many
+    (bounded work in one tick), not through the whole gap."""
+    from cdmp_ros.core.streaming import streamer as streamer_module
+    rs, prep = _streamer(chain)
+    rs.note_joint_states(Q_START, 0.0)
+    rs.activate(prep, 0.0)
+    calls = []
+    update = rs.stage.update
+    rs.stage.update = lambda target: calls.append(1) or update(target)
+    rs.advance(1, 0.0, skipped=10 * streamer_module.MAX_SKIPPED_STAGE_STEPS)
+    assert len(calls) == streamer_module.MAX_SKIPPED_STAGE_STEPS + 1

@@ -27,8 +27,8 @@ def test_on_time_ticks_integrate_one_slot_each_stamped_on_the_grid():
     for j in range(1, 6):
         late = s.woke(at(j + 0.2), woken=False)
         assert late == pytest.approx(0.2 / RATE)
-        first, steps = s.advance(at(j + 0.2), max_catch_up=5)
-        assert (first, steps) == (j, 1)
+        first, steps, skipped = s.advance(at(j + 0.2), max_catch_up=5)
+        assert (first, steps, skipped) == (j, 1, 0)
         stamps.append(s.stamp_ns(first))
         assert s.deadline() == pytest.approx(at(j + 1))
     assert stamps == [1_700_000_000_000_000_000 + j * 1_000_000 for j in range(1, 6)]
@@ -41,21 +41,21 @@ def test_a_late_tick_catches_up_every_slot_it_missed():
     late = s.woke(at(4.5), woken=False)       # the deadline was slot 2: 2.5 periods late
     assert late == pytest.approx(2.5 / RATE)
     assert s.counts['late_ticks'] == 1
-    assert s.advance(at(4.5), max_catch_up=5) == (2, 3)   # slots 2, 3, 4, each once
+    assert s.advance(at(4.5), max_catch_up=5) == (2, 3, 0)   # slots 2, 3, 4, each once
     assert s.k == 4 and s.counts['missed_ticks'] == 0
     s.woke(at(5.9), woken=False)              # 0.9 periods late: on time
     assert s.counts['late_ticks'] == 1
-    assert s.advance(at(5.9), max_catch_up=5) == (5, 1)
+    assert s.advance(at(5.9), max_catch_up=5) == (5, 1, 0)
 
 
 def test_the_catch_up_limit_skips_the_oldest_slots_and_counts_them_missed():
     s = make()
     s.advance(at(1.5), max_catch_up=3)
-    first, steps = s.advance(at(11.5), max_catch_up=3)   # slots 2..11 began: 10 slots
-    assert (first, steps) == (9, 3)                     # the newest 3: 9, 10, 11
+    first, steps, skipped = s.advance(at(11.5), max_catch_up=3)  # slots 2..11 began: 10
+    assert (first, steps, skipped) == (9, 3, 7)         # the newest 3: 9, 10, 11; 2..8 skipped
     assert s.counts['missed_ticks'] == 7
     assert s.stamp_ns(first + steps - 1) == s.stamp_ns(0) + 11 * 1_000_000
-    assert s.advance(at(12.5), max_catch_up=3) == (12, 1)   # and on from there
+    assert s.advance(at(12.5), max_catch_up=3) == (12, 1, 0)   # and on from there
 
 
 def test_an_early_wake_up_publishes_the_next_slot_once_then_waits_for_the_schedule():
@@ -65,12 +65,12 @@ def test_an_early_wake_up_publishes_the_next_slot_once_then_waits_for_the_schedu
     late = s.woke(at(1.4), woken=True)        # an obstacle message, before slot 2's deadline
     assert late == pytest.approx(-0.6 / RATE)
     assert s.counts['early_ticks'] == 1
-    assert s.advance(at(1.4), max_catch_up=5) == (2, 1)   # slot 2 now, with its own stamp
+    assert s.advance(at(1.4), max_catch_up=5) == (2, 1, 0)   # slot 2 now, with its own stamp
     assert s.is_ahead(at(1.6))                # a second wake-up in slot 1 must wait
     assert s.deadline() == pytest.approx(at(3))
     assert not s.is_ahead(at(2.1))
     s.woke(at(3.05), woken=False)
-    assert s.advance(at(3.05), max_catch_up=5) == (3, 1)  # slot 2 is not published twice
+    assert s.advance(at(3.05), max_catch_up=5) == (3, 1, 0)  # slot 2 is not published twice
     woken_late = s.woke(at(4.2), woken=True)  # woken after the deadline: not early
     assert woken_late > 0 and s.counts['early_ticks'] == 1
     assert s.counts['late_ticks'] == 0

@@ -414,12 +414,13 @@ class StreamerNode(Node):
                 self.gate.reject(topic, error)
             else:
                 self._switch_in(topic, prepared, now)
-        first, steps = self.schedule.advance(now, self.config.max_catch_up)
+        first, steps, skipped = self.schedule.advance(now, self.config.max_catch_up)
         st = self.streamer
         if st.state is not StreamState.WAITING:
-            # every integrated slot is published with its own stamp (a late tick catches up)
+            # every integrated slot is published with its own stamp (a late tick catches up);
+            # the output stage also runs through the skipped slots (stamps stay consistent)
             self._pub_slot0 = first
-            flags = st.advance(steps, now, self._publish_step)
+            flags = st.advance(steps, now, self._publish_step, skipped)
         else:
             flags = st.advance(steps, now)
         c = self.counts

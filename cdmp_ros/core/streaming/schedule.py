@@ -14,7 +14,9 @@ and published exactly once:
   thread is already one slot ahead and must wait);
 - :meth:`TickSchedule.advance` integrates every slot that began since the last tick (a late
   tick catches up), at most ``max_catch_up`` of them: the oldest ones beyond that are skipped
-  and counted as *missed ticks*;
+  (not published) and counted as *missed ticks*; it returns how many, so that the output
+  stage can still run through them (:meth:`ReferenceStreamer.advance`, ``skipped``) and the
+  published positions stay consistent with the stamps across the gap;
 - :meth:`TickSchedule.anchor` follows a step of the ROS clock (an NTP step, sim time) by
   re-anchoring ``stamp0`` when the grid is more than a tolerance off; otherwise the grid stays
   exact.
@@ -124,7 +126,7 @@ class TickSchedule:
             self.counts['early_ticks'] += 1
         return late
 
-    def advance(self, now: float, max_catch_up: int) -> Tuple[int, int]:
+    def advance(self, now: float, max_catch_up: int) -> Tuple[int, int, int]:
         """The slots a tick at ``now`` integrates: every slot begun since the last tick (at
         least the next one), at most ``max_catch_up`` (the older ones are counted as missed).
 
@@ -134,16 +136,21 @@ class TickSchedule:
             The first slot to integrate.
         steps : int
             How many consecutive slots to integrate (``first .. first + steps - 1``).
+        skipped : int
+            How many slots before ``first`` were skipped (``first - skipped .. first - 1``:
+            never published).
         """
         k = int((now - self.t0) / self.dt)  # the slot that began most recently
         steps = k - self.k
+        skipped = 0
         if steps < 1:  # an early tick, or the same slot again: the next slot
             steps, k = 1, self.k + 1
         if steps > max_catch_up:  # too late: skip the oldest slots
-            self.counts['missed_ticks'] += steps - max_catch_up
+            skipped = steps - max_catch_up
+            self.counts['missed_ticks'] += skipped
             steps = max_catch_up
         self.k = k
-        return k - steps + 1, steps
+        return k - steps + 1, steps, skipped
 
     def stamp_ns(self, slot: int) -> int:
         """The ROS-clock stamp [ns] of ``slot``: exactly on the grid."""

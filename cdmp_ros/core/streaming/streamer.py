@@ -54,6 +54,10 @@ from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
 
 
+#: Skipped periods the output stage runs through at most in one call of
+#: :meth:`ReferenceStreamer.advance` (2,000: 2 s at 1 kHz, 4 s at 500 Hz; a longer stall of the
+#: tick is a failure of its own, beyond any controller's communication timeout).
+MAX_SKIPPED_STAGE_STEPS = 2000
 #: Distance [rad or m] the output stage keeps from the position limits.
 STAGE_MARGIN = 1e-6
 
@@ -375,12 +379,22 @@ class ReferenceStreamer:
 
     # -- the tick -----------------------------------------------------------------------------
     def advance(self, n_steps: int, now: float,
-                on_step: Optional[Callable[[int], None]] = None) -> int:
+                on_step: Optional[Callable[[int], None]] = None, skipped: int = 0) -> int:
         """Advance the reference by ``n_steps`` periods; returns :class:`StreamFlags` bits.
 
         ``on_step(i)``, if given, is called after each step (``i = 0 .. n_steps - 1``) with
         ``out_y, out_yd, out_ydd`` (what is published) already through the output stage (the
         node publishes every step of a catch-up).
+
+        ``skipped``: periods before these ``n_steps`` that are not published (a tick later
+        than the catch-up allows, :meth:`TickSchedule.advance`). The output stage runs
+        through them toward the reference as it stands (the primitive pauses, a time scaling
+        it never notices), at most :data:`MAX_SKIPPED_STAGE_STEPS` of them: the positions
+        published after the gap are then a sample of a motion within the velocity,
+        acceleration and jerk limits, and their differences on the stamps stay within them
+        (without it the stamps jump by the gap while the positions move one period: the
+        acceleration spikes by the gap's length).
+
         Never raises on account of inputs: the stepper does not raise, the coupling callable is
         guarded, the guard keeps every position finite and inside the limits, and the output
         stage keeps what is published inside the position, velocity, acceleration and jerk
@@ -399,6 +413,11 @@ class ReferenceStreamer:
         flags = 0
         dt = self.config.dt
         stage_on = self.config.output_stage
+        if stage_on and skipped > 0:
+            target = self.y
+            for _ in range(min(int(skipped), MAX_SKIPPED_STAGE_STEPS)):
+                if self.stage.update(target):
+                    flags |= StreamFlags.LIMITED
         if self.state is StreamState.RUNNING and self.coupling is not None:
             # evaluated once per call (zero-order hold over catch-up steps), every
             # coupling_decimation calls
