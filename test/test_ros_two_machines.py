@@ -82,7 +82,7 @@ def test_the_isolation_check_refuses_a_namespace_with_a_foreign_interface():
     saved = two_machines.ip
     two_machines.ip = lambda *a: listing[a[1]]
     try:
-        with pytest.raises(RuntimeError, match=f"{nss.robot}: interfaces.*eth0"):
+        with pytest.raises(RuntimeError, match=f'{nss.robot}: interfaces.*eth0'):
             nss.check_isolated()
         listing[nss.robot] = '1: lo: <LOOPBACK>\n2: crt@if3: <UP>\n'
         nss.check_isolated()
