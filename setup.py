@@ -32,6 +32,9 @@ setup(
         ('share/' + package_name + '/config', _files('config/*.yaml') + _files('config/*.xml')),
         ('share/' + package_name + '/config/graphs', _files('config/graphs/*.yaml')),
         ('share/' + package_name + '/config/joint_limits', _files('config/joint_limits/*.yaml')),
+        *[('share/' + package_name + '/' + os.path.dirname(f), [f])
+          for f in _files('config/robots/*/*.yaml')],
+        ('share/' + package_name + '/urdf', _files('urdf/*.urdf')),
         ('share/' + package_name + '/launch', _files('launch/*.launch.py')),
         ('share/' + package_name + '/msg_schemas', _files('msg_schemas/*.json')),
         ('share/' + package_name + '/msg_schemas/msg', _files('msg_schemas/msg/*.msg')),

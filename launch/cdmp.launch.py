@@ -1,29 +1,38 @@
 """The cdmp_ros node graph: sim (optional), streamer, adapter and learner.
 
     ros2 launch cdmp_ros cdmp.launch.py robot:=panda rate:=500.0 use_sim:=true
+    ros2 launch cdmp_ros cdmp.launch.py robot:=planar4   # the planar 4-link arm, nothing else
     ros2 launch cdmp_ros cdmp.launch.py use_sim:=false namespace:=/arm   # a real robot
 
 Every node reads its parameter file from ``share/cdmp_ros/config`` (override one with
 ``<node>_params:=/path/to/file.yaml``); ``rate`` sets the streamer's ``rate`` and ``robot`` the
 sim's ``robot``, ``robot_description`` (URDF XML) the model every node takes its joint limits
-from. With ``use_sim:=false`` the sim node is not started: the streamer, the adapter
-and the learner read the measured state from the robot's own ``joint_states``. The graph
-without ROS is ``cdmp bringup``; ``demo.launch.py`` is the graph of ``cdmp demo``.
+from. The files of ``config/`` are the Panda's; for ``robot:=planar4`` every node also gets
+``config/robots/planar4/<node>.yaml`` after its own file (a later file wins): the joint
+names, ``urdf_path: package://cdmp_ros/urdf/planar4.urdf`` (the file the sim loads),
+``tip_link``, ``tcp_offset``, base frame, coupling links, initial pose and demonstration bags
+of the planar arm. With ``use_sim:=false`` the sim node is not started: the streamer, the
+adapter and the learner read the measured state from the robot's own ``joint_states``. The
+graph without ROS is ``cdmp bringup`` (``config/graphs/planar4.yaml`` is ``robot:=planar4``);
+``demo.launch.py`` is the graph of ``cdmp demo``.
 """
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, GroupAction
+from launch.actions import DeclareLaunchArgument, GroupAction, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node, PushRosNamespace
 from launch_ros.parameter_descriptions import ParameterValue
 
 PACKAGE = 'cdmp_ros'
-#: Node (and executable) name -> its parameter file in config/.
+#: Node (and executable) name -> its parameter file in config/ (and in config/robots/<robot>/).
 PARAMS = {'sim': 'sim.yaml', 'streamer': 'streamer.yaml', 'adapter': 'adapter.yaml',
           'learner': 'learner.yaml'}
+#: Robots with parameter files in config/robots/<robot>/, applied after each node's own file
+#: (the files of config/ are the Panda's).
+ROBOT_OVERLAYS = ('planar4',)
 
 
 def generate_launch_description():
@@ -32,9 +41,12 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'robot', default_value='panda', choices=['panda', 'dual_panda', 'planar4'],
             description="Robot simulated by the sim node (its 'robot' parameter). The files "
-                        'in config/ are written for the Panda: another robot needs a '
-                        'sim_params file with its initial_positions, and streamer_params, '
-                        'adapter_params and learner_params with its joint_names and urdf_path.'),
+                        'in config/ are written for the Panda; planar4 adds '
+                        "config/robots/planar4/<node>.yaml after every node's file (its joints, "
+                        'URDF, tip link, frames, initial pose, bags). dual_panda has no such '
+                        'files: give sim_params with its initial_positions, and '
+                        'streamer_params, adapter_params and learner_params with its '
+                        'joint_names and urdf_path.'),
         DeclareLaunchArgument(
             'rate', default_value='500.0',
             description='Hz at which the streamer publishes joint_reference (1 kHz supported).'),
@@ -53,28 +65,39 @@ def generate_launch_description():
             description='Start the pybullet sim node (false: a real robot publishes '
                         'joint_states and consumes the references).'),
     ]
+    overlay = "the robot's file of config/robots/<robot>/, if any, is applied after it"
     args += [DeclareLaunchArgument(
         f'{node}_params', default_value=os.path.join(config, file),
-        description=f'Parameter file of the {node} node.') for node, file in PARAMS.items()]
+        description=f'Parameter file of the {node} node ({overlay}).')
+        for node, file in PARAMS.items()]
 
     description = {'robot_description': ParameterValue(
         LaunchConfiguration('robot_description'), value_type=str)}
 
-    def params(node):
-        return LaunchConfiguration(f'{node}_params')
+    def graph(context):
+        robot = LaunchConfiguration('robot').perform(context)
 
-    nodes = [
-        Node(package=PACKAGE, executable='sim', name='sim', output='screen',
-             parameters=[params('sim'), description,
-                         {'robot': ParameterValue(LaunchConfiguration('robot'), value_type=str)}],
-             condition=IfCondition(LaunchConfiguration('use_sim'))),
-        Node(package=PACKAGE, executable='streamer', name='streamer', output='screen',
-             parameters=[params('streamer'), description,
-                         {'rate': ParameterValue(LaunchConfiguration('rate'), value_type=float)}]),
-        Node(package=PACKAGE, executable='adapter', name='adapter', output='screen',
-             parameters=[params('adapter'), description]),
-        Node(package=PACKAGE, executable='learner', name='learner', output='screen',
-             parameters=[params('learner'), description]),
-    ]
-    return LaunchDescription(
-        args + [GroupAction([PushRosNamespace(LaunchConfiguration('namespace')), *nodes])])
+        def params(node):
+            files = [LaunchConfiguration(f'{node}_params')]
+            if robot in ROBOT_OVERLAYS:
+                files.append(os.path.join(config, 'robots', robot, PARAMS[node]))
+            return files
+
+        nodes = [
+            Node(package=PACKAGE, executable='sim', name='sim', output='screen',
+                 parameters=[*params('sim'), description,
+                             {'robot': ParameterValue(LaunchConfiguration('robot'),
+                                                      value_type=str)}],
+                 condition=IfCondition(LaunchConfiguration('use_sim'))),
+            Node(package=PACKAGE, executable='streamer', name='streamer', output='screen',
+                 parameters=[*params('streamer'), description,
+                             {'rate': ParameterValue(LaunchConfiguration('rate'),
+                                                     value_type=float)}]),
+            Node(package=PACKAGE, executable='adapter', name='adapter', output='screen',
+                 parameters=[*params('adapter'), description]),
+            Node(package=PACKAGE, executable='learner', name='learner', output='screen',
+                 parameters=[*params('learner'), description]),
+        ]
+        return [GroupAction([PushRosNamespace(LaunchConfiguration('namespace')), *nodes])]
+
+    return LaunchDescription(args + [OpaqueFunction(function=graph)])

@@ -3,38 +3,30 @@
 
     .venv/bin/python scripts/make_demo_bags.py [--out bags]
 
-Writes ``<out>/panda_reach/demo_00 .. demo_04`` (5 noisy Panda reaches, 7 joints, seed 6) and
-``<out>/dual_panda/demo_00 .. demo_02`` (two-arm crossing reaches, 14 joints, seed 7); see
+Writes ``<out>/panda_reach/demo_00 .. demo_04`` (5 noisy Panda reaches, 7 joints, seed 6),
+``<out>/dual_panda/demo_00 .. demo_02`` (two-arm crossing reaches, 14 joints, seed 7) and
+``<out>/planar4_reach/demo_00 .. demo_02`` (planar 4-link arm reaches, 4 joints, seed 8); see
 bags/README.md.  Running it twice gives byte-identical files.
 """
 import argparse
 import os
-import shutil
 import sys
 
 import numpy as np
 
-from cdmp_ros.bag.demos import EPOCH_NS, dual_panda_set, panda_reach_set, write_demonstration
+from cdmp_ros.bag.demos import dual_panda_set, panda_reach_set, planar4_reach_set, write_set
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SEEDS = {'panda_reach': 6, 'dual_panda': 7}
+#: Set name -> (generator, seed).
+SETS = {'panda_reach': (panda_reach_set, 6), 'dual_panda': (dual_panda_set, 7),
+        'planar4_reach': (planar4_reach_set, 8)}
 
 
 def make(out: str) -> list:
-    """Write both sets under ``out``; return the bag directories written."""
+    """Write every set of :data:`SETS` under ``out``; return the bag directories written."""
     written = []
-    sets = {'panda_reach': panda_reach_set(np.random.default_rng(SEEDS['panda_reach'])),
-            'dual_panda': dual_panda_set(np.random.default_rng(SEEDS['dual_panda']))}
-    for name, demos in sets.items():
-        root = os.path.join(out, name)
-        if os.path.isdir(root):
-            shutil.rmtree(root)
-        for i, (T, YYd, names) in enumerate(demos):
-            n = len(names)
-            bag = os.path.join(root, f'demo_{i:02d}')
-            write_demonstration(bag, T, YYd[:, :n], YYd[:, n:], names,
-                                start_ns=EPOCH_NS + i * 10 ** 10)
-            written.append(bag)
+    for name, (generate, seed) in SETS.items():
+        written += write_set(os.path.join(out, name), generate(np.random.default_rng(seed)))
     return written
 
 

@@ -8,7 +8,9 @@ import pytest
 
 from cdmp_ros.bag import BagError, BagWriter, read_demonstrations
 from cdmp_ros.bag.cdr import encode_joint_state
-from cdmp_ros.bag.demos import (PANDA_JOINTS, PANDA_Y_MAX, PANDA_Y_MIN, min_jerk, noisy_reach)
+from cdmp_ros.bag.demos import (PANDA_JOINTS, PANDA_Y_MAX, PANDA_Y_MIN, PLANAR4_JOINTS,
+                                PLANAR4_START, min_jerk, noisy_reach, planar4_reach_set,
+                                write_set)
 from cdmp_ros.core.errors import ValidationError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -35,20 +37,44 @@ def _messages(bag):
     return out
 
 
-def test_committed_bags_are_reproduced_by_the_script(tmp_path):
-    """The script regenerates the committed bags: the same files, metadata, topics, times and
-    names; floats to 1e-12 (numpy's vectorised sin/exp may differ in the last bit between
-    CPUs, so the bytes may not be identical on every machine)."""
-    written = _load_script().make(str(tmp_path))
-    assert len(written) == 8
+def assert_same_bags(written, root):
+    """Bags written under ``root`` equal the committed ones of the same relative path."""
     for bag in written:
-        rel = os.path.relpath(bag, tmp_path)
+        rel = os.path.relpath(bag, root)
         assert sorted(os.listdir(bag)) == sorted(os.listdir(os.path.join(BAGS, rel))), rel
         ours, committed = _messages(bag), _messages(os.path.join(BAGS, rel))
         assert len(ours) == len(committed) > 0, rel
         for (k1, v1), (k2, v2) in zip(ours, committed):
             assert k1 == k2, rel
             np.testing.assert_allclose(v1, v2, rtol=0.0, atol=1e-12, err_msg=rel)
+
+
+def test_committed_bags_are_reproduced_by_the_script(tmp_path):
+    """The script regenerates the committed bags: the same files, metadata, topics, times and
+    names; floats to 1e-12 (numpy's vectorised sin/exp may differ in the last bit between
+    CPUs, so the bytes may not be identical on every machine)."""
+    written = _load_script().make(str(tmp_path))
+    assert len(written) == 11
+    assert_same_bags(written, str(tmp_path))
+
+
+def test_planar4_set_is_reproduced_and_inside_the_limits(tmp_path):
+    """bags/planar4_reach (the learner's demonstrations for robot planar4) is
+    ``write_set(planar4_reach_set(default_rng(8)))`` (scripts/make_demo_bags.py,
+    bags/README.md); 3 reaches of the 4 planar joints from the sim's initial pose, at least
+    0.5 rad inside the +-2.8 rad limits of urdf/planar4.urdf."""
+    assert _load_script().SETS['planar4_reach'] == (planar4_reach_set, 8)
+    written = write_set(str(tmp_path / 'planar4_reach'),
+                        planar4_reach_set(np.random.default_rng(8)))
+    assert len(written) == 3
+    assert_same_bags(written, str(tmp_path))
+    demos = read_demonstrations(os.path.join(BAGS, 'planar4_reach'))
+    assert len(demos) == 3
+    for T, Y, names in demos:
+        assert names == PLANAR4_JOINTS
+        assert T.shape == (201,) and Y.shape == (201, 4)
+        np.testing.assert_allclose(Y[0], PLANAR4_START, atol=1e-12)
+        assert np.all(np.abs(Y) <= 2.8 - 0.5)
 
 
 def test_bags_are_small():

@@ -76,18 +76,18 @@ def test_limits_without_a_common_range_reject_the_primitive():
 
 
 def test_robot_description_takes_precedence_over_urdf_path():
-    from cdmp_ros.ros.robot_model import default_urdf_path, limits_source, load_panda_chain
+    from cdmp_ros.ros.robot_model import default_urdf_path, limits_source, load_chain
     text = open(default_urdf_path()).read().replace(
         'lower="-2.9671" upper="2.9671"', 'lower="-2.5" upper="2.5"', 1)
     assert limits_source('', '') == default_urdf_path()
     assert limits_source('/x.urdf', '') == '/x.urdf'
     assert limits_source('/x.urdf', text) == 'robot_description'
-    chain = load_panda_chain('/nonexistent.urdf', PANDA_JOINTS, text)
+    chain = load_chain('/nonexistent.urdf', PANDA_JOINTS, robot_description=text)
     assert chain.upper[0] == 2.5 and chain.lower[0] == -2.5
-    with pytest.raises(ValidationError, match='robot_description'):
-        load_panda_chain('', PANDA_JOINTS, '<robot name="x"><link name="a"/></robot>')
+    with pytest.raises(ValidationError, match=r"tip_link: .*\(the robot of 'robot_description'\)"):
+        load_chain('', PANDA_JOINTS, robot_description='<robot name="x"><link name="a"/></robot>')
     with pytest.raises(ValidationError, match='urdf_path'):
-        load_panda_chain(os.devnull + '.missing', PANDA_JOINTS)
+        load_chain(os.devnull + '.missing', PANDA_JOINTS)
 
 
 def test_a_promp_file_carries_the_limits_it_was_fitted_within():

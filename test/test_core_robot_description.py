@@ -78,7 +78,9 @@ BAD = [('garbage', 'malformed', 'not a valid URDF: malformed XML'),
         "link 'a' defined twice"),
        ('<launch/>', 'malformed', 'root element expected <robot>'),
        (PANDA.replace('panda_joint1', 'j1'), 'joint_names',
-        'not a robot of the configured joint_names: expected the Panda arm joints'),
+        'not a robot of the configured joint_names and tip_link: joint_names: expected the '
+        "movable joints of 'robot_description' from 'panda_link0' to tip_link "
+        "'panda_hand' ['j1', 'panda_joint2'"),
        ('<robot name="ur"><link name="base"/></robot>', 'joint_names',
         "tip_link: expected one of the links of 'ur'")]
 
@@ -108,7 +110,8 @@ def test_joints_other_than_the_configured_ones_are_rejected():
     sel.joint_names = joints
     v = sel.offer(PANDA)
     assert v.status == REJECTED and v.category == 'joint_names'
-    assert f'are not the configured joint_names {joints}' in v.message
+    assert v.message.startswith('robot_description: not a robot of the configured joint_names')
+    assert f"tip_link 'panda_hand' {list(PANDA_JOINTS)}, got {joints}" in v.message
 
 
 def test_a_file_that_cannot_be_loaded_still_stops_the_start():

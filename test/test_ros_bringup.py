@@ -12,7 +12,8 @@ from bag_ros_util import Lines, recoverable_count
 from conftest import wait_for
 from node_harness import WAIT_S
 from cdmp_ros.bag import BagReader
-from cdmp_ros.cli.cmd_bringup import CLEAN_EXIT_CODES, Bringup, load_graph, parse_graph
+from cdmp_ros.cli.cmd_bringup import (CLEAN_EXIT_CODES, Bringup, load_graph, package_config_dir,
+                                      parse_graph)
 from cdmp_ros.core.errors import ValidationError
 from conftest import ros_env
 
@@ -25,6 +26,11 @@ pytestmark = pytest.mark.ros
     ({'nodes': [{'executable': 'nope'}]}, 'nodes[0].executable'),
     ({'nodes': [{'executable': 'sim', 'colour': 1}]}, "nodes[0]: unknown keys ['colour']"),
     ({'nodes': [{'executable': 'sim', 'params_file': 'missing.yaml'}]}, 'nodes[0].params_file'),
+    ({'nodes': [{'executable': 'sim', 'params_file': []}]}, 'nodes[0].params_file: expected'),
+    ({'nodes': [{'executable': 'sim', 'params_file': ['sim.yaml', 3]}]},
+     'nodes[0].params_file: expected'),
+    ({'nodes': [{'executable': 'sim', 'params_file': ['sim.yaml', 'missing.yaml']}]},
+     "nodes[0].params_file[1]: 'missing.yaml' not found"),
     ({'nodes': [{'executable': 'sim', 'parameters': {'x': {'a': 1}}}]}, 'parameter value'),
     ({'nodes': [{'executable': 'sim', 'delay': -1}]}, 'nodes[0].delay'),
     ({'nodes': [{'executable': 'sim'}, {'executable': 'sim'}]}, "duplicate names ['sim']"),
@@ -49,6 +55,32 @@ def test_commands_carry_params_remaps_and_namespace(tmp_path):
     for piece in ['rate:=250.0', 'coupling_enabled:=false', "joint_names:=['a', 'b']",
                   "urdf_path:=''", 'goal:=/arm/goal', '__ns:=/left']:
         assert piece in cmd
+
+
+def test_a_node_takes_several_parameter_files_in_order(tmp_path):
+    """``params_file`` as a list: one ``--params-file`` each, in the given order (ROS applies
+    them so, a later file wins; config/graphs/planar4.yaml layers the robot's files so), and
+    the demo reads the adapter's parameters the same way."""
+    from cdmp_ros.cli.demo_promp import adapter_parameters
+    (tmp_path / 'mine.yaml').write_text(yaml.safe_dump({'/**': {'ros__parameters': {
+        'base_frame': 'base', 'adaptation': {'alpha': 0.99}}}}))
+    spec, = parse_graph({'nodes': [{'name': 'adapter', 'executable': 'adapter',
+                                    'params_file': ['adapter.yaml', 'mine.yaml'],
+                                    'parameters': {'adaptation.n_steps': 20}}]},
+                        str(tmp_path)).nodes
+    cmd = spec.command()
+    files = [cmd[i + 1] for i, a in enumerate(cmd) if a == '--params-file']
+    assert files == [os.path.join(package_config_dir(), 'adapter.yaml'),
+                     str(tmp_path / 'mine.yaml')]
+    params = adapter_parameters(spec)
+    assert params['base_frame'] == 'base' and params['joint_names'][0] == 'panda_joint1'
+    assert params['adaptation']['alpha'] == 0.99                  # the later file
+    assert params['adaptation']['obstacle_margin'] == 0.02        # kept from the first
+    assert params['adaptation']['n_steps'] == 20                  # inline parameters on top
+    planar, = [s for s in load_graph(os.path.join(package_config_dir(), 'graphs',
+                                                  'planar4.yaml')).nodes if s.name == 'sim']
+    assert [os.path.relpath(f, package_config_dir()) for f in planar.params_files] == [
+        'sim.yaml', os.path.join('robots', 'planar4', 'sim.yaml')]
 
 
 def test_the_documented_graph_format_is_the_parsed_one():

@@ -77,6 +77,19 @@ class LaunchConfiguration(Substitution):
         self.variable_name = variable_name
         self.default = default
 
+    def perform(self, context):
+        return resolve(self, context.launch_configurations)
+
+
+class LaunchContext:
+    """What an OpaqueFunction's function receives: the launch configurations in force."""
+
+    def __init__(self, launch_configurations):
+        self.launch_configurations = launch_configurations
+
+    def perform_substitution(self, substitution):
+        return resolve(substitution, self.launch_configurations)
+
 
 class LaunchDescription:
     def __init__(self, initial_entities=None, *, deprecated_reason=None):
@@ -104,6 +117,14 @@ class GroupAction(Action):
         super().__init__(**kwargs)
         self.actions, self.scoped = list(actions), scoped
         self.launch_configurations = launch_configurations or {}
+
+
+class OpaqueFunction(Action):
+    def __init__(self, *, function, args=None, kwargs=None, **left_over_kwargs):
+        super().__init__(**left_over_kwargs)
+        if not callable(function):
+            raise TypeError('OpaqueFunction(function=...) must be callable')
+        self.function, self.args, self.kwargs = function, list(args or []), dict(kwargs or {})
 
 
 class IncludeLaunchDescription(Action):
@@ -183,7 +204,8 @@ def stub_modules():
     mods = {
         'launch.actions': module('launch.actions', DeclareLaunchArgument=DeclareLaunchArgument,
                                  GroupAction=GroupAction,
-                                 IncludeLaunchDescription=IncludeLaunchDescription),
+                                 IncludeLaunchDescription=IncludeLaunchDescription,
+                                 OpaqueFunction=OpaqueFunction),
         'launch.substitutions': module('launch.substitutions',
                                        LaunchConfiguration=LaunchConfiguration),
         'launch.conditions': module('launch.conditions', IfCondition=IfCondition,
@@ -281,10 +303,15 @@ class Played:
         self.nodes = []       # dicts, see _node
 
 
-def load_description(path, monkeypatch):
+def launch_module(path, monkeypatch):
+    """The globals of a launch file run with the stand-ins."""
     for name, mod in stub_modules().items():
         monkeypatch.setitem(sys.modules, name, mod)
-    g = runpy.run_path(path)
+    return runpy.run_path(path)
+
+
+def load_description(path, monkeypatch):
+    g = launch_module(path, monkeypatch)
     ld = g['generate_launch_description']()
     assert isinstance(ld, LaunchDescription), f'{path}: not a LaunchDescription'
     return ld
@@ -320,6 +347,9 @@ def evaluate(file, monkeypatch, arguments=None):
                 for k, v in e.launch_arguments:
                     configs[resolve(k, configs)] = resolve(v, configs)
                 visit(load_description(src, monkeypatch).entities, configs, scope)
+            elif isinstance(e, OpaqueFunction):  # its actions run in the same scope
+                out = e.function(LaunchContext(configs), *e.args, **e.kwargs)
+                visit(out or [], configs, scope)
             elif isinstance(e, Node):
                 played.nodes.append(_node(e, configs, scope, installed))
             else:
@@ -428,11 +458,45 @@ def test_cdmp_launch_arguments(monkeypatch):
     assert {n['parameters']['robot_description'] for n in nodes.values()} == {'<robot/>'}
     assert isinstance(nodes['streamer']['parameters']['rate'], float)
     assert {n['namespace'] for n in nodes.values()} == {'/arm'}
-    assert nodes['learner']['params_files'] == ['adapter.yaml']
+    assert nodes['learner']['params_files'] == ['adapter.yaml', 'robots/planar4/learner.yaml']
     real = by_name(evaluate('cdmp.launch.py', monkeypatch, {'use_sim': 'false'}))
     assert set(real) == {'streamer', 'adapter', 'learner'}
     with pytest.raises(AssertionError, match='not one of'):
         evaluate('cdmp.launch.py', monkeypatch, {'use_sim': 'maybe'})
+
+
+def test_cdmp_launch_robot_planar4_layers_its_files_over_the_nodes_files(monkeypatch):
+    """robot:=planar4: every node gets config/<node>.yaml, then
+    config/robots/planar4/<node>.yaml (ROS applies them in order, the later wins); the other
+    robots get their node's file alone (the Panda's, or the user's <node>_params)."""
+    nodes = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': 'planar4'}))
+    assert set(nodes) == {'sim', 'streamer', 'adapter', 'learner'}
+    for name, n in nodes.items():
+        assert n['params_files'] == [f'{name}.yaml', f'robots/planar4/{name}.yaml'], name
+    assert nodes['sim']['parameters']['robot'] == 'planar4'
+    for robot in ('panda', 'dual_panda'):
+        for name, n in by_name(evaluate('cdmp.launch.py', monkeypatch,
+                                        {'robot': robot})).items():
+            assert n['params_files'] == [f'{name}.yaml'], (robot, name)
+    # the robots the launch file layers are those with a directory in config/robots, and each
+    # has a file for every node the launch file starts
+    launch = launch_module(os.path.join(LAUNCH_DIR, 'cdmp.launch.py'), monkeypatch)
+    robots_dir = os.path.join(ROOT, 'config', 'robots')
+    assert sorted(launch['ROBOT_OVERLAYS']) == sorted(os.listdir(robots_dir))
+    for robot in launch['ROBOT_OVERLAYS']:
+        assert sorted(os.listdir(os.path.join(robots_dir, robot))) == sorted(
+            launch['PARAMS'].values()), robot
+
+
+def test_the_planar4_graph_is_cdmp_launch_with_robot_planar4(monkeypatch):
+    """config/graphs/planar4.yaml (``cdmp bringup planar4``) starts the nodes of
+    ``cdmp.launch.py robot:=planar4`` with the same parameter files in the same order."""
+    graph = graph_nodes(os.path.join(ROOT, 'config', 'graphs', 'planar4.yaml'))
+    launched = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': 'planar4'}))
+    assert set(graph) == set(launched)
+    for name, n in launched.items():
+        for key in ('executable', 'namespace', 'params_files', 'remappings'):
+            assert graph[name][key] == n[key], (name, key)
 
 
 def graph_nodes(path):
@@ -442,8 +506,7 @@ def graph_nodes(path):
     for s in load_graph(path).nodes:
         out[s.name] = {'package': 'cdmp_ros', 'executable': s.executable, 'name': s.name,
                        'namespace': join_namespace(None, s.namespace),
-                       'params_files': [os.path.relpath(s.params_file, config)]
-                       if s.params_file else [],
+                       'params_files': [os.path.relpath(f, config) for f in s.params_files],
                        'parameters': dict(s.parameters), 'remappings': dict(s.remappings)}
     return out
 

@@ -44,7 +44,7 @@ def test_console_scripts_are_real_and_named_in_design():
         assert proc.returncode == 0, f'entry point {name} -> {target} broken: {proc.stderr}'
 
 
-def test_colcon_build_installs_package(tmp_path):
+def test_colcon_build_installs_package(tmp_path, monkeypatch):
     src = tmp_path / 'src' / 'cdmp_ros'
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
         '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
@@ -71,8 +71,20 @@ def test_colcon_build_installs_package(tmp_path):
     share = prefix / 'share' / 'cdmp_ros'
     for f in ['config/streamer.yaml', 'config/sim.yaml', 'config/graphs/demo.yaml',
               'config/recorder_fastdds.xml', 'bags/panda_reach/demo_00/metadata.yaml',
-              'launch/cdmp.launch.py', 'launch/demo.launch.py']:
+              'launch/cdmp.launch.py', 'launch/demo.launch.py',
+              # robot:=planar4 (issue 31, item 7): its URDF, overlays, graph and bags
+              'urdf/planar4.urdf', 'config/graphs/planar4.yaml',
+              'bags/planar4_reach/demo_02/metadata.yaml',
+              *[f'config/robots/planar4/{n}.yaml' for n in ('sim', 'streamer', 'adapter',
+                                                            'learner')]]:
         assert (share / f).is_file(), f'{f} not installed under share/cdmp_ros'
+    # the nodes' urdf_path package://cdmp_ros/urdf/planar4.urdf names the installed file
+    from cdmp_ros.ros.robot_model import resolve_urdf_path
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(prefix))
+    assert resolve_urdf_path('package://cdmp_ros/urdf/planar4.urdf') == str(
+        share / 'urdf' / 'planar4.urdf')
+    assert (share / 'urdf' / 'planar4.urdf').read_text() == open(
+        os.path.join(ROOT, 'urdf', 'planar4.urdf')).read()
     # every design executable is a console script
     assert set(console_scripts()) >= {'cdmp', 'learner', 'adapter', 'streamer', 'sim',
                                       'recorder', 'player'}

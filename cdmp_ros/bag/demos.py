@@ -8,6 +8,7 @@ recording a publisher that replays several demonstrations gives).  ``T`` is the 
 relative to the first message of its demonstration, in seconds.
 """
 import os
+import shutil
 from typing import List, Sequence, Tuple
 
 import numpy as np
@@ -33,6 +34,11 @@ PANDA_REACH_GOAL = np.array([0.6, 0.25, -0.3, -1.9, 0.1, 2.1, 1.2])
 #: Two-arm crossing reach: each arm reaches across the shared workspace.
 DUAL_LEFT_GOAL = np.array([-0.7, 0.45, 0.2, -1.8, -0.1, 2.2, 0.6])
 DUAL_RIGHT_GOAL = np.array([0.7, 0.45, -0.2, -1.8, 0.1, 2.2, 0.9])
+#: The planar 4-link arm (the sim's robot ``planar4``, limits +-2.8 rad): a sweep of the end
+#: effector from (2.49, 1.93) m to (3.34, 1.31) m in the base frame.
+PLANAR4_JOINTS = [f'joint{i}' for i in range(1, 5)]
+PLANAR4_START = np.array([-0.3, 0.7, 0.6, 0.5])
+PLANAR4_GOAL = np.array([1.0, -0.4, -0.5, -0.3])
 #: Start time (ns since epoch) of the first sample demonstration; fixed for determinism.
 EPOCH_NS = 1_700_000_000 * 10 ** 9
 
@@ -97,6 +103,31 @@ def dual_panda_set(rng: np.random.Generator, n_demos: int = 3) -> List[Demonstra
         _, YR, YdR = noisy_reach(PANDA_READY, DUAL_RIGHT_GOAL, rng)
         out.append((T, np.hstack([YL, YR, YdL, YdR]), names))
     return out
+
+
+def planar4_reach_set(rng: np.random.Generator, n_demos: int = 3) -> List[Demonstration]:
+    """``n_demos`` noisy reaches of the planar 4-link arm from :data:`PLANAR4_START`
+    (4 joints)."""
+    out = []
+    for _ in range(n_demos):
+        T, Y, Yd = noisy_reach(PLANAR4_START, PLANAR4_GOAL, rng)
+        out.append((T, np.hstack([Y, Yd]), list(PLANAR4_JOINTS)))
+    return out
+
+
+def write_set(root: str, demos: Sequence[Demonstration]) -> List[str]:
+    """Write a set as ``root/demo_00, demo_01, ...`` (one bag per demonstration, the ``i``-th
+    starting at ``EPOCH_NS + i * 10 s``), replacing ``root``; returns the bag directories."""
+    if os.path.isdir(root):
+        shutil.rmtree(root)
+    written = []
+    for i, (T, YYd, names) in enumerate(demos):
+        n = len(names)
+        bag = os.path.join(root, f'demo_{i:02d}')
+        write_demonstration(bag, T, YYd[:, :n], YYd[:, n:], names,
+                            start_ns=EPOCH_NS + i * 10 ** 10)
+        written.append(bag)
+    return written
 
 
 def write_demonstration(bag_dir: str, T, Y, Yd, joint_names: Sequence[str],

@@ -13,7 +13,9 @@ package needs. A graph file::
       - name: sim                # process label, unique (default: the executable); the ROS
                                  # node name is unchanged: rename with remappings {__node: ...}
         executable: sim          # learner, adapter, streamer, sim, recorder or player
-        params_file: sim.yaml    # relative to the graph file, else to config/ of the package
+        params_file: sim.yaml    # relative to the graph file, else to config/ of the package;
+                                 # or a list, applied in order (a later file wins), e.g.
+                                 # [sim.yaml, robots/planar4/sim.yaml]
         parameters: {publish_rate: 250.0}   # -p name:=value (YAML scalars or lists)
         remappings: {joint_reference: /arm/joint_reference}   # -r from:=to
         namespace: /arm          # -r __ns:=/arm
@@ -49,7 +51,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
@@ -108,7 +110,8 @@ class NodeSpec:
 
     name: str
     executable: str
-    params_file: Optional[str] = None
+    #: absolute paths, in the order ROS applies them (a later file wins)
+    params_files: Tuple[str, ...] = ()
     parameters: Dict[str, object] = field(default_factory=dict)
     remappings: Dict[str, str] = field(default_factory=dict)
     namespace: Optional[str] = None
@@ -120,8 +123,8 @@ class NodeSpec:
         """The argv of the process."""
         cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{self.executable}', *self.arguments,
                '--ros-args']
-        if self.params_file:
-            cmd += ['--params-file', self.params_file]
+        for path in self.params_files:
+            cmd += ['--params-file', path]
         for k, v in self.parameters.items():
             cmd += ['-p', f'{k}:={_scalar(v)}']
         for a, b in self.remappings.items():
@@ -146,6 +149,27 @@ def _known_keys(where: str, d: dict, allowed) -> None:
         raise ValidationError(f'{where}: unknown keys {unknown}; allowed {sorted(allowed)}')
 
 
+def _params_files(where: str, value, base_dir: str) -> Tuple[str, ...]:
+    """``params_file``: a file name or a list of them, each relative to ``base_dir``, else to
+    :func:`package_config_dir` (absolute names as they are) -> absolute paths."""
+    if value is None:
+        return ()
+    names = value if isinstance(value, list) else [value]
+    if not names or not all(isinstance(n, str) and n for n in names):
+        raise ValidationError(f'{where}.params_file: expected a file name or a non-empty list '
+                              f'of file names, got {value!r}')
+    out = []
+    for i, name in enumerate(names):
+        key = f'{where}.params_file' + (f'[{i}]' if isinstance(value, list) else '')
+        candidates = [name] if os.path.isabs(name) else [
+            os.path.join(base_dir, name), os.path.join(package_config_dir(), name)]
+        found = [c for c in candidates if os.path.isfile(c)]
+        if not found:
+            raise ValidationError(f'{key}: {name!r} not found (looked in {candidates})')
+        out.append(os.path.abspath(found[0]))
+    return tuple(out)
+
+
 def _node(i: int, d, base_dir: str) -> NodeSpec:
     where = f'nodes[{i}]'
     if not isinstance(d, dict):
@@ -156,16 +180,7 @@ def _node(i: int, d, base_dir: str) -> NodeSpec:
         raise ValidationError(f'{where}.executable: expected one of {list(EXECUTABLES)}, '
                               f'got {exe!r}')
     name = str(d.get('name', exe))
-    params_file = d.get('params_file')
-    if params_file is not None:
-        params_file = str(params_file)
-        candidates = [params_file] if os.path.isabs(params_file) else [
-            os.path.join(base_dir, params_file), os.path.join(package_config_dir(), params_file)]
-        found = [c for c in candidates if os.path.isfile(c)]
-        if not found:
-            raise ValidationError(f'{where}.params_file: {params_file!r} not found (looked in '
-                                  f'{candidates})')
-        params_file = os.path.abspath(found[0])
+    params_files = _params_files(where, d.get('params_file'), base_dir)
     for key in ('parameters', 'remappings'):
         if not isinstance(d.get(key, {}), dict):
             raise ValidationError(f'{where}.{key}: expected a mapping, got '
@@ -183,7 +198,7 @@ def _node(i: int, d, base_dir: str) -> NodeSpec:
     required = d.get('required', True)
     if not isinstance(required, bool):
         raise ValidationError(f'{where}.required: expected true or false, got {required!r}')
-    return NodeSpec(name=name, executable=exe, params_file=params_file, parameters=params,
+    return NodeSpec(name=name, executable=exe, params_files=params_files, parameters=params,
                     remappings={str(a): str(b) for a, b in (d.get('remappings') or {}).items()},
                     namespace=d.get('namespace'), required=required, delay=float(delay),
                     arguments=tuple(args))

@@ -166,15 +166,16 @@ def _promp(d: Dict, chain):
 
 
 def adapter_parameters(spec) -> Dict:
-    """The adapter's parameters in a graph: its parameter file's ``ros__parameters`` (under
-    ``/**`` or its node name) with the graph's inline ``parameters`` (dotted names) on top."""
+    """The adapter's parameters in a graph: its parameter files' ``ros__parameters`` (under
+    ``/**`` or its node name), a later file's values over an earlier's, with the graph's inline
+    ``parameters`` (dotted names) on top."""
     params: Dict = {}
-    if spec.params_file:
-        with open(spec.params_file) as f:
+    for path in spec.params_files:
+        with open(path) as f:
             doc = yaml.safe_load(f) or {}
         for key in ('/**', 'adapter', '/adapter', spec.name, '/' + spec.name):
             if isinstance(doc.get(key), dict):
-                params = dict(doc[key].get('ros__parameters', {}))
+                _merge(params, doc[key].get('ros__parameters', {}))
     for name, value in spec.parameters.items():
         node = params
         *path, last = name.split('.')
@@ -182,6 +183,15 @@ def adapter_parameters(spec) -> Dict:
             node = node.setdefault(part, {})
         node[last] = value
     return params
+
+
+def _merge(into: Dict, values: Dict) -> None:
+    """``values`` (nested parameter dicts) over ``into``, parameter by parameter."""
+    for k, v in values.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = dict(v) if isinstance(v, dict) else v
 
 
 def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:

@@ -5,11 +5,13 @@ import math
 from dataclasses import MISSING, field, fields
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.builders import PANDA_EE_OFFSET, PANDA_TIP_LINK
 
 __all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lead_param',
            'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
            'obstacle_distance_param', 'max_json_bytes_param', 'robot_description_param',
-           'robot_description_timeout_param']
+           'robot_description_timeout_param', 'urdf_path_param', 'tip_link_param',
+           'tcp_offset_param', 'check_chain_fields']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -111,3 +113,39 @@ def robot_description_timeout_param(what: str = 'the joint limits and the kinema
                  'compared with the model in use (diagnostics: robot_description_topic; a '
                  'different one is a warning, applied by a restart), never swapped in.',
                  0.0, 3600.0, read_only=True)
+
+
+# -- the robot chain of the streamer, the adapter and the learner ------------------------------
+def urdf_path_param(use: str):
+    return param('', f'Robot URDF ({use}): a file path, or package://<package>/<path> for a '
+                 'file in the share directory of a package (package://cdmp_ros/urdf/planar4.urdf '
+                 'is the planar 4-link arm). Empty: the Panda of pybullet_data.', read_only=True)
+
+
+def tip_link_param():
+    return param(PANDA_TIP_LINK, 'Link at the end of the robot chain: the chain runs from the '
+                 "URDF's root link to it, its movable joints are joint_names in order, and "
+                 "tcp_offset is given in its frame. Default: the Panda's hand flange.",
+                 read_only=True)
+
+
+def tcp_offset_param(read_only: bool = True, use: str = 'the end-effector point of the '
+                     'kinematics (constraints, IK, planned path)'):
+    return param(PANDA_EE_OFFSET, 'Tool centre point: 3 coordinates [m] in the frame of '
+                 f"tip_link, {use}. Default: the Panda's fingertips (panda_grasptarget), "
+                 "0.105 m along the hand flange's z axis.", read_only=read_only)
+
+
+def check_chain_fields(cfg) -> None:
+    """``tip_link`` is a link name and ``tcp_offset`` 3 finite coordinates within 10 m
+    (normalised to a tuple of floats); the message names the parameter."""
+    if not isinstance(cfg.tip_link, str) or not cfg.tip_link.strip():
+        raise ValidationError(f'tip_link: expected a link name, got {cfg.tip_link!r}')
+    try:
+        tcp = tuple(float(v) for v in cfg.tcp_offset)
+    except (TypeError, ValueError):
+        tcp = ()
+    if len(tcp) != 3 or not all(math.isfinite(v) and abs(v) <= 10.0 for v in tcp):
+        raise ValidationError(f'tcp_offset: expected 3 finite coordinates [m] within 10 m '
+                              f'of tip_link, got {cfg.tcp_offset!r}')
+    object.__setattr__(cfg, 'tcp_offset', tcp)

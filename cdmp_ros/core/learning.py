@@ -16,7 +16,9 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.config_fields import (check_fields, check_names, param, robot_description_param)
+from cdmp_ros.core.config_fields import (check_chain_fields, check_fields, check_names, param,
+                                         robot_description_param, tcp_offset_param,
+                                         tip_link_param, urdf_path_param)
 from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -38,9 +40,11 @@ class LearnerConfig:
     joint_names: Tuple[str, ...] = param(
         PANDA_JOINTS, 'Joints of the primitive, in its order; demonstrations are mapped by '
         'name.', read_only=True)
-    urdf_path: str = param('', 'Robot URDF giving the joint limits (limits.lower/upper, when '
-                           'set, only tighten them). Empty: the Panda of pybullet_data.',
-                           read_only=True)
+    urdf_path: str = urdf_path_param('joint limits, which limits.lower/upper when set only '
+                                     'tighten; kinematics of the ~/improve cost')
+    tip_link: str = tip_link_param()
+    tcp_offset: Tuple[float, ...] = tcp_offset_param(use='the end-effector point of the '
+                                                     '~/improve cost')
     robot_description: str = robot_description_param(topic=False)
     demonstration_bags: Tuple[str, ...] = param(
         DEFAULT_BAGS, 'Bags (or directories of bag directories) fitted with the topic '
@@ -79,6 +83,7 @@ class LearnerConfig:
     def __post_init__(self):
         check_fields(self)
         check_names('joint_names', self.joint_names)
+        check_chain_fields(self)
         if not isinstance(self.demonstration_bags, tuple) or not all(
                 isinstance(b, str) and b for b in self.demonstration_bags):
             raise ValidationError(f'demonstration_bags: expected a list of paths, got '

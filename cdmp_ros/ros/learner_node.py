@@ -63,7 +63,7 @@ from cdmp_ros.ros.input_gate import InputGate, joint_names
 from cdmp_ros.ros.learner_improve import ImproveWorker, load_bag_demonstrations
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_subscribers
-from cdmp_ros.ros.robot_model import limits_source, load_panda_chain
+from cdmp_ros.ros.robot_model import limits_source, load_chain
 
 #: ``demonstration``: reliable, volatile, keep last 1000 -- a demonstration streamed at up to
 #: 1 kHz loses no sample while a refit briefly holds the executor.
@@ -145,10 +145,12 @@ class LearnerNode(Node):
         lower, upper = self._declare_limits()
         self.limit_mismatches = []
         # the robot model: robot_description, else urdf_path (as the streamer and adapter)
-        path = self.limits_source = limits_source(cfg.urdf_path, cfg.robot_description)
+        path = self.limits_source = cfg.urdf_path
         chain, chain_error = None, None
         try:
-            chain = load_panda_chain(cfg.urdf_path, cfg.joint_names, cfg.robot_description)
+            path = self.limits_source = limits_source(cfg.urdf_path, cfg.robot_description)
+            chain = load_chain(cfg.urdf_path, cfg.joint_names, cfg.tip_link, cfg.tcp_offset,
+                               cfg.robot_description)
         except CdmpError as exc:
             chain, chain_error = None, f'cannot use {path!r}: {exc}'
         n = len(cfg.joint_names)

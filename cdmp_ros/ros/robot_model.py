@@ -1,13 +1,17 @@
-"""The robot model the nodes share: the default URDF, a validated Panda chain, and which model
-a node runs with (no ROS here: unit-tested without a ROS graph).
+"""The robot model the nodes share: the default URDF, the chain of a URDF validated against
+the node's parameters, and which model a node runs with (no ROS here: unit-tested without a ROS
+graph).
 
-Every node that uses joint limits (streamer, adapter, learner, sim) loads them here, from the
-same ``urdf_path`` parameter or, when it is non-empty, from a ``robot_description`` parameter
-(the URDF XML a ROS system already publishes to its nodes), and says on ``/diagnostics`` where
-they came from (:func:`limits_source`). The streamer, the adapter and the sim also read the
-latched ``robot_description`` topic (robot_state_publisher in Jazzy); which model they run
-with, and what they make of a description that arrives later, is decided by
-:class:`RobotModelSelector` (the ROS side: :mod:`cdmp_ros.ros.robot_description`).
+Every node that uses joint limits (streamer, adapter, learner, sim) loads them here
+(:func:`load_chain`), from the same ``urdf_path`` parameter (a file, ``package://<package>/
+<path>``, or empty for pybullet_data's Panda: :func:`resolve_urdf_path`) or, when it is
+non-empty, from a ``robot_description`` parameter (the URDF XML a ROS system already publishes
+to its nodes), as the chain from the URDF's root link to ``tip_link`` with the tool centre point
+``tcp_offset`` in that link, whose movable joints must be ``joint_names``; and says on
+``/diagnostics`` where they came from (:func:`limits_source`). The streamer, the adapter and
+the sim also read the latched ``robot_description`` topic (robot_state_publisher in Jazzy);
+which model they run with, and what they make of a description that arrives later, is decided
+by :class:`RobotModelSelector` (the ROS side: :mod:`cdmp_ros.ros.robot_description`).
 """
 import dataclasses
 import os
@@ -17,8 +21,9 @@ import numpy as np
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import LIMIT_TOLERANCE
-from cdmp_ros.core.kinematics import panda_chain
-from cdmp_ros.core.kinematics.urdf import parse_urdf_string
+from cdmp_ros.core.kinematics import PANDA_EE_OFFSET, PANDA_TIP_LINK, chain_from_urdf
+from cdmp_ros.core.kinematics.urdf import parse_urdf, parse_urdf_string
+from cdmp_ros.core.resources import data_path
 
 #: The name of the limits' source when they come from the ``robot_description`` parameter.
 ROBOT_DESCRIPTION = 'robot_description'
@@ -26,6 +31,8 @@ ROBOT_DESCRIPTION = 'robot_description'
 ROBOT_DESCRIPTION_TOPIC = 'robot_description topic'
 #: Joint origins, axes and link frames closer than this [m, or rad per unit] are the same.
 KINEMATICS_TOLERANCE = 1e-6
+#: ``urdf_path`` values of this form name a file in a package's share directory.
+PACKAGE_SCHEME = 'package://'
 
 
 def default_urdf_path() -> str:
@@ -34,36 +41,95 @@ def default_urdf_path() -> str:
     return os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
 
 
-def limits_source(urdf_path: str, robot_description: str = '') -> str:
-    """Where the robot model comes from: ``'robot_description'`` when that parameter is
-    non-empty (it takes precedence), else the file ``urdf_path`` (empty: the default)."""
-    if robot_description.strip():
-        return ROBOT_DESCRIPTION
-    return urdf_path or default_urdf_path()
-
-
-def load_panda_chain(urdf_path: str, joint_names: Sequence[str], robot_description: str = ''):
-    """The serial chain of ``robot_description`` or ``urdf_path`` (limits, velocity limits,
-    kinematics); see :func:`limits_source`.
+def resolve_urdf_path(urdf_path: str) -> str:
+    """The file ``urdf_path`` names: ``''`` is :func:`default_urdf_path`;
+    ``package://<package>/<path>`` is ``<path>`` in the package's share directory, found with
+    the ament index (``AMENT_PREFIX_PATH``, as ``ros2 launch`` and robot_state_publisher find
+    it) or, for ``cdmp_ros`` outside any install (a source tree), beside the package
+    (:func:`cdmp_ros.core.resources.data_path`, as the sim finds ``urdf/planar4.urdf``);
+    anything else is a file path, returned as it is.
 
     Raises
     ------
     ValidationError
-        Naming ``urdf_path`` (or ``robot_description``) when it cannot be loaded as a Panda,
-        or ``joint_names`` when they are not the chain's joints in order.
+        Naming ``urdf_path``: a ``package://`` name without a path, of a package not found,
+        or of a file the package does not have.
+    """
+    if not urdf_path:
+        return default_urdf_path()
+    if not urdf_path.startswith(PACKAGE_SCHEME):
+        return urdf_path
+    package, _, rel = urdf_path[len(PACKAGE_SCHEME):].partition('/')
+    if not package or not rel.strip('/'):
+        raise ValidationError(f'urdf_path: expected package://<package>/<path>, got '
+                              f'{urdf_path!r}')
+    try:
+        from ament_index_python.packages import (PackageNotFoundError,
+                                                 get_package_share_directory)
+    except ImportError:  # no ROS installation: only this package's own files
+        share = None
+    else:
+        try:
+            share = get_package_share_directory(package, print_warning=False)
+        except (PackageNotFoundError, ValueError, OSError):  # OSError: AMENT_PREFIX_PATH unset
+            share = None
+    if share is not None:
+        path = os.path.join(share, rel)
+        if not os.path.isfile(path):
+            raise ValidationError(f'urdf_path: {urdf_path!r}: no file {path!r} in the share '
+                                  f'directory of {package!r}')
+        return path
+    if package != 'cdmp_ros':
+        raise ValidationError(f'urdf_path: {urdf_path!r}: package {package!r} not found in '
+                              f'the ament index (AMENT_PREFIX_PATH)')
+    try:
+        return data_path(*rel.strip('/').split('/'))
+    except CdmpError as exc:
+        raise ValidationError(f'urdf_path: {urdf_path!r}: {exc}') from None
+
+
+def limits_source(urdf_path: str, robot_description: str = '') -> str:
+    """Where the robot model comes from: ``'robot_description'`` when that parameter is
+    non-empty (it takes precedence), else the file ``urdf_path`` names
+    (:func:`resolve_urdf_path`; ValidationError naming ``urdf_path`` if it names none)."""
+    if robot_description.strip():
+        return ROBOT_DESCRIPTION
+    return resolve_urdf_path(urdf_path)
+
+
+def load_chain(urdf_path: str, joint_names: Sequence[str], tip_link: str = PANDA_TIP_LINK,
+               tcp_offset: Sequence[float] = PANDA_EE_OFFSET, robot_description: str = ''):
+    """The serial chain of ``robot_description`` or ``urdf_path`` (see :func:`limits_source`)
+    from the URDF's root link to ``tip_link``: joint limits, velocity limits and kinematics,
+    with ``PointOfInterest('ee')`` at ``tcp_offset`` in ``tip_link``. The defaults are the
+    Panda's (:func:`~cdmp_ros.core.kinematics.panda_chain`).
+
+    Raises
+    ------
+    ValidationError
+        Naming the parameter: ``urdf_path`` (or ``robot_description``) when it cannot be read
+        as a URDF, ``tip_link`` when it is not a link of it below a movable joint,
+        ``tcp_offset`` when it is not 3 coordinates, ``joint_names`` when they are not the
+        chain's movable joints in order.
     """
     source = limits_source(urdf_path, robot_description)
     text = robot_description if source == ROBOT_DESCRIPTION else None
     name = ROBOT_DESCRIPTION if text is not None else 'urdf_path'
-    try:
-        chain = panda_chain(source, urdf_text=text)
+    try:  # read first: what follows is then about tip_link, joint_names or tcp_offset
+        (parse_urdf(source) if text is None else parse_urdf_string(text, source)).root_link()
     except (OSError, CdmpError) as exc:
-        raise ValidationError(f'{name}: cannot load a Panda from {source!r}: '
-                              f'{exc}') from None
-    if list(chain.joint_names) != list(joint_names):
-        raise ValidationError(f'joint_names: expected the joints of {source!r} '
-                              f'{list(chain.joint_names)}, got {list(joint_names)}')
-    return chain
+        raise ValidationError(f'{name}: cannot load a robot from {source!r}: '
+                              f'{_strip(exc, source)}') from None
+    try:
+        return chain_from_urdf(source, tip_link, ee_offset=tcp_offset, urdf_text=text,
+                               joint_names=joint_names)
+    except ValidationError as exc:  # 'tip_link: ...', 'joint_names: ...' or 'ee_offset: ...'
+        msg = str(exc)
+        if msg.startswith('joint_names'):
+            raise
+        if msg.startswith('ee_offset'):  # this node's tcp_offset
+            msg = 'tcp_offset' + msg[len('ee_offset'):]
+        raise ValidationError(f'{msg} (the robot of {source!r})') from None
 
 
 def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = '',
@@ -213,7 +279,9 @@ class RobotModelSelector:
     2. the latched ``robot_description`` topic: a message received within ``timeout`` seconds
        of the start (:attr:`wait_s`; the node's ``robot_description_timeout``), if it is a
        URDF of ``joint_names`` (and, with ``capsule_links``, of their collision geometry);
-    3. the file ``urdf_path`` (empty: pybullet_data's Panda).
+    3. the file ``urdf_path`` (:func:`resolve_urdf_path`; empty: pybullet_data's Panda).
+
+    Each is loaded by :func:`load_chain` with ``joint_names``, ``tip_link`` and ``tcp_offset``.
 
     The model is chosen once (:meth:`start`). A message arriving later (:meth:`offer`) is
     compared with it and only reported: rejected (not a URDF, other joints), the same model,
@@ -233,6 +301,11 @@ class RobotModelSelector:
     capsule_links : sequence of str
         Links whose collision capsules the node needs (loaded with the model; a description
         whose geometry of them cannot be read is rejected).
+    tip_link : str
+        The last link of the chain (default the Panda's hand flange); a description without
+        it is rejected.
+    tcp_offset : sequence of 3 float
+        The tool centre point in ``tip_link`` (``PointOfInterest('ee')`` of the chain).
 
     Attributes
     ----------
@@ -243,9 +316,13 @@ class RobotModelSelector:
     """
 
     def __init__(self, urdf_path: str, joint_names: Sequence[str], parameter: str = '',
-                 timeout: float = 0.0, capsule_links: Sequence[str] = ()):
+                 timeout: float = 0.0, capsule_links: Sequence[str] = (),
+                 tip_link: str = PANDA_TIP_LINK,
+                 tcp_offset: Sequence[float] = PANDA_EE_OFFSET):
         self.urdf_path = urdf_path
         self.joint_names = list(joint_names)
+        self.tip_link = tip_link
+        self.tcp_offset = tuple(tcp_offset)
         self.parameter = parameter
         self.timeout = float(timeout)
         self.capsule_links = tuple(capsule_links)
@@ -375,14 +452,18 @@ class RobotModelSelector:
                                            f'{shown}{advice}', warn=not self.by_parameter)
 
     # -- loading -----------------------------------------------------------------------------
+    def _chain(self, text: str = ''):
+        return load_chain(self.urdf_path, self.joint_names, self.tip_link, self.tcp_offset,
+                          text)
+
     def _from_file(self) -> RobotModel:
-        chain = load_panda_chain(self.urdf_path, self.joint_names)
+        chain = self._chain()
         return RobotModel(chain, limits_source(self.urdf_path), None,
                           tuple(load_collision_capsules(self.urdf_path, self.capsule_links,
                                                         chain=chain)))
 
-    def _from_text(self, text: str, source: str) -> RobotModel:
-        chain = load_panda_chain(self.urdf_path, self.joint_names, text)
+    def _from_text(self, text: str, source: str, chain=None) -> RobotModel:
+        chain = self._chain(text) if chain is None else chain
         return RobotModel(chain, source, text,
                           tuple(load_collision_capsules(self.urdf_path, self.capsule_links,
                                                         text, chain)))
@@ -394,15 +475,12 @@ class RobotModelSelector:
         except ValidationError as exc:
             raise _Rejected(f'robot_description: not a valid URDF: {_strip(exc, "URDF")}',
                             'malformed') from None
-        try:
-            chain = panda_chain('URDF', urdf_text=text)
+        try:  # a URDF: what is wrong is its joints, tip link (or this node's tcp_offset)
+            chain = self._chain(text)
         except ValidationError as exc:
-            raise _Rejected(f'robot_description: not a robot of the configured joint_names: '
-                            f'{_strip(exc, "URDF")}', 'joint_names') from None
-        if list(chain.joint_names) != self.joint_names:
-            raise _Rejected(f'robot_description: its joints {list(chain.joint_names)} are not '
-                            f'the configured joint_names {self.joint_names}', 'joint_names')
+            raise _Rejected(f'robot_description: not a robot of the configured joint_names '
+                            f'and tip_link: {exc}', 'joint_names') from None
         try:
-            return self._from_text(text, ROBOT_DESCRIPTION_TOPIC)
+            return self._from_text(text, ROBOT_DESCRIPTION_TOPIC, chain)
         except ValidationError as exc:  # the collision geometry of capsule_links
             raise _Rejected(f'robot_description: {exc}', 'malformed') from None

@@ -120,7 +120,8 @@ class StreamerNode(Node):
         # else the robot_description topic (robot_description_timeout), else urdf_path
         self.robot = RobotDescriptionInput(self, RobotModelSelector(
             cfg.urdf_path, cfg.joint_names, cfg.robot_description,
-            cfg.robot_description_timeout, cfg.coupling_capsule_links))
+            cfg.robot_description_timeout, cfg.coupling_capsule_links, cfg.tip_link,
+            cfg.tcp_offset))
         model = self.robot.load(self.create_subscription(
             String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
         self.urdf_path = model.source

@@ -70,7 +70,7 @@ from cdmp_ros.sim.control import (ComputedTorqueController, ComputedTorqueGains,
                                   JointLimitAvoidingGains, PositionControlGains,
                                   PositionController)
 from cdmp_ros.sim.node_config import SimConfig
-from cdmp_ros.sim.robot_specs import add_dual_panda, panda_spec, planar_arm_spec
+from cdmp_ros.sim.robot_specs import add_dual_panda, panda_spec, planar4_spec
 from cdmp_ros.sim.world import World, WorldConfig
 
 Obstacle = Union[Sphere, Box, OrientedBox]
@@ -98,7 +98,7 @@ def build_robots(world: World, robot: str) -> Tuple[list, Tuple[str, ...], str]:
         r = world.add_robot(panda_spec())
         return [r], tuple(r.joint_names), r.link_names[0]
     if robot == 'planar4':
-        r = world.add_robot(planar_arm_spec())
+        r = world.add_robot(planar4_spec())
         return [r], tuple(r.joint_names), r.link_names[0]
     if robot == 'dual_panda':
         robots = list(add_dual_panda(world))

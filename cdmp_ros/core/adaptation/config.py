@@ -14,12 +14,14 @@ from typing import TYPE_CHECKING, List, Optional, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
-                                         max_json_bytes_param, max_obstacles_param,
-                                         obstacle_distance_param, obstacle_size_param,
-                                         param as _param, robot_description_param,
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_chain_fields,
+                                         check_fields, check_names, max_json_bytes_param,
+                                         max_obstacles_param, obstacle_distance_param,
+                                         obstacle_size_param, param as _param,
+                                         robot_description_param,
                                          robot_description_timeout_param, stamp_age_param,
-                                         stamp_lead_param)
+                                         stamp_lead_param, tcp_offset_param, tip_link_param,
+                                         urdf_path_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 from cdmp_ros.core.validation import check_positive
@@ -321,9 +323,10 @@ class AdapterConfig:
     joint_names: Tuple[str, ...] = _param(
         PANDA_JOINTS, 'Joints of the robot, in the order of the published primitives.',
         read_only=True)
-    urdf_path: str = _param(
-        '', 'Robot URDF (limits, kinematics of the points of interest and of the IK). Empty: '
-        'the Panda of pybullet_data.', read_only=True)
+    urdf_path: str = urdf_path_param('limits, kinematics of the points of interest and of '
+                                     'the IK')
+    tip_link: str = tip_link_param()
+    tcp_offset: Tuple[float, ...] = tcp_offset_param()
     robot_description: str = robot_description_param()
     robot_description_timeout: float = robot_description_timeout_param()
     base_frame: str = _param(
@@ -371,6 +374,7 @@ class AdapterConfig:
     def __post_init__(self):
         check_fields(self)
         check_names('joint_names', self.joint_names)
+        check_chain_fields(self)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,8 @@ from cdmp_ros.core.validation import as_array
 #: Panda tool centre point in the ``panda_hand`` frame: between the fingertips, the origin of
 #: the URDF's ``panda_grasptarget`` link (fixed joint ``panda_grasptarget_hand``).
 PANDA_EE_OFFSET = (0.0, 0.0, 0.105)
+#: The link at the end of the Panda arm chain: the hand flange (``PANDA_EE_OFFSET`` is in it).
+PANDA_TIP_LINK = 'panda_hand'
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 #: Distance between the two Panda bases of the dual-arm cell of paper 003, III-C [m].
 DUAL_PANDA_DISTANCE = 1.13
@@ -55,7 +57,8 @@ def _check_transform(name: str, T: Optional[ArrayLike]) -> NDArray[np.float64]:
 def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
                     base_transform: Optional[ArrayLike] = None,
                     ee_offset: ArrayLike = (0.0, 0.0, 0.0),
-                    urdf_text: Optional[str] = None) -> Chain:
+                    urdf_text: Optional[str] = None,
+                    joint_names: Optional[Sequence[str]] = None) -> Chain:
     """Serial chain from a URDF file, from ``base_link`` (default: root) to ``tip_link``.
 
     Parameters
@@ -72,6 +75,9 @@ def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
         End-effector point in the ``tip_link`` frame.
     urdf_text : str, optional
         The URDF XML itself (a ``robot_description``); ``path`` then only names it in messages.
+    joint_names : sequence of str, optional
+        The movable joints the chain must have, in order (ValidationError naming
+        ``joint_names`` otherwise); default any.
 
     Returns
     -------
@@ -106,6 +112,10 @@ def chain_from_urdf(path: str, tip_link: str, base_link: Optional[str] = None,
     if not names:
         raise ValidationError(f'tip_link: no movable joint between {base_link!r} and '
                               f'{tip_link!r} in {path!r}')
+    if joint_names is not None and list(names) != list(joint_names):
+        raise ValidationError(f'joint_names: expected the movable joints of {path!r} from '
+                              f'{base_link!r} to tip_link {tip_link!r} {names}, got '
+                              f'{list(joint_names)}')
     return Chain(names, prismatic, B, base, attachments, link_names, tip_link,
                  as_array('ee_offset', ee_offset, (3,)), lower, upper, vel)
 
@@ -118,12 +128,9 @@ def panda_chain(urdf_path: str, base_transform: Optional[ArrayLike] = None,
     :data:`PANDA_EE_OFFSET` in the ``panda_hand`` frame (the URDF's ``panda_grasptarget``);
     ``PointOfInterest('panda_hand')`` is the hand (flange) frame origin.
     """
-    chain = chain_from_urdf(urdf_path, 'panda_hand', base_transform=base_transform,
-                            ee_offset=PANDA_EE_OFFSET, urdf_text=urdf_text)
-    if tuple(chain.joint_names) != PANDA_JOINTS:
-        raise ValidationError(f'{urdf_path}: expected the Panda arm joints {PANDA_JOINTS}, '
-                              f'got {chain.joint_names}')
-    return chain
+    return chain_from_urdf(urdf_path, PANDA_TIP_LINK, base_transform=base_transform,
+                           ee_offset=PANDA_EE_OFFSET, urdf_text=urdf_text,
+                           joint_names=PANDA_JOINTS)
 
 
 def dual_panda_chains(urdf_path: str, distance: float = DUAL_PANDA_DISTANCE

@@ -1,17 +1,18 @@
 """The streamer's parameters (:class:`StreamerConfig`), mirrored 1:1 by the ROS parameters of
 the streamer node; ranges and descriptions live in the field metadata."""
-import math
 from dataclasses import dataclass
 from typing import Tuple
 
-from cdmp_ros.core.config_fields import (accept_unstamped_param, check_fields, check_names,
-                                         max_json_bytes_param, max_obstacles_param,
-                                         obstacle_distance_param, obstacle_size_param,
-                                         param as _param, robot_description_param,
+from cdmp_ros.core.config_fields import (accept_unstamped_param, check_chain_fields,
+                                         check_fields, check_names, max_json_bytes_param,
+                                         max_obstacles_param, obstacle_distance_param,
+                                         obstacle_size_param, param as _param,
+                                         robot_description_param,
                                          robot_description_timeout_param, stamp_age_param,
-                                         stamp_lead_param)
+                                         stamp_lead_param, tcp_offset_param, tip_link_param,
+                                         urdf_path_param)
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics.builders import PANDA_EE_OFFSET, PANDA_JOINTS
+from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 
 __all__ = ['StreamerConfig', 'CONTROLLER_OUTPUTS', 'DEFAULT_CONTROLLER_TOPICS', 'BOX_FIELDS']
 
@@ -60,9 +61,8 @@ class StreamerConfig:
         'range (the CDMP margin).', 1e-9, 0.5)
     joint_names: Tuple[str, ...] = _param(
         PANDA_JOINTS, 'Joints of the reference, in the published order.', read_only=True)
-    urdf_path: str = _param(
-        '', 'Robot URDF (limits, kinematics for the coupling). Empty: the Panda of '
-        'pybullet_data.', read_only=True)
+    urdf_path: str = urdf_path_param('limits, kinematics for the coupling')
+    tip_link: str = tip_link_param()
     robot_description: str = robot_description_param()
     robot_description_timeout: float = robot_description_timeout_param()
     base_frame: str = _param(
@@ -148,11 +148,10 @@ class StreamerConfig:
         (), 'Links that get Eq. 12 on one capsule fitted around their URDF collision geometry '
         '(its own radius; it encloses the link, so its distance bounds the true one from '
         'below), next to the joint-axis segments of coupling_links.', read_only=True)
-    tcp_offset: Tuple[float, ...] = _param(
-        PANDA_EE_OFFSET, 'Tool centre point on which the end-effector term (Eq. 7) acts: 3 '
-        "coordinates [m] in the frame of the chain's tip link (the Panda's hand flange, "
-        'panda_hand); default the fingertips (panda_grasptarget), so the hand itself avoids '
-        'obstacles.')
+    tcp_offset: Tuple[float, ...] = tcp_offset_param(
+        read_only=False, use='on which the end-effector term (Eq. 7) acts, so the tool '
+        'itself avoids obstacles (the end-effector point of the chain is its value at the '
+        'start)')
     box_field_kind: str = _param(
         'constant', "Potential field of box obstacles: 'constant' (paper 000, IV-B: the "
         "box_field.* parameters) or 'board' (Eq. 30-31, for escaping around a board's edge: "
@@ -165,14 +164,7 @@ class StreamerConfig:
             raise ValidationError(f"realtime_threads: expected 'all' or 'tick', got "
                                   f'{self.realtime_threads!r}')
         check_names('joint_names', self.joint_names)
-        try:
-            tcp = tuple(float(v) for v in self.tcp_offset)
-        except (TypeError, ValueError):
-            tcp = ()
-        if len(tcp) != 3 or not all(math.isfinite(v) and abs(v) <= 10.0 for v in tcp):
-            raise ValidationError(f'tcp_offset: expected 3 finite coordinates [m] within 10 m '
-                                  f'of the flange, got {self.tcp_offset!r}')
-        object.__setattr__(self, 'tcp_offset', tcp)
+        check_chain_fields(self)
         check_names('controller_joints', self.controller_joints, allow_empty=True)
         if self.controller_joints and sorted(self.controller_joints) != sorted(
                 self.joint_names):
