@@ -12,10 +12,23 @@ random from these categories:
 - ``obstacles`` (visualization_msgs/MarkerArray): 1 to 5,000 markers with bad frames, types,
   actions, scales and poses.
 
+- ``joint_reference`` (sensor_msgs/JointState, to the sim): NaN, missing, duplicate or
+  unknown joints, lengths that do not match, 10,000 names.
+
 Every message is serialized once at start (a pool per category) and published as bytes, so
-the publisher itself stays cheap. Beside the flood, a valid ``goal`` alternates between two
-poses every ``--goal-period`` s so that the robot keeps moving (tracking error is measured
-while it moves).
+the publisher itself stays cheap. Beside the flood, valid input arrives as a user's would:
+
+- a valid ``goal`` alternates between two poses every ``--goal-period`` s so that the robot
+  keeps moving (tracking error is measured while it moves);
+- ``--valid-obstacles`` Hz (default 20) of valid ``obstacles``: one or two spheres (radius 2-5 cm)
+  placed 15-30 cm from the measured tool centre point in a random direction and at least 15 cm
+  from the polyline of the arm's link origins, jumping at every message, and a DELETEALL every
+  tenth message;
+- ``--valid-goal-points`` Hz (default 0.5) of valid ``goal_point``: the tool centre point of a
+  random configuration inside the limits (reachable, so the adapter solves an IK and adapts).
+
+Valid references are not injected: the sim's valid ``joint_reference`` come from the streamer
+at its rate, and a second valid publisher would make two controllers fight over one robot.
 
 Printed: sim slipped physics steps, joint-limit violations of the simulated robot
 (measured ``joint_states`` against the URDF limits: samples outside, largest usage
@@ -28,6 +41,8 @@ Every ROS process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a privat
 
     .venv/bin/python benchmarks/bench_flood.py [--duration 60] [--rate 200] [--seed 0]
         [--domain 70] [--code DIR]    # DIR: run the nodes from another checkout (before/after)
+        [--param NODE:NAME:=VALUE ...]  # e.g. streamer:realtime_priority:=0 (default scheduling)
+        [--valid-obstacles 20] [--valid-goal-points 0.5]
 """
 import argparse
 import json
@@ -61,13 +76,16 @@ def ros_env(domain, code):
     return e
 
 
-def start_nodes(domain, code, logdir, params=None):
+def start_nodes(domain, code, logdir, params=None, nice=None):
     """sim, streamer, adapter and learner from ``code``'s config/*.yaml; ``params``: more
-    ``-p`` parameters per node (``{'streamer': {'rate': 1000.0}}``)."""
+    ``-p`` parameters per node (``{'streamer': {'rate': 1000.0}}``); ``nice``: node -> nice
+    increment of its process (``nice -n``)."""
     procs = {}
     for name in NODES:
         cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{name}', '--ros-args', '--params-file',
                os.path.join(code, 'config', f'{name}.yaml')]
+        if (nice or {}).get(name):
+            cmd = ['nice', '-n', str(int(nice[name]))] + cmd
         for k, v in (params or {}).get(name, {}).items():
             cmd += ['-p', f'{k}:={v}']
         log = open(os.path.join(logdir, f'{name}.log'), 'w')
@@ -116,6 +134,16 @@ def bad_joint_states(rng, n=12):
             m.position = [0.0] * 10000
         else:
             _stamp(m, 100.0)                                            # future stamp
+        out.append(m)
+    return out
+
+
+def bad_references(rng):
+    """Malformed joint_reference messages for the sim (never a valid one: see the docstring)."""
+    out = []
+    for m in bad_joint_states(rng):
+        if len(m.name) == 7 and len(m.position) == 7 and m.header.stamp.sec == 0:
+            m.name[6] = 'panda_joint99'  # an unknown joint: nothing here is a valid reference
         out.append(m)
     return out
 
@@ -191,9 +219,19 @@ def build_pool(rng):
         'primitive': ('primitive', String, bad_json(rng, 'primitive')),
         'goal_point': ('goal_point', PointStamped, bad_points(rng)),
         'obstacles': ('obstacles', MarkerArray, bad_markers(rng)),
+        'joint_reference': ('joint_reference', JointState, bad_references(rng)),
     }
     return {k: (t, cls, [serialize_message(m) for m in msgs])
             for k, (t, cls, msgs) in pool.items()}
+
+
+def polyline_distance(c, P):
+    """Distance [m] from the point ``c`` to the polyline through the rows of ``P``."""
+    A, B = P[:-1], P[1:]
+    AB = B - A
+    t = np.clip(np.einsum('ij,ij->i', c - A, AB) / np.maximum(np.einsum('ij,ij->i', AB, AB),
+                                                              1e-12), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(A + t[:, None] * AB - c, axis=1)))
 
 
 class Observer:
@@ -237,15 +275,45 @@ def main():
     ap.add_argument('--domain', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 70)))
     ap.add_argument('--goal-period', type=float, default=3.0)
     ap.add_argument('--code', default=REPO, help='checkout the nodes run from')
+    ap.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
+                    help='a -p parameter of one node, e.g. streamer:realtime_priority:=0 '
+                         '(repeatable)')
+    ap.add_argument('--nice', action='append', default=[], metavar='NODE:N',
+                    help="start NODE's process with nice -n N (repeatable; 'bench' for the "
+                         'flood publisher itself)')
+    ap.add_argument('--categories', default='',
+                    help='comma-separated categories of bad messages to send (default: all)')
+    ap.add_argument('--valid-obstacles', type=float, default=20.0,
+                    help='Hz of valid sphere obstacles near the arm (0: none)')
+    ap.add_argument('--valid-goal-points', type=float, default=0.5,
+                    help='Hz of valid (reachable) goal_point messages (0: none)')
     args = ap.parse_args()
+    params = {}
+    for text in args.param:
+        node_name, sep, assignment = text.partition(':')
+        if node_name not in NODES or not sep or ':=' not in assignment:
+            ap.error(f'--param: expected NODE:NAME:=VALUE with NODE one of {NODES}, got {text!r}')
+        key, value = assignment.split(':=', 1)
+        params.setdefault(node_name, {})[key] = value
+    nice = {}
+    for text in args.nice:
+        node_name, _, n = text.partition(':')
+        if node_name not in NODES + ('bench',) or not n.lstrip('-').isdigit():
+            ap.error(f'--nice: expected NODE:N with NODE one of {NODES + ("bench",)}, '
+                     f'got {text!r}')
+        nice[node_name] = int(n)
+    if nice.get('bench'):
+        os.nice(nice['bench'])
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ['ROS_DOMAIN_ID'] = str(args.domain)
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from geometry_msgs.msg import PointStamped
     from sensor_msgs.msg import JointState
+    from visualization_msgs.msg import Marker, MarkerArray
 
-    from cdmp_ros.core.kinematics import panda_chain
+    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
     from cdmp_ros.ros import qos
     from cdmp_ros.ros.robot_model import default_urdf_path
     chain = panda_chain(default_urdf_path())
@@ -253,8 +321,14 @@ def main():
 
     rng = np.random.default_rng(args.seed)
     pool = build_pool(rng)
+    if args.categories:
+        wanted = args.categories.split(',')
+        unknown = sorted(set(wanted) - set(pool))
+        if unknown:
+            ap.error(f'--categories: unknown {unknown}; known: {sorted(pool)}')
+        pool = {k: v for k, v in pool.items() if k in wanted}
     logdir = tempfile.mkdtemp(prefix='bench_flood_')
-    procs = start_nodes(args.domain, os.path.abspath(args.code), logdir)
+    procs = start_nodes(args.domain, os.path.abspath(args.code), logdir, params, nice)
     rclpy.init(domain_id=args.domain)
     node = rclpy.create_node('flood')
     obs = Observer(node)
@@ -284,7 +358,8 @@ def main():
             time.sleep(0.2)
         time.sleep(2.0)  # let the first movement start before the baseline
         base = {n: {k: obs.get(f'{n}: state', k, '0') for k in
-                    ('slipped_steps', 'missed_ticks', 'late_ticks', 'ticks', 'limit_violations')}
+                    ('slipped_steps', 'missed_ticks', 'late_ticks', 'ticks', 'limit_violations',
+                     'contacts_since_start')}
                 for n in ('sim', 'streamer')}
         with obs.lock:
             n_q0 = len(obs.q)
@@ -292,8 +367,21 @@ def main():
               f'(seed {args.seed}, domain {args.domain}, code {args.code})', flush=True)
         cats = list(pool)
         goal_pub = node.create_publisher(JointState, 'goal', qos.COMMAND)
+        obstacle_pub = node.create_publisher(MarkerArray, 'obstacles', qos.COMMAND)
+        point_pub = node.create_publisher(PointStamped, 'goal_point', qos.COMMAND)
+        tcp = [PointOfInterest('ee')]
+        arm = [PointOfInterest(f'panda_link{i}') for i in range(1, 8)] + [
+            PointOfInterest('panda_hand'), PointOfInterest('ee')]
+        valid = {'goal': 0, 'obstacles': 0, 'goal_point': 0}
+        import psutil
+        ps = {n: psutil.Process(procs[n].pid) for n in NODES}
+        ps['bench (publisher)'] = psutil.Process()
+        cpu0 = {n: p.cpu_times() for n, p in ps.items()}
         t_start = time.monotonic()
         next_goal, g = t_start, 0
+        inf = float('inf')
+        next_obstacle = t_start if args.valid_obstacles > 0 else inf
+        next_point = t_start + 1.0 if args.valid_goal_points > 0 else inf
         deadline = t_start + args.duration
         t_next = t_start
         while True:
@@ -304,14 +392,54 @@ def main():
                 gm = JointState(name=list(JOINTS), position=[float(v) for v in GOALS[g % 2]])
                 goal_pub.publish(gm)
                 g += 1
+                valid['goal'] += 1
                 next_goal += args.goal_period
+            if now >= next_obstacle:
+                arr = MarkerArray()
+                if valid['obstacles'] % 10 == 9:
+                    arr.markers.append(Marker(ns='valid', action=Marker.DELETEALL))
+                else:
+                    with obs.lock:
+                        q = obs.q[-1] if obs.q else GOALS[0]
+                    P = chain.forward(q, arm)
+                    x = P[-1]
+                    for i in range(int(rng.integers(1, 3))):
+                        for _ in range(50):  # clear of the whole arm, not only the tool
+                            d = rng.normal(size=3)
+                            c = x + d / np.linalg.norm(d) * rng.uniform(0.15, 0.30)
+                            if polyline_distance(c, P) >= 0.15:
+                                break
+                        m = Marker(ns='valid', id=i, type=Marker.SPHERE, action=Marker.ADD)
+                        m.header.frame_id = 'panda_link0'
+                        _stamp(m)
+                        m.pose.position.x, m.pose.position.y, m.pose.position.z = (
+                            float(v) for v in c)
+                        m.pose.orientation.w = 1.0
+                        m.scale.x = m.scale.y = m.scale.z = 2.0 * float(rng.uniform(0.02, 0.05))
+                        arr.markers.append(m)
+                obstacle_pub.publish(arr)
+                valid['obstacles'] += 1
+                next_obstacle += 1.0 / args.valid_obstacles
+            if now >= next_point:
+                q = lower + (upper - lower) * rng.uniform(0.2, 0.8, size=7)
+                x = chain.forward(q, tcp)[0]
+                pm = PointStamped()
+                pm.header.frame_id = 'panda_link0'
+                _stamp(pm)
+                pm.point.x, pm.point.y, pm.point.z = (float(v) for v in x)
+                point_pub.publish(pm)
+                valid['goal_point'] += 1
+                next_point += 1.0 / args.valid_goal_points
             if now >= t_next:
                 cat = cats[int(rng.integers(len(cats)))]
                 topic, _, msgs = pool[cat]
                 pubs[topic].publish(msgs[int(rng.integers(len(msgs)))])
                 sent[cat] += 1
                 t_next = now + rng.exponential(1.0 / args.rate)
-            time.sleep(max(0.0, min(t_next, next_goal, deadline) - time.monotonic()))
+            time.sleep(max(0.0, min(t_next, next_goal, next_obstacle, next_point, deadline)
+                           - time.monotonic()))
+        cpu = {n: (p.cpu_times().user + p.cpu_times().system - cpu0[n].user - cpu0[n].system)
+               / (time.monotonic() - t_start) * 100 for n, p in ps.items()}
         time.sleep(3.0)  # the last rejections and diagnostics arrive
         alive = {n: procs[n].poll() is None for n in NODES}
     finally:
@@ -332,8 +460,11 @@ def main():
     late = num('streamer', 'late_ticks') - float(base['streamer']['late_ticks'])
     slots = ticks + missed
     on_time = (ticks - late) / slots if slots else float('nan')
-    print(f'\n== flood {args.duration:g} s, {sum(sent.values())} bad messages, '
-          f'{g} valid goals; logs {logdir}')
+    print(f'\n== flood {args.duration:g} s, {sum(sent.values())} bad messages, valid: '
+          f"{valid['goal']} goals, {valid['obstacles']} obstacle sets, "
+          f"{valid['goal_point']} goal points; parameters {params or 'config/*.yaml'}; "
+          f"nice {nice or 'none'}; "
+          f'logs {logdir}')
     print(f'sim slipped physics steps      {slipped:.0f}')
     print(f'joint_states samples           {len(Q)}; outside the URDF limits: {outside}; '
           f'largest limit usage {usage.max() if len(Q) else float("nan"):.4f}')
@@ -341,18 +472,27 @@ def main():
           f'{num("sim", "limit_violations") - float(base["sim"]["limit_violations"]):.0f}; '
           f'max_limit_usage_since_start {obs.get("sim: state", "max_limit_usage_since_start")}')
     print(f'sim tracking error max         {obs.get("sim: state", "tracking_error_max_rad")} rad')
+    print(f'sim contacts                   '
+          f'{num("sim", "contacts_since_start") - float(base["sim"]["contacts_since_start"]):.0f}'
+          f'; reflex_errors {obs.get("sim: state", "reflex_errors")}')
     print(f'streamer slots                 {slots:.0f} at {obs.get("streamer: state", "rate_hz")}'
           f' Hz: on time {on_time * 100:.3f} % (late {late:.0f}, missed {missed:.0f}); '
           f'tick_wake_late p99 / max '
           f'{obs.get("streamer: timing", "tick_wake_late_p99_ms")} / '
           f'{obs.get("streamer: timing", "tick_wake_late_max_ms")} ms')
     print(f'alive at the end               {alive}')
+    timing = {k: v for k, v in obs.status.get('streamer: timing', {}).items()
+              if k.endswith(('_p99_ms', '_max_ms'))}
+    print(f'streamer timing                {timing}')
+    print('CPU during the flood [% of one core]  '
+          + ', '.join(f'{n} {c:.0f}' for n, c in cpu.items()))
     print('\ncategory        sent   per node: received by the gate / rejections counted on the '
           'topic (of which flooding)')
     subscribers = {'goal': ('streamer', 'adapter'), 'joint_states': ('streamer', 'adapter'),
                    'demonstration': ('learner',), 'constraints': ('adapter',),
                    'primitive': ('streamer', 'adapter'), 'goal_point': ('adapter',),
-                   'obstacles': ('sim', 'streamer', 'adapter')}
+                   'obstacles': ('sim', 'streamer', 'adapter'),
+                   'joint_reference': ('sim',)}
     all_counted = True
     for cat, n in sent.items():
         cells = []
@@ -363,11 +503,13 @@ def main():
             cells.append(f'{node_name} {received} / {total} ({kv.get("rejected_flooding", 0)})')
             if cat == 'joint_states':  # the sim's valid joint_states arrive too: compare sent
                 continue
-            valid = {'goal': g, 'primitive': 1}.get(cat, 0)  # valid goals, the learner's fit
-            all_counted &= total >= (received - valid if received >= 0 else n)
+            if cat == 'joint_reference':  # the streamer's valid references arrive too
+                continue
+            ok = {'primitive': 1}.get(cat, valid.get(cat, 0))  # valid ones, the learner's fit
+            all_counted &= total >= (received - ok if received >= 0 else n)
         print(f'{cat:14s} {n:6d}   ' + ', '.join(cells))
-    print(f'\nevery bad message that reached a node counted there (joint_states excluded: '
-          f'valid ones arrive too, best effort keep-last-5): {all_counted}')
+    print(f'\nevery bad message that reached a node counted there (joint_states and '
+          f'joint_reference excluded: valid ones arrive too): {all_counted}')
     node.destroy_node()
     rclpy.try_shutdown()
 

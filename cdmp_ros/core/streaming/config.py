@@ -109,9 +109,10 @@ class StreamerConfig:
     realtime_priority: int = _param(
         50, 'SCHED_FIFO priority of the tick thread (1-99; 0 = normal scheduling). Refused '
         'without CAP_SYS_NICE / an rtprio limit: logged, normal scheduling. Default 50, as '
-        "ros2_control's controller_manager: under a flood of large messages on a 2-core "
-        'machine normal scheduling kept 97.1 % of the 500 Hz ticks on time, SCHED_FIFO 50 '
-        '99.87 % (benchmarks/bench_flood.py).', 0, 99, read_only=True)
+        "ros2_control's controller_manager: under a flood of large messages with valid "
+        'obstacles and goals on a 2-core machine normal scheduling kept 97.6-98.0 % of the '
+        '500 Hz ticks on time, SCHED_FIFO 50 99.35 % (benchmarks/bench_flood.py).', 0, 99,
+        read_only=True)
     realtime_threads: str = _param(
         'all', "With realtime_priority > 0: 'all' also puts the node's other threads under "
         'SCHED_FIFO (executor and middleware threads at realtime_priority - 1, the primitive '
