@@ -13,7 +13,9 @@ from cdmp_ros.core.adaptation.constraints import (ChainPoint, DofPoint, Hyperpla
                                                   Waypoint)
 from cdmp_ros.core.adaptation.guarantee import default_samples
 from cdmp_ros.core.adaptation.solver import adapt
-from cdmp_ros.core.adaptation.verification import clopper_pearson_upper, critical_count, verify
+from cdmp_ros.core.adaptation.verification import (clopper_pearson_upper, critical_count,
+                                                   detectable_violation,
+                                                   trajectory_accepted, verify)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import PointOfInterest, chain_from_urdf, panda_chain, planar_chain
 from cdmp_ros.core.promp.promp import ProMP, RbfBasis
@@ -268,6 +270,56 @@ def test_per_step_rule_passes_a_calibrated_solution_and_fails_twice_the_level():
     failed = [not verify(p, [twice], 20000, np.random.default_rng(k), 11).holds
               for k in range(20)]
     assert sum(failed) >= 19, failed
+
+
+@pytest.mark.parametrize('n, accepted', [(1000, 0), (1000, 3), (2000, 12), (20000, 70)])
+def test_detectable_violation_has_95_percent_power_by_sampling(n, accepted):
+    """At the reported p the rule 'reject when count > accepted' rejects 95 % of 400,000
+    sampled binomial counts; at 0.9 p clearly less (the smallest such p)."""
+    p = detectable_violation(n, accepted)
+    rng = np.random.default_rng(n + accepted)
+    power = np.mean(rng.binomial(n, p, 400_000) > accepted)
+    assert abs(power - 0.95) < 0.003, (p, power)
+    assert np.mean(rng.binomial(n, 0.9 * p, 400_000) > accepted) < 0.94
+    assert detectable_violation(n, n) == 1.0
+
+
+@pytest.mark.parametrize('n, level', [(1000, 0.01), (2000, 0.05), (10000, 0.001), (50, 0.01)])
+def test_trajectory_accepted_is_the_largest_count_the_upper_bound_passes(n, level):
+    ks = np.arange(n + 1)
+    passing = ks[clopper_pearson_upper(ks, n) <= level]
+    assert trajectory_accepted(n, level) == (passing.max() if passing.size else -1)
+
+
+def test_verification_reports_what_its_test_detects_and_catches_it():
+    """A one-step constraint violated exactly at the reported detectable probability fails
+    the sampled verification in about 95 % of 300 seeds; the report states it as a multiple
+    of the asked level, with the per-step rule (Bonferroni over the tested steps) and the
+    conservative trajectory rule (below 1)."""
+    p = _promp_1d()
+    t = 0.5
+    m, s = p.mean([t])[0, 0], np.sqrt(p.cov([t])[0, 0, 0])
+    eps, n = 0.01, 2000
+    asked = JointLimit(0, upper=m + s * norm.isf(eps), support=(t, t), alpha=1 - eps)
+    rep = verify(p, [asked], n, np.random.default_rng(0), 11)
+    c = rep.constraints[0]
+    assert c.detectable == detectable_violation(n, critical_count(n, eps, 0.01 / c.steps))
+    assert c.detectable_excess == pytest.approx(c.detectable / eps)
+    assert 1.0 < c.detectable_excess < 3.0 and rep.detectable_excess == c.detectable_excess
+    assert 'detects' in rep.to_text()
+    at_detectable = JointLimit(0, upper=m + s * norm.isf(c.detectable), support=(t, t),
+                               alpha=1 - eps)
+    caught = np.mean([not verify(p, [at_detectable], n, np.random.default_rng(k), 11).holds
+                      for k in range(300)])
+    assert 0.91 <= caught <= 0.99, caught
+    # more tested steps: a harder Bonferroni level, a larger detectable excess
+    wide = JointLimit(0, upper=m + s * norm.isf(eps), support=(0.0, 1.0), alpha=1 - eps)
+    assert verify(p, [wide], n, np.random.default_rng(0), 101).constraints[0]. \
+        detectable_excess > c.detectable_excess
+    traj = verify(p, [asked], n, np.random.default_rng(0), 11, guarantee='trajectory')
+    tc = traj.constraints[0]
+    assert tc.detectable == detectable_violation(n, trajectory_accepted(n, eps))
+    assert tc.detectable_excess < 1.0
 
 
 class _OptimisticLimit(JointLimit):

@@ -239,8 +239,10 @@ def result_values(res: JobResult) -> Dict[str, Any]:
 def verification_values(rep) -> Dict[str, Any]:
     """Diagnostics key/values of a report's sampled verification (the figures of ``cdmp adapt
     --json``'s ``verification``): ``verification.n_samples``, ``.guarantee``, ``.holds``,
-    ``.trajectory_violation`` and ``.trajectory_violation_upper95``, and per constraint
-    ``v.<name>`` = ``per_step_max <f> trajectory <f> upper95 <f>``."""
+    ``.trajectory_violation``, ``.trajectory_violation_upper95`` and ``.detectable_excess``
+    (the weakest constraint's: how many times its asked level a violation must be for the
+    test to catch it with 95 % power), and per constraint ``v.<name>`` =
+    ``per_step_max <f> trajectory <f> upper95 <f> detectable_excess <f>``."""
     ver = rep.verification
     if ver is None:
         return {}
@@ -249,10 +251,12 @@ def verification_values(rep) -> Dict[str, Any]:
         'verification.holds': ver.holds,
         'verification.trajectory_violation': f'{ver.trajectory_violation:.6g}',
         'verification.trajectory_violation_upper95': f'{ver.trajectory_violation_upper95:.6g}',
+        'verification.detectable_excess': f'{ver.detectable_excess:.3g}',
         'verification.time_ms': f'{ver.time_s * 1e3:.1f}'}
     for c in ver.constraints:
         kv[f'v.{c.name}'] = (f'per_step_max {c.per_step_max:.6g} trajectory '
-                             f'{c.trajectory:.6g} upper95 {c.upper95:.6g}')
+                             f'{c.trajectory:.6g} upper95 {c.upper95:.6g} detectable_excess '
+                             f'{c.detectable_excess:.3g}')
     return kv
 
 

@@ -15,6 +15,15 @@ and reports per constraint
 
 and overall the fraction of trajectories violating any constraint (and its upper bound).
 
+Each report also says what its test can detect (:func:`detectable_violation`): the smallest
+true violation probability at which the constraint's rule fails with 95 % power, in absolute
+terms (``detectable``) and as a multiple of the asked level 1 - alpha
+(``detectable_excess``). For the per-step rule that is the per-step probability of one step
+at which its count exceeds the Bonferroni-corrected critical count 95 % of the time (more
+samples or fewer tested steps make it smaller); ``holds`` with ``detectable_excess`` 2.5 says
+that a step violated 2.5 times as often as asked would have been caught, not one violated
+twice as often.
+
 Decision rules (``Verification.holds``), chosen so that a calibrated solution does not fail by
 Monte Carlo noise:
 
@@ -50,7 +59,8 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['ConstraintVerification', 'Verification', 'GUARANTEES', 'clopper_pearson_upper',
-           'critical_count', 'sample_points', 'verify', 'worker_cpu_seconds']
+           'critical_count', 'detectable_violation', 'trajectory_accepted', 'DETECTION_POWER',
+           'sample_points', 'verify', 'worker_cpu_seconds']
 
 # (sample, step) pairs evaluated per chunk: bounds the memory of the batched evaluation
 _CHUNK_POINTS = 50_000
@@ -111,6 +121,42 @@ def critical_count(n: int, p: float, level: float) -> int:
     return int(binom.isf(level, n, p))
 
 
+#: Power at which :func:`detectable_violation` states what a test detects.
+DETECTION_POWER = 0.95
+
+
+@functools.lru_cache(maxsize=256)
+def detectable_violation(n: int, accepted: int, power: float = DETECTION_POWER) -> float:
+    """The smallest violation probability p at which a rule that accepts at most ``accepted``
+    violations in ``n`` Bernoulli trials rejects with probability ``power``.
+
+    The rule rejects when the count X > ``accepted``; P(X >= k | p) with k = accepted + 1 is
+    the regularised incomplete beta function I_p(k, n - k + 1), increasing in p, so
+    p = Beta(k, n - k + 1).ppf(power) (1 when no count rejects).
+    """
+    k = int(accepted) + 1
+    if k > n:
+        return 1.0
+    return float(beta_dist.ppf(power, k, n - k + 1))
+
+
+@functools.lru_cache(maxsize=256)
+def trajectory_accepted(n: int, level: float, confidence: float = 0.95) -> int:
+    """The largest count k of violating trajectories (of ``n``) whose one-sided
+    Clopper-Pearson upper bound is <= ``level`` (the trajectory rule accepts at most k; -1
+    when even 0 does not pass)."""
+    if clopper_pearson_upper([0], n, confidence)[0] > level:
+        return -1
+    lo, hi = 0, n   # bisection on the monotone upper bound
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if clopper_pearson_upper([mid], n, confidence)[0] <= level:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
 def sample_points(promp: ProMP, c, n_samples: int, rng: np.random.Generator,
                   grid: NDArray, W: Optional[NDArray] = None) -> NDArray:
     """Sampled x_t of constraint ``c`` at its times: (n_samples, n, k)."""
@@ -147,6 +193,13 @@ class ConstraintVerification:
         One-sided 95 % Clopper-Pearson upper bound of ``trajectory``.
     holds : bool
         The claimed level holds by the rule of the report's guarantee.
+    detectable : float
+        The smallest true violation probability (per step, or per trajectory with the
+        trajectory guarantee) that the rule rejects with 95 % power
+        (:func:`detectable_violation`).
+    detectable_excess : float
+        ``detectable / (1 - alpha)``: how many times the asked level a violation must be to
+        be caught (below 1 for the trajectory rule, which is conservative).
     """
     name: str
     kind: str
@@ -157,6 +210,8 @@ class ConstraintVerification:
     trajectory: float
     upper95: float
     holds: bool
+    detectable: float = float('nan')
+    detectable_excess: float = float('nan')
 
 
 @dataclass
@@ -187,8 +242,16 @@ class Verification:
         for c in self.constraints:
             lines.append(f'  {c.name}: per-step max {c.per_step_max * 100:.3f} % (limit '
                          f'{c.per_step_limit * 100:.3f} %), trajectory {c.trajectory * 100:.3f} % '
-                         f'(upper95 {c.upper95 * 100:.3f} %) {"ok" if c.holds else "NOT MET"}')
+                         f'(upper95 {c.upper95 * 100:.3f} %) {"ok" if c.holds else "NOT MET"}; '
+                         f'detects {c.detectable_excess:.2g}x the asked level with '
+                         f'{DETECTION_POWER * 100:.0f} % power')
         return '\n'.join(lines)
+
+    @property
+    def detectable_excess(self) -> float:
+        """The largest :attr:`ConstraintVerification.detectable_excess` of the report (what
+        its weakest test needs to catch a violation; nan without constraints)."""
+        return max((c.detectable_excess for c in self.constraints), default=float('nan'))
 
 
 def _grid_times(constraints, grid) -> Dict[bytes, NDArray]:
@@ -530,11 +593,15 @@ def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.G
         crit = critical_count(n_samples, 1.0 - c.alpha, significance / n_tests)
         if guarantee == 'per_step':
             holds = bool(counts.max() <= crit)
+            found = detectable_violation(n_samples, crit)
         else:
             holds = bool(upper[i] <= 1.0 - c.alpha)
+            found = detectable_violation(n_samples,
+                                         trajectory_accepted(n_samples, 1.0 - c.alpha))
         reports.append(ConstraintVerification(
             c.name, c.kind, c.alpha, int(counts.size), float(counts.max() / n_samples),
-            crit / n_samples, float(traj_counts[i] / n_samples), float(upper[i]), holds))
+            crit / n_samples, float(traj_counts[i] / n_samples), float(upper[i]), holds,
+            found, found / (1.0 - c.alpha)))
     if guarantee == 'per_step':
         holds = all(r.holds for r in reports)
     else:
