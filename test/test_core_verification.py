@@ -381,6 +381,34 @@ def test_trajectory_guarantee_meets_the_bound_where_per_step_does_not():
     assert rep_t.kl > rep_s.kl
 
 
+def test_trajectory_mode_rechecks_the_returned_solution_on_fresh_samples(monkeypatch):
+    """The loop's checks select the solution; one more check on new samples of the returned
+    distribution is the report's verification (and decides converged)."""
+    from cdmp_ros.core.adaptation import guarantee
+    calls = []
+
+    def recording(promp, *args, **kw):
+        ver = verify(promp, *args, **kw)
+        calls.append((promp, ver))
+        return ver
+    monkeypatch.setattr(guarantee, 'verify', recording)
+    p = _promp_1d()
+    c = JointLimit(0, upper=0.5, alpha=0.99, name='upper')
+    q, rep = adapt(p, [c], AdaptationConfig(n_steps=51, lambda0=0.01, max_outer=30,
+                                            guarantee='trajectory'))
+    assert len(calls) == rep.n_solves + 1
+    assert calls[-1] == (q, rep.verification)
+    chosen = [ver for promp, ver in calls[:-1] if promp is q]
+    assert chosen == [rep.selection_verification]
+    # other samples: the counts of the two checks of the same distribution differ
+    a, b = rep.verification.constraints[0], rep.selection_verification.constraints[0]
+    assert (a.per_step_max, a.trajectory) != (b.per_step_max, b.trajectory), (a, b)
+    assert rep.converged == rep.verification.holds
+    d = rep.as_dict()
+    assert d['selection_verification']['n_samples'] == d['verification']['n_samples']
+    assert 're-checked on fresh samples' in rep.to_text()
+
+
 def test_guarantee_and_sample_settings_are_validated():
     with pytest.raises(ValidationError, match='guarantee'):
         AdaptationConfig(guarantee='always')

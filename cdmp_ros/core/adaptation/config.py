@@ -274,6 +274,9 @@ class AdaptationReport:
     guarantee: str = 'per_step'
     #: sampled check of the adapted distribution (cdmp_ros.core.adaptation.verification)
     verification: Optional['Verification'] = None
+    #: guarantee ``trajectory``: the check that selected the returned solution among the
+    #: solves (``verification`` re-checks it on fresh samples); None otherwise
+    selection_verification: Optional['Verification'] = None
     #: per constraint (order of ``constraints``), the per-step violation level 1 - alpha'
     #: the optimiser enforced (guarantee ``trajectory``: tightened below 1 - alpha)
     levels: List[float] = field(default_factory=list)
@@ -296,6 +299,8 @@ class AdaptationReport:
         d.pop('state', None)
         d['constraints'] = [dict(c.__dict__) for c in self.constraints]
         d['verification'] = None if self.verification is None else self.verification.as_dict()
+        d['selection_verification'] = (None if self.selection_verification is None
+                                       else self.selection_verification.as_dict())
         d['levels'] = list(self.levels)
         return d
 
@@ -312,6 +317,11 @@ class AdaptationReport:
                          'violation levels enforced: ' + ', '.join(
                              f'{c.name} {v:.3g}' for c, v in zip(self.constraints, self.levels)))
         if self.verification is not None:
+            sel = self.selection_verification
+            if sel is not None:
+                lines.append('re-checked on fresh samples (the check that selected it: '
+                             f'{sel.trajectory_violation * 100:.3f} %, upper bound '
+                             f'{sel.trajectory_violation_upper95 * 100:.3f} %):')
             lines.append(self.verification.to_text())
         return '\n'.join(lines)
 

@@ -16,7 +16,11 @@
   (union-aware: each constraint gets a share of the budget proportional to its violation).
   When a tightening overshoots (sampled violation below LOOSEN_BELOW (1 - alpha)), the levels
   are bisected (log scale) between the passing and the last failing ones to give back KL;
-  the passing solution with the smallest KL is returned.
+  the passing solution with the smallest KL is returned. The checks that steered the loop
+  also selected the solution (it is returned because its sample passed), so the returned
+  solution is verified once more on fresh samples: that check is the report's
+  ``verification`` (and decides ``converged``), the one that selected it is kept as
+  ``selection_verification``.
 """
 import copy
 import math
@@ -169,7 +173,10 @@ def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConf
         if np.all(np.abs(np.log(new) - np.log(lo)) < BISECTION_TOL):
             break
         scales = new
-    kl, adapted, report, ver, scales = best if best is not None else last
+    kl, adapted, report, selected, scales = best if best is not None else last
+    # fresh samples (the rng has moved on): free of the selection by the loop's checks
+    ver = verify(adapted, constraints, n, rng, config.n_steps, 'trajectory')
+    report.selection_verification = selected
     for cr, c in zip(report.constraints, constraints):
         cr.alpha = c.alpha
     report.levels = [float(s * (1.0 - c.alpha)) for s, c in zip(scales, constraints)]
