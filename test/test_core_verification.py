@@ -431,8 +431,19 @@ def test_default_sample_count_follows_the_kinematics_cost():
     chain = planar_chain([1.0] * 4)
     ee = ChainPoint(chain, PointOfInterest('ee'), axes=(0, 1))
     elbow = ChainPoint(chain, PointOfInterest('link2'), axes=(0, 1))
-    lin = [Repeller(DofPoint([0, 1]), [0, 0], 1.0)]
+    lin = [Repeller(DofPoint([0, 1]), [0, 0], 1.0, alpha=0.99)]
     assert default_samples(lin, 101) == 10000
+    # without kinematics: enough samples to catch twice the asked level (the Table II setting)
+    rng = np.random.default_rng(1)
+    lin3 = [Repeller(DofPoint([0, 1]), rng.normal(size=2), 0.5, alpha=0.999) for _ in range(3)]
+    n = default_samples(lin3, 101)
+    assert n == 60000
+    p = _promp_1d()
+    grid_c = [JointLimit(0, upper=9.0, alpha=0.999, name=f'l{k}') for k in range(3)]
+    assert default_samples(grid_c, 101) == 60000
+    ver = verify(p, grid_c, n, np.random.default_rng(0), 101)
+    assert 1.5 < ver.detectable_excess <= 2.0
+    assert verify(p, grid_c, 40000, np.random.default_rng(0), 101).detectable_excess > 2.0
     # two link points of one chain share the forward kinematics: 100 FK evaluations / sample
     kin = [Repeller(ee, [0, 0], 1.0), Repeller(elbow, [0, 0], 1.0)]
     assert default_samples(kin, 100) == 1000

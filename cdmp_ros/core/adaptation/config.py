@@ -154,8 +154,9 @@ class AdaptationConfig:
         Trajectories of the sampled verification in every report
         (:mod:`cdmp_ros.core.adaptation.verification`); None: the default by the cost of the
         points of interest (:func:`cdmp_ros.core.adaptation.guarantee.default_samples`:
-        10,000 without kinematics). With ``trajectory`` at least 20 / (1 - alpha) are drawn,
-        so that the bound can reach the level.
+        without kinematics 10,000-100,000, enough for the per-step test to catch twice the
+        asked level). With ``trajectory`` at least 20 / (1 - alpha) are drawn, so that the
+        bound can reach the level.
     max_refinements : int
         ``trajectory``: tightenings of the per-step levels (re-solves) at most.
     max_evaluations : int, optional
