@@ -254,7 +254,8 @@ def test_user_constraint_set_is_applied(graph, prims):
     assert n >= 1000 and 0.0 <= traj <= float(kv['verification.trajectory_violation_upper95'])
     via = kv['v.via'].split()
     assert via[0::2] == ['per_step_max', 'trajectory', 'upper95', 'detectable_excess']
-    assert 1.0 < float(via[7]) == float(kv['verification.detectable_excess']) < 10.0
+    # the weakest constraint's figure is the report's (joint limits are constraints too)
+    assert 1.0 < float(via[7]) <= float(kv['verification.detectable_excess']) < 20.0
     assert float(via[1]) <= 0.05 + 5 * (0.05 * 0.95 / n) ** 0.5
     assert d['metadata']['adaptation']['verification']['n_samples'] == n
     n0 = h.n_adapted()
