@@ -278,3 +278,37 @@ def test_the_check_is_cheap():
     grown = sum(s.size_diff for s in after.compare_to(before, 'filename')
                 if s.traceback[0].filename.endswith('reflex.py'))
     assert grown < 2000, grown
+
+
+@given(st.lists(st.integers(200_000, 5_000_000), min_size=4, max_size=30),
+       st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+def test_differences_are_exact_for_a_cubic_whatever_the_gaps(gaps, c0, c1, c2, c3):
+    T = 1_700_000_000_000_000_000 + np.concatenate([[0], np.cumsum(gaps)])
+    t = (T - T[0]) * 1e-9
+    Q = (c0 + c1 * t + c2 * t ** 2 + c3 * t ** 3)[:, None]
+    V, A, J = stamped_differences(T, Q)
+    # rounding: the k-th difference of values of size |Q| on gaps of h is off by ~eps |Q| / h^k
+    h = min(gaps) * 1e-9
+    rounding = 100.0 * np.finfo(float).eps * (1.0 + np.abs(Q).max())
+    np.testing.assert_allclose(J[:, 0], 6.0 * c3, rtol=1e-9, atol=6.0 * rounding / h ** 3)
+    # the acceleration of a cubic is linear: the second difference is its value at the mean
+    # of the three stamps
+    tm = (t[2:] + t[1:-1] + t[:-2]) / 3.0
+    np.testing.assert_allclose(A[:, 0], 2.0 * c2 + 6.0 * c3 * tm, rtol=1e-9,
+                               atol=2.0 * rounding / h ** 2)
+
+
+@given(st.integers(0, 2 ** 31), st.lists(st.booleans(), min_size=60, max_size=60))
+def test_a_missed_sample_never_raises_a_difference_above_the_full_grids(seed, keep):
+    """A subscriber that misses references (a gap of whole periods) sees differences that
+    are weighted means of the full grid's: never above their maximum."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    T = 1_700_000_000_000_000_000 + DT_NS * np.arange(n)
+    Q = np.cumsum(np.cumsum(np.cumsum(rng.normal(0.0, 1.0, (n, 2)), axis=0), axis=0), axis=0)
+    keep = np.array(keep)
+    keep[:4] = True
+    full = stamped_differences(T, Q)
+    sub = stamped_differences(T[keep], Q[keep])
+    for F, S in zip(full, sub):
+        assert np.abs(S).max() <= np.abs(F).max() * (1.0 + 1e-9)

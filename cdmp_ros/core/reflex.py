@@ -5,14 +5,14 @@ A real arm differentiates consecutive commands: a Panda stops with a reflex erro
 break its velocity, acceleration or jerk limits, or command a position outside its range.
 :class:`ReflexMonitor` does the same for a stream of stamped references:
 
-- the differences are the divided differences of consecutive positions on their own stamps,
-  each placed at the midpoint of the samples it spans (the definition of
-  :func:`cdmp_ros.core.run_metrics.stamped_differences`; on an exact grid of period ``dt``
-  they are the first, second and third backward differences divided by ``dt^k``)::
+- the differences are ``k!`` times the divided differences of consecutive positions on their
+  own stamps (the definition of :func:`cdmp_ros.core.run_metrics.stamped_differences`: exact
+  for a cubic whatever the gaps; on an exact grid of period ``dt`` they are the first, second
+  and third backward differences divided by ``dt^k``)::
 
       v_k = (q_k - q_{k-1}) / h_k,                          h_k = t_k - t_{k-1}
       a_k = (v_k - v_{k-1}) / ((h_k + h_{k-1}) / 2)
-      j_k = (a_k - a_{k-1}) / ((h_k / 2 + h_{k-1} + h_{k-2} / 2) / 2)
+      j_k = (a_k - a_{k-1}) / ((h_k + h_{k-1} + h_{k-2}) / 3)
 
 - a reference violates the limits when a position is outside ``[lower, upper]`` or a
   difference exceeds its limit by more than the relative ``tolerance`` (the rounding of
@@ -230,7 +230,7 @@ class ReflexMonitor:
         if seen >= 1:
             inv_h = 1.0 / h
             inv_ha = 2.0 / (h + self._h1) if seen >= 2 else 0.0
-            inv_hj = 4.0 / (h + 2.0 * self._h1 + self._h2) if seen >= 3 else 0.0
+            inv_hj = 3.0 / (h + self._h1 + self._h2) if seen >= 3 else 0.0
         for d in range(self.n_dims):
             x = float(q[d])
             r = abs(x - centre[d]) * inv_half[d]

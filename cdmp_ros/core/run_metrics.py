@@ -123,10 +123,11 @@ KINEMATIC_TOLERANCE = 0.02
 
 
 def stamped_differences(stamps_ns: ArrayLike, Q: ArrayLike):
-    """Velocity, acceleration and jerk of a stream as a controller sees it: divided
-    differences of consecutive positions on their own stamps (each difference sits at the
-    midpoint of the samples it spans, so uneven gaps are differentiated correctly; on an exact
-    grid these are the backward differences divided by ``dt^k``).
+    """Velocity, acceleration and jerk of a stream as a controller sees it: ``k!`` times the
+    ``k``-th divided differences of consecutive positions on their own stamps. They are exact
+    for a cubic whatever the gaps, and where a sample is missing the difference across the gap
+    is a weighted mean of the differences the full grid would give (never above their
+    maximum); on an exact grid they are the backward differences divided by ``dt^k``.
 
     Parameters
     ----------
@@ -154,14 +155,12 @@ def stamped_differences(stamps_ns: ArrayLike, Q: ArrayLike):
         k = int(np.flatnonzero(np.diff(t) <= 0.0)[0])
         raise ValidationError(f'stamps_ns: expected strictly increasing stamps, got '
                               f'{stamps_ns[k]} then {stamps_ns[k + 1]} at index {k}')
-    out, x, m = [], Q, t
-    for _ in range(3):
+    out, x = [], Q
+    for k in (1, 2, 3):
         if x.shape[0] < 2:
             out.append(np.zeros((0, Q.shape[1])))
             continue
-        dm = np.diff(m)
-        x = np.diff(x, axis=0) / dm[:, None]
-        m = 0.5 * (m[1:] + m[:-1])
+        x = np.diff(x, axis=0) * (k / (t[k:] - t[:-k]))[:, None]
         out.append(x)
     return out[0], out[1], out[2]
 
