@@ -4,7 +4,7 @@ on the grid, the clock offset and its re-anchoring. No process, no ROS."""
 import pytest
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
+from cdmp_ros.core.streaming.schedule import ClockOffset, TickSchedule, clock_offset_ns
 
 RATE = 1000.0
 T0 = 100.0
@@ -86,19 +86,37 @@ def test_stamps_stay_exactly_on_the_grid_at_a_rate_without_an_integer_period():
 def test_a_clock_step_re_anchors_the_stamps_a_small_drift_does_not():
     s = make()
     base = s.stamp_ns(10)
-    assert not s.anchor(OFFSET_NS + 500_000)      # 0.5 ms: the grid stays exact
+    assert not s.anchor(ClockOffset(OFFSET_NS + 500_000, 100))   # 0.5 ms: the grid stays
     assert s.stamp_ns(10) == base
-    assert s.anchor(OFFSET_NS + 2_000_000)        # 2 ms step: re-anchored
+    assert s.anchor(ClockOffset(OFFSET_NS + 2_000_000, 100))     # 2 ms step: re-anchored
     assert s.stamp_ns(10) == base + 2_000_000
-    assert s.anchor(OFFSET_NS - 3_600_000_000_000)  # a step back of an hour
+    assert s.anchor(ClockOffset(OFFSET_NS - 3_600_000_000_000, 100))  # a step back of an hour
     assert s.stamp_ns(10) == base - 3_600_000_000_000
 
 
-def test_clock_offset_takes_the_closest_of_three_readings():
+def test_a_reading_preempted_under_load_does_not_move_the_grid():
+    """All readings of a measurement bracketed a 1.7 ms preemption: the offset is off by
+    1.3 ms but its uncertainty says so; the grid stays (it moved stamps off the grid, and
+    backwards, in the CI soak)."""
+    s = make()
+    base = s.stamp_ns(10)
+    assert not s.anchor(ClockOffset(OFFSET_NS + 1_334_879, 850_000))
+    assert s.stamp_ns(10) == base
+    assert s.anchor(ClockOffset(OFFSET_NS + 1_334_879, 300_000))   # a tight one: a real step
+    assert s.stamp_ns(10) == base + 1_334_879
+
+
+def test_clock_offset_takes_the_tightest_reading_and_bounds_its_error():
     steady = iter([0, 100, 1000, 1010, 2000, 2500])   # the pair 1000..1010 is the tightest
     other = iter([5_000_050, 5_001_005, 5_002_100])
-    off = clock_offset_ns(lambda: next(other), lambda: next(steady))
-    assert off == 5_001_005 - 1005
+    off = clock_offset_ns(lambda: next(other), lambda: next(steady), readings=3)
+    assert off == (5_001_005 - 1005, 5)
+    # every bracket preempted: the bound is half the tightest
+    steady = iter([0, 2_000_000, 3_000_000, 4_600_000])
+    other = iter([1_900_000 + 7, 4_500_000 + 7])
+    off = clock_offset_ns(lambda: next(other), lambda: next(steady), readings=2)
+    assert off.uncertainty_ns == 800_000
+    assert abs(off.offset_ns - 7) <= off.uncertainty_ns
 
 
 def test_a_non_positive_rate_is_refused():

@@ -78,7 +78,7 @@ from cdmp_ros.core.streaming.latency import LatencyRing
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
-from cdmp_ros.core.streaming.schedule import TickSchedule, clock_offset_ns
+from cdmp_ros.core.streaming.schedule import ClockOffset, TickSchedule, clock_offset_ns
 from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
                                               StreamState, streamer_coupling)
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
@@ -194,7 +194,8 @@ class StreamerNode(Node):
         self._tick_errors = 0
         # deadlines, catch-up and stamps: slot j is stamped stamp0 + j / rate exactly (ROS
         # clock = steady clock + an offset measured at start and with every diagnostics message)
-        self.schedule = TickSchedule(cfg.rate, time.monotonic(), self._clock_offset_ns())
+        self.schedule = TickSchedule(cfg.rate, time.monotonic(),
+                                     self._clock_offset().offset_ns)
         self._pub_slot0 = 0
         self.timer = None
         self.tick_thread = None
@@ -501,14 +502,14 @@ class StreamerNode(Node):
             self._latency_pending_ns = 0
             self._obstacle_latency.add(lat)
 
-    def _clock_offset_ns(self) -> int:
-        """ROS clock - steady clock [ns]."""
+    def _clock_offset(self) -> ClockOffset:
+        """ROS clock - steady clock [ns], with its uncertainty."""
         clock = self.get_clock()
         return clock_offset_ns(lambda: clock.now().nanoseconds)
 
     def _publish_diagnostics(self) -> None:
         # follow a step of the ROS clock (NTP step, sim time); otherwise the grid stays exact
-        self.schedule.anchor(self._clock_offset_ns())
+        self.schedule.anchor(self._clock_offset())
         st = self.streamer
         with self._lock:
             self.obstacles.expire(time.monotonic())

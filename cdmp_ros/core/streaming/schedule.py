@@ -18,14 +18,15 @@ and published exactly once:
   stage can still run through them (:meth:`ReferenceStreamer.advance`, ``skipped``) and the
   published positions stay consistent with the stamps across the gap;
 - :meth:`TickSchedule.anchor` follows a step of the ROS clock (an NTP step, sim time) by
-  re-anchoring ``stamp0`` when the grid is more than a tolerance off; otherwise the grid stays
-  exact.
+  re-anchoring ``stamp0`` when the grid is off by more than a tolerance plus the uncertainty of
+  the new offset measurement; otherwise the grid stays exact (a reading preempted for a
+  millisecond under load must not move the stamps off the grid, or backwards).
 
 The schedule takes the time as an argument (no clock of its own), so a test drives it with any
 fake clock.
 """
 import time
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict, NamedTuple, Tuple
 
 from cdmp_ros.core.errors import ValidationError
 
@@ -33,10 +34,21 @@ from cdmp_ros.core.errors import ValidationError
 ANCHOR_TOLERANCE_NS = 1_000_000
 
 
+class ClockOffset(NamedTuple):
+    """A measured offset of a clock from the steady clock."""
+    offset_ns: int       #: clock - steady clock [ns]
+    uncertainty_ns: int  #: bound of the measurement error [ns] (half the tightest bracket)
+
+
 def clock_offset_ns(now_ns: Callable[[], int],
-                    steady_ns: Callable[[], int] = time.monotonic_ns) -> int:
-    """Offset of a clock from the steady clock [ns], from the closest of three back-to-back
-    readings.
+                    steady_ns: Callable[[], int] = time.monotonic_ns,
+                    readings: int = 5) -> ClockOffset:
+    """Offset of a clock from the steady clock [ns], from the tightest of ``readings``
+    back-to-back readings, with the bound of its error.
+
+    Each reading brackets ``now_ns()`` between two steady readings ``a <= b``; the offset is
+    ``now - (a + b) / 2``, off by at most ``(b - a) / 2`` (the reading happened inside the
+    bracket). Under load a bracket can span a preemption of milliseconds: the bound says so.
 
     Parameters
     ----------
@@ -44,20 +56,22 @@ def clock_offset_ns(now_ns: Callable[[], int],
         The clock whose offset is measured (e.g. the ROS clock), in ns.
     steady_ns : callable
         The steady clock, in ns.
+    readings : int
+        Brackets taken (at least 1).
 
     Returns
     -------
-    int
-        ``now_ns() - steady_ns()``.
+    ClockOffset
+        ``(offset_ns, uncertainty_ns)``.
     """
     best = None
-    for _ in range(3):
+    for _ in range(max(1, readings)):
         a = steady_ns()
         t = now_ns()
         b = steady_ns()
         if best is None or b - a < best[0]:
             best = (b - a, t - (a + b) // 2)
-    return best[1]
+    return ClockOffset(best[1], (best[0] + 1) // 2)
 
 
 class TickSchedule:
@@ -70,7 +84,7 @@ class TickSchedule:
     t0 : float
         Beginning of slot 0 on the steady clock [s].
     clock_offset_ns : int
-        ROS clock - steady clock [ns] (:func:`clock_offset_ns`).
+        ROS clock - steady clock [ns] (:func:`clock_offset_ns`, its ``offset_ns``).
 
     Attributes
     ----------
@@ -156,11 +170,12 @@ class TickSchedule:
         """The ROS-clock stamp [ns] of ``slot``: exactly on the grid."""
         return self.stamp0_ns + round(slot * self._dt_ns)
 
-    def anchor(self, clock_offset_ns: int, tolerance_ns: int = ANCHOR_TOLERANCE_NS) -> bool:
-        """Re-anchor the stamps when the ROS clock moved by more than ``tolerance_ns`` against
-        the grid (``clock_offset_ns``: a new measurement); returns True if it did."""
-        stamp0 = clock_offset_ns + round(self.t0 * 1e9)
-        if abs(stamp0 - self.stamp0_ns) > tolerance_ns:
+    def anchor(self, offset: ClockOffset, tolerance_ns: int = ANCHOR_TOLERANCE_NS) -> bool:
+        """Re-anchor the stamps when the ROS clock moved against the grid by more than
+        ``tolerance_ns`` plus the measurement's uncertainty (``offset``: a new
+        :func:`clock_offset_ns`); returns True if it did."""
+        stamp0 = offset.offset_ns + round(self.t0 * 1e9)
+        if abs(stamp0 - self.stamp0_ns) > tolerance_ns + offset.uncertainty_ns:
             self.stamp0_ns = stamp0
             return True
         return False
