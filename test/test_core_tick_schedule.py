@@ -104,6 +104,11 @@ def test_a_reading_preempted_under_load_does_not_move_the_grid():
     assert s.stamp_ns(10) == base
     assert s.anchor(ClockOffset(OFFSET_NS + 1_334_879, 300_000))   # a tight one: a real step
     assert s.stamp_ns(10) == base + 1_334_879
+    # the grid's own measurement was loose: a tight one within its bound does not move it
+    s = TickSchedule(RATE, T0, OFFSET_NS + 1_269_194, 1_300_000)
+    base = s.stamp_ns(10)
+    assert not s.anchor(ClockOffset(OFFSET_NS, 20))
+    assert s.stamp_ns(10) == base
 
 
 def test_clock_offset_takes_the_tightest_reading_and_bounds_its_error():

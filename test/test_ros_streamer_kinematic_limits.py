@@ -72,7 +72,8 @@ def test_published_references_keep_the_given_limits(tmp_path, rate):
     # the stamps are the slots of the grid (a message the test's subscription missed leaves a
     # gap of whole periods: the differences are divided by the actual gaps)
     gaps = np.diff(stamps)
-    assert np.all(gaps % round(1e9 / rate) == 0) and np.all(gaps > 0), np.unique(gaps)
+    off = np.flatnonzero((gaps % round(1e9 / rate) != 0) | (gaps <= 0))
+    assert off.size == 0, [(int(i), gaps[max(0, i - 3):i + 4].tolist()) for i in off[:5]]
     rep = kinematic_report(stamps, Q, expected, tolerance=1e-6)
     assert rep['ok'], rep
     # the stream moved and the acceleration of joint 2 reached its lowered limit

@@ -194,8 +194,7 @@ class StreamerNode(Node):
         self._tick_errors = 0
         # deadlines, catch-up and stamps: slot j is stamped stamp0 + j / rate exactly (ROS
         # clock = steady clock + an offset measured at start and with every diagnostics message)
-        self.schedule = TickSchedule(cfg.rate, time.monotonic(),
-                                     self._clock_offset().offset_ns)
+        self.schedule = TickSchedule(cfg.rate, time.monotonic(), *self._clock_offset(25))
         self._pub_slot0 = 0
         self.timer = None
         self.tick_thread = None
@@ -502,10 +501,10 @@ class StreamerNode(Node):
             self._latency_pending_ns = 0
             self._obstacle_latency.add(lat)
 
-    def _clock_offset(self) -> ClockOffset:
+    def _clock_offset(self, readings: int = 5) -> ClockOffset:
         """ROS clock - steady clock [ns], with its uncertainty."""
         clock = self.get_clock()
-        return clock_offset_ns(lambda: clock.now().nanoseconds)
+        return clock_offset_ns(lambda: clock.now().nanoseconds, readings=readings)
 
     def _publish_diagnostics(self) -> None:
         # follow a step of the ROS clock (NTP step, sim time); otherwise the grid stays exact

@@ -85,6 +85,8 @@ class TickSchedule:
         Beginning of slot 0 on the steady clock [s].
     clock_offset_ns : int
         ROS clock - steady clock [ns] (:func:`clock_offset_ns`, its ``offset_ns``).
+    uncertainty_ns : int
+        The bound of that measurement's error [ns] (its ``uncertainty_ns``).
 
     Attributes
     ----------
@@ -97,7 +99,8 @@ class TickSchedule:
         wake-ups more than one period late), ``early_ticks`` (wake-ups before the deadline).
     """
 
-    def __init__(self, rate: float, t0: float, clock_offset_ns: int = 0):
+    def __init__(self, rate: float, t0: float, clock_offset_ns: int = 0,
+                 uncertainty_ns: int = 0):
         if not rate > 0.0:
             raise ValidationError(f'rate: expected a positive number, got {rate!r}')
         self.dt = 1.0 / rate
@@ -105,6 +108,7 @@ class TickSchedule:
         self.t0 = t0
         self.k = 0
         self.stamp0_ns = clock_offset_ns + round(t0 * 1e9)
+        self._stamp0_uncertainty_ns = uncertainty_ns
         self.counts: Dict[str, int] = {'missed_ticks': 0, 'late_ticks': 0, 'early_ticks': 0}
 
     def deadline(self) -> float:
@@ -172,10 +176,12 @@ class TickSchedule:
 
     def anchor(self, offset: ClockOffset, tolerance_ns: int = ANCHOR_TOLERANCE_NS) -> bool:
         """Re-anchor the stamps when the ROS clock moved against the grid by more than
-        ``tolerance_ns`` plus the measurement's uncertainty (``offset``: a new
-        :func:`clock_offset_ns`); returns True if it did."""
+        ``tolerance_ns`` plus the uncertainties of the grid's measurement and of ``offset`` (a
+        new :func:`clock_offset_ns`); returns True if it did."""
         stamp0 = offset.offset_ns + round(self.t0 * 1e9)
-        if abs(stamp0 - self.stamp0_ns) > tolerance_ns + offset.uncertainty_ns:
+        if abs(stamp0 - self.stamp0_ns) > (tolerance_ns + offset.uncertainty_ns
+                                           + self._stamp0_uncertainty_ns):
             self.stamp0_ns = stamp0
+            self._stamp0_uncertainty_ns = offset.uncertainty_ns
             return True
         return False
