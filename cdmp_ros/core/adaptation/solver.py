@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport, ConstraintReport,
-                                             SolverState)
+                                             KKTResiduals, SolverState)
 from cdmp_ros.core.adaptation.problem import Problem
 from cdmp_ros.core.adaptation.verification import sample_points, verify
 from cdmp_ros.core.errors import Cancelled, ValidationError
@@ -179,6 +179,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     last = None      # (theta, multipliers, largest violation) of the last kept iterate
     jump = None      # last + the multipliers that made the next inner loop jump away from it
     n_back = 0
+    kkt_stop = config.stop_rule == 'kkt'
+    best_feasible = None   # kkt: (objective, theta, multipliers, gradient) of the lowest
+    jac = None
     for n_outer in range(1, int(config.max_outer) + 1):
         ftol = config.lbfgs_ftol
         if config.lbfgs_ftol_first is not None:
@@ -198,6 +201,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             raise
         if np.all(np.isfinite(res.x)):
             theta = res.x
+            jac = res.jac
         n_inner += int(res.nit)
         F = prob.cached_values(theta)
         if F is None:
@@ -217,17 +221,30 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         value = float(res.fun)
         if feasible:
             status = 'converged'
-            break
+            if not kkt_stop:
+                break
+            objective = value - float(np.sum(lam * (prob.alpha - F)))
+            if best_feasible is None or objective < best_feasible[0]:
+                best_feasible = (objective, theta.copy(), lam.copy(), jac)
+            if duality_gap(lam, F, alpha_aim) <= config.kkt_tol * max(1.0, objective):
+                best_feasible = None     # a KKT point: this iterate
+                break
         if budget is not None and prob.n_evaluations >= budget:
             status = 'evaluation_budget_exhausted'
             break
         if (not config.relative_step and prev is not None
                 and abs(value - prev) < config.objective_tol):
-            status = 'stalled_infeasible'
+            status = 'converged' if feasible else 'stalled_infeasible'
             break
         prev = value
         last = (theta.copy(), lam.copy(), worst)
-        lam = multiplier_update(lam, F, eta, alpha_aim, config)
+        lam = multiplier_update(lam, F, eta, alpha_aim, config,
+                                None if best_feasible is None else config.kkt_log_decrease)
+    if best_feasible is not None:
+        # kkt not reached: the feasible iterate of lowest objective (the last one may have
+        # lost feasibility while the multipliers came down)
+        _, theta, lam, jac = best_feasible
+        feasible, status = True, 'converged'
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T
     adapted = prior.copy(mu, 0.5 * (Sigma + Sigma.T))
@@ -249,8 +266,33 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports,
                               start='cold' if start is None else 'warm', n_backtracks=n_back,
+                              kkt=kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, kl,
+                                                config),
                               state=_state(prob, theta, lam))
     return adapted, report
+
+
+def duality_gap(lam: NDArray, F: NDArray, alpha_aim: NDArray) -> float:
+    """sum_i lambda_i max(F_i - alpha'_i, 0): what the multipliers still pay for slack
+    above the aim level (0 at a KKT point of the problem at alpha')."""
+    return float(np.sum(lam * np.maximum(F - alpha_aim, 0.0))) if lam.size else 0.0
+
+
+def kkt_residuals(prob: Problem, F: NDArray, lam: NDArray, jac: Optional[NDArray],
+                  alpha_aim: NDArray, alpha_stop: NDArray, objective: float,
+                  config: AdaptationConfig) -> KKTResiduals:
+    """The :class:`~cdmp_ros.core.adaptation.config.KKTResiduals` of an iterate with
+    constraint values ``F`` and multipliers ``lam`` (``jac``: the Lagrangian's gradient where
+    the inner loop ended; None: not known, reported as NaN)."""
+    gap = duality_gap(lam, F, alpha_aim)
+    rel = gap / max(1.0, objective)
+    binding = tuple(float((1.0 - np.min(F[sl])) / (1.0 - c.alpha))
+                    for c, sl in zip(prob.constraints, prob.slices))
+    feas = float(np.max(np.maximum(alpha_stop - F, 0.0))) if F.size else 0.0
+    stat = float(np.max(np.abs(jac))) if jac is not None and jac.size else float('nan')
+    reached = bool(rel <= config.kkt_tol
+                   and feas <= config.feasibility_tol * config.confidence_margin)
+    return KKTResiduals(gap, rel, stat, feas, binding, reached)
 
 
 def _state(prob: Problem, theta: NDArray, lam: NDArray) -> SolverState:
@@ -260,18 +302,20 @@ def _state(prob: Problem, theta: NDArray, lam: NDArray) -> SolverState:
 
 
 def multiplier_update(lam: NDArray, F: NDArray, eta: NDArray, alpha_aim: NDArray,
-                      config: AdaptationConfig) -> NDArray:
+                      config: AdaptationConfig,
+                      max_log_decrease: Optional[float] = None) -> NDArray:
     """One step of the exponential method of multipliers (Algorithm 1, paper 003):
     lambda * exp(eta (alpha' - F)), with alpha' the aim level (``violation_target``).
 
     With ``config.relative_step`` the exponent is divided by 1 - alpha' and clipped to
-    [-max_log_decrease, max_log_step] (:class:`AdaptationConfig`); otherwise the paper's
-    step.
+    [-max_log_decrease, max_log_step] (:class:`AdaptationConfig`; ``max_log_decrease``
+    overrides the config's: ``kkt_log_decrease`` once the ``kkt`` rule has a feasible
+    iterate); otherwise the paper's step.
     """
     C_aim = alpha_aim - F
     if config.relative_step:
-        step = np.clip(eta * C_aim / (1.0 - alpha_aim), -config.max_log_decrease,
-                       config.max_log_step)
+        down = config.max_log_decrease if max_log_decrease is None else max_log_decrease
+        step = np.clip(eta * C_aim / (1.0 - alpha_aim), -down, config.max_log_step)
     else:
         step = eta * C_aim
     return lam * np.exp(step)
