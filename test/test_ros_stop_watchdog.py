@@ -4,7 +4,8 @@ of the stop that has no bound of its own.
 
 Each case runs a small node process through ``run_node`` (real rclpy, localhost, a private
 domain) and makes one part of its stop hang forever: the middleware teardown
-(``destroy_node``), or the main loop (a ``done()`` that never returns). The test waits for the
+(``destroy_node``, also blocked in C with the GIL held), or the main loop (a ``done()``
+that never returns). The test waits for the
 node's ``ready`` line, sends SIGINT and waits (bounded) for the exit. No duration is asserted:
 what is checked is the exit code, the message and the stack of the place that hung.
 """
@@ -16,7 +17,7 @@ import threading
 import pytest
 
 from conftest import module_domain, ros_env, wait_for
-from cdmp_ros.ros.node_main import EXIT_STUCK
+from cdmp_ros.ros.node_main import EXIT_BACKSTOP, EXIT_STUCK
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(13)
@@ -37,6 +38,16 @@ def hang_forever():
     threading.Event().wait()
 
 
+def hang_holding_the_gil():
+    """Block in C with the GIL held (a PyDLL call keeps it): lock a plain pthread mutex
+    twice, as a teardown call waiting for a mutex that another thread keeps."""
+    import ctypes
+    libc = ctypes.PyDLL(None)
+    mutex = ctypes.create_string_buffer(64)     # zeroed: PTHREAD_MUTEX_INITIALIZER (glibc)
+    libc.pthread_mutex_lock(mutex)
+    libc.pthread_mutex_lock(mutex)
+
+
 class Stuck(Node):
     def __init__(self):
         super().__init__('stop_watchdog_case')
@@ -53,6 +64,8 @@ class Stuck(Node):
     def destroy_node(self):
         if HANG == 'teardown':
             hang_forever()
+        if HANG == 'gil':
+            hang_holding_the_gil()
         return super().destroy_node()
 
 
@@ -90,6 +103,16 @@ def test_a_hanging_middleware_teardown_ends_after_close_with_the_stacks():
     assert ('the node has not exited 4 s after the stop signal (its close() had returned: '
             'the middleware teardown hangs)' in text), text
     assert 'in hang_forever' in text and 'in destroy_node' in text, text
+
+
+def test_a_teardown_blocked_in_c_holding_the_gil_ends_by_the_backstop():
+    """The sim's hung stop: the Python watchdog cannot run without the GIL; faulthandler's C
+    thread ends the process with the stacks."""
+    code, text = _run('gil')
+    assert code == EXIT_BACKSTOP, text
+    assert 'closed' in text
+    assert 'Timeout (' in text, text
+    assert 'in hang_holding_the_gil' in text and 'in destroy_node' in text, text
 
 
 def test_a_main_loop_that_never_ends_exits_stuck_with_the_stacks():

@@ -25,7 +25,11 @@ that does not return): :func:`catch_stop_signals` also starts a stop watchdog
 (:func:`_watch_stop`) that sees the signal through Python's wakeup fd, and allows
 :data:`STOP_LIMIT` until ``close()`` starts and again after it returns; a node that overruns
 writes the stack of every thread to stderr and exits (:data:`EXIT_STUCK` if ``close()`` never
-started). SIGUSR1 writes the same stacks at any time (``cdmp bringup`` sends it before SIGKILL).
+started). The watchdog is Python and needs the GIL; a main thread blocked in C while holding it
+(the sim's hung stop: rclpy's teardown of an event waiting for a DDS mutex) would starve it, so
+the same bounds plus :data:`BACKSTOP_MARGIN` are also armed in faulthandler's C thread
+(``dump_traceback_later``: the stacks and exit code :data:`EXIT_BACKSTOP`). SIGUSR1 writes
+the same stacks at any time (``cdmp bringup`` sends it before SIGKILL).
 
 Usage in ``cdmp_ros/nodes/<name>.py``::
 
@@ -71,6 +75,12 @@ CLOSED = threading.Event()
 _built_at = [0.0]
 _exit_code = [0]     # run_node's exit code once close() has returned
 _watchdog: List[threading.Thread] = []
+#: [s] The GIL-free backstop (:func:`_arm_backstop`) acts this long after the Python watchdog
+#: would have.
+BACKSTOP_MARGIN = 1.0
+#: Exit code of a node ended by the backstop (faulthandler's ``exit=True``).
+EXIT_BACKSTOP = 1
+_backstop_lock = threading.Lock()
 
 
 def _on_stop_signal(signum, frame) -> None:
@@ -103,11 +113,30 @@ def _watch_stop(fd: int) -> None:
     STOP.set()
     BUILT.wait()
     start = max(signalled, _built_at[0])
+    with _backstop_lock:
+        if not CLOSING.is_set():
+            _arm_backstop(start + STOP_LIMIT - time.monotonic())
     if not CLOSING.wait(max(0.0, start + STOP_LIMIT - time.monotonic())):
         _stuck('its main loop did not end, close() never started', EXIT_STUCK)
     CLOSED.wait()
     time.sleep(STOP_LIMIT)
     _stuck('its close() had returned: the middleware teardown hangs', _exit_code[0])
+
+
+def _arm_backstop(seconds: float) -> None:
+    """Arm the GIL-free backstop of the stop watchdog: faulthandler's C thread writes every
+    thread's stack and exits with code 1 (:data:`EXIT_BACKSTOP`) ``seconds`` +
+    :data:`BACKSTOP_MARGIN` from now unless :func:`_disarm_backstop` comes first.
+
+    The Python watchdog needs the GIL to act; a main thread blocked in C while holding it (an
+    rclpy teardown call waiting for a DDS mutex: the sim's hung stop, benchmarks/RESULTS.md)
+    starves it, the backstop not."""
+    faulthandler.dump_traceback_later(max(0.0, seconds) + BACKSTOP_MARGIN, exit=True,
+                                      file=sys.stderr)
+
+
+def _disarm_backstop() -> None:
+    faulthandler.cancel_dump_traceback_later()
 
 
 def _stuck(where: str, code: int) -> None:
@@ -225,7 +254,9 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     finally:
         if node is not None:
             close = getattr(node, 'close', None)
-            CLOSING.set()
+            with _backstop_lock:    # close() bounds its own waits: no backstop meanwhile
+                CLOSING.set()
+                _disarm_backstop()
             if close is not None:
                 try:
                     close()
@@ -235,6 +266,8 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
             code = code or int(getattr(node, 'exit_code', 0))
             _exit_code[0] = code
             CLOSED.set()
+            if STOP.is_set():       # the teardown below is where the stop hung
+                _arm_backstop(STOP_LIMIT)
             executor.remove_node(node)
             node.destroy_node()
         executor.shutdown()
