@@ -1,4 +1,4 @@
-"""The launch files (launch/*.launch.py) and the README topic table, checked without ROS launch.
+"""The launch files (launch/*.launch.py) and the topic table of docs/nodes.md, checked without ROS.
 
 ``launch`` / ``launch_ros`` are not installable here, so each launch file is executed with small
 stand-ins for the modules it imports (:func:`stub_modules`): they accept exactly the keyword
@@ -8,9 +8,10 @@ included files) and returns the nodes it would start: package, executable, name,
 parameter files, parameter overrides and remappings. The tests compare those with setup.py
 (console scripts, installed files) and with ``config/graphs/demo.yaml`` (``cdmp bringup``).
 
-The topic table of the README is compared with the publishers, subscriptions and services the
-node classes create (found with ``ast`` in ``cdmp_ros/ros/``, QoS profiles evaluated in their
-module), so neither can change without the other.
+The topic and service tables of docs/nodes.md (section "Topics and services") are compared with
+the publishers, subscriptions and services the node classes create (found with ``ast`` in
+``cdmp_ros/ros/``, QoS profiles evaluated in their module), so neither can change without the
+other.
 """
 import ast
 import glob
@@ -550,16 +551,16 @@ def test_graph_comparison_detects_a_difference(monkeypatch, tmp_path):
         assert_same_graph(launched, graph)
 
 
-# -- the README topic table --------------------------------------------------------------------
+# -- the topic table of docs/nodes.md ------------------------------------------------------------
 #: Node classes of cdmp_ros/ros -> executable. Classes creating topics that are not listed here
-#: fail the test (add them here and to the README table).
+#: fail the test (add them here and to the table of docs/nodes.md).
 NODE_CLASSES = {'SimNode': 'sim', 'StreamerNode': 'streamer', 'AdapterNode': 'adapter',
                 'LearnerNode': 'learner', 'RecorderNode': 'recorder', 'PlayerNode': 'player'}
 #: Not product executables: the scripted user of ``cdmp demo``; the input gate's generic
 #: subscriptions (its callers' ``gate.subscribe(type, topic, callback, qos)`` and
 #: ``gate.subscribe_polled(...)`` are read instead).
 IGNORED_CLASSES = {'DemoDriver', 'InputGate'}
-#: Nodes whose topics are only known at run time (the bag's or the graph's topics); the README
+#: Nodes whose topics are only known at run time (the bag's or the graph's topics); docs/nodes.md
 #: describes their QoS rule in prose.
 DYNAMIC_NODES = {'recorder', 'player'}
 CREATE = {'create_publisher': 'publishes', 'create_subscription': 'subscribes',
@@ -648,7 +649,7 @@ def code_endpoints():
                     names = value(call.args[1])
                 except NameError:
                     # a topic named by a parameter, read as an attribute (``self.X`` or
-                    # ``cfg.X``): the README lists it as ``<X>``
+                    # ``cfg.X``): docs/nodes.md lists it as ``<X>``
                     if not isinstance(call.args[1], ast.Attribute):
                         raise
                     names = [f'<{call.args[1].attr}>']
@@ -664,7 +665,7 @@ def code_endpoints():
                     f'{where}: {node} {role} with a type, name or QoS known only at run time '
                     f'({exc}); a topic name taken from a parameter is read from an attribute '
                     f'(self.X = the parameter value; create_publisher(T, self.X, qos)) and '
-                    f'listed in the README table as <X>')
+                    f'listed in the table of docs/nodes.md as <X>')
                 continue
             for msg_type in types_:
                 for name in names:
@@ -678,10 +679,10 @@ def code_endpoints():
 
 
 def readme_tables():
-    """The topic and service tables of the README section "Topics and services"."""
-    text = open(os.path.join(ROOT, 'README.md')).read()
+    """The topic and service tables of the section "Topics and services" of docs/nodes.md."""
+    text = open(os.path.join(ROOT, 'docs', 'nodes.md')).read()
     section = text.split('### Topics and services', 1)
-    assert len(section) == 2, 'README has no "### Topics and services" section'
+    assert len(section) == 2, 'docs/nodes.md has no "### Topics and services" section'
     section = section[1].split('\n#', 1)[0]
     tables, current = [], None
     for line in section.splitlines():
@@ -699,10 +700,10 @@ def readme_tables():
     topics, services = set(), set()
     for row in by_first['topic']['rows']:
         depth = re.fullmatch(r'keep last (\d+)', row['history'])
-        assert depth, f'README topic {row["topic"]}: history {row["history"]!r}'
+        assert depth, f'docs/nodes.md topic {row["topic"]}: history {row["history"]!r}'
         assert row['role'] in ('publishes', 'subscribes'), row
         if row['role'] == 'publishes':
-            assert row['rate'], f'README topic {row["topic"]}: no rate for the publisher'
+            assert row['rate'], f'docs/nodes.md topic {row["topic"]}: no rate for the publisher'
         for node in row['node'].split(','):
             topics.add((row['topic'], row['type'], node.strip(), row['role'],
                         row['reliability'], row['durability'], int(depth.group(1))))
@@ -719,10 +720,10 @@ def test_readme_topic_table_matches_the_code():
     missing = sorted(code_topics - readme_topics)
     stale = sorted(readme_topics - code_topics)
     assert not missing and not stale, (
-        f'README topic table out of date.\nIn the code, not in the README: {missing}\n'
-        f'In the README, not in the code: {stale}')
+        f'docs/nodes.md topic table out of date.\nIn the code, not in docs/nodes.md: {missing}\n'
+        f'In docs/nodes.md, not in the code: {stale}')
     assert readme_services == code_services, (
-        f'README services: {sorted(readme_services ^ code_services)} differ from the code')
+        f'docs/nodes.md services: {sorted(readme_services ^ code_services)} differ from the code')
 
 
 def test_readme_table_check_detects_a_difference():
