@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, monte_carlo_satisfaction
 from cdmp_ros.core.adaptation.constraints import (DofPoint, JointLimit, MutualAvoidance, Repeller,
                                                   SmoothnessConstraint)
 from cdmp_ros.core.promp.gaussian import (UnscentedTransform, batched_cholesky, cholesky_backward,
@@ -219,7 +220,7 @@ def _fd_rows(fn, m, S, params, h=1e-6):
     return gm, gS
 
 
-@pytest.mark.parametrize('tail', ['saddlepoint', 'gamma'])
+@pytest.mark.parametrize('tail', ['saddlepoint', 'gamma', 'conservative'])
 @pytest.mark.parametrize('k', [2, 3])
 def test_sphere_probability_rows_gradients_match_finite_differences(tail, k, rng):
     """Repeller and waypoint rows, in the tails (violation probabilities 1e-5 ... 1e-1) and
@@ -242,6 +243,30 @@ def test_sphere_probability_rows_gradients_match_finite_differences(tail, k, rng
     # the warm start carried in params['state'] does not change the result
     F2 = _Sphere.probability_rows(m, S, dict(params, state={}))[0]
     assert np.allclose(F, F2, rtol=1e-12, atol=0)
+
+
+def test_the_conservative_tail_takes_the_larger_violation_per_row(rng):
+    from cdmp_ros.core.adaptation.constraints.spheres import _Sphere
+    n = 40
+    m = rng.normal(0.0, 0.4, (n, 3))
+    B = rng.normal(0.0, 0.3, (n, 3, 3))
+    S = B @ np.swapaxes(B, 1, 2) + 0.01 * np.eye(3)
+    center = rng.normal(0.0, 0.4, (n, 3))
+    r2 = quadratic_moments(m, S, center)[0] * np.exp(rng.uniform(-2.5, 1.5, n))
+    inside = np.arange(n) % 2 == 0
+    params = {'center': center, 'r2': r2, 'inside': inside}
+    laws = {t: _Sphere.probability_rows(m, S, dict(params, tail=t, state={}))
+            for t in ('saddlepoint', 'gamma', 'conservative')}
+    viol = {t: 1.0 - laws[t][0] for t in laws}    # every row's violation probability
+    np.testing.assert_array_equal(viol['conservative'],
+                                  np.maximum(viol['saddlepoint'], viol['gamma']))
+    # both laws are picked somewhere (repellers' Gamma tail is the lighter one, waypoints'
+    # the heavier one: the rows differ)
+    picked = viol['gamma'] > viol['saddlepoint']
+    assert picked.any() and (~picked).any()
+    np.testing.assert_array_equal(laws['conservative'][1][picked], laws['gamma'][1][picked])
+    np.testing.assert_array_equal(laws['conservative'][1][~picked],
+                                  laws['saddlepoint'][1][~picked])
 
 
 def test_saddlepoint_tail_is_calibrated_where_gamma_is_not(rng):

@@ -333,11 +333,12 @@ class _Batch:
         self.guide = guide
         self.has_guide = guide is not None and bool(np.any(params.get('inside', False)))
         self.kernel = None
-        if issubclass(type(cons[0]), _Sphere) and fn is _Sphere.probability_rows:
+        tail = params.get('tail', 'saddlepoint')
+        if (issubclass(type(cons[0]), _Sphere) and fn is _Sphere.probability_rows
+                and tail in ('gamma', 'saddlepoint')):   # 'conservative': the reference
             ins = np.asarray(params['inside'], bool)
             self.params['sign'] = np.where(ins, 1.0, -1.0)
-            self.kernel = (sphere_gamma_rows if params.get('tail', 'saddlepoint') == 'gamma'
-                           else sphere_saddle_rows)
+            self.kernel = sphere_gamma_rows if tail == 'gamma' else sphere_saddle_rows
         elif issubclass(type(cons[0]), JointLimit) and fn is JointLimit.probability_rows:
             self.kernel = limit_rows
         # the points' moments this batch reads, and flat indices of its rows into them

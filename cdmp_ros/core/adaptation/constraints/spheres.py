@@ -23,6 +23,16 @@ GUIDE_Z = -3.0
 GUIDE_SLOPE = 0.00443
 
 
+def _gamma_rows(m, S, params):
+    """P(|x - x_bar|^2 <= d^2) per row by the Gamma match of Eq. 17-18 (Eq. 15's moments),
+    with its gradients w.r.t. the point's mean and covariance."""
+    E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
+    G, dG_dE, dG_dV = gamma_cdf(E, V, params['r2'])
+    dG_dm = dG_dE[:, None] * dE_dm + dG_dV[:, None] * dV_dm
+    dG_dS = dG_dE[:, None, None] * dE_dS + dG_dV[:, None, None] * dV_dS
+    return G, dG_dm, dG_dS
+
+
 class _Sphere(Constraint):
     inside = True  # waypoint: satisfied inside the ball
 
@@ -53,19 +63,24 @@ class _Sphere(Constraint):
     def probability_rows(m, S, params):
         """P(|x - x_bar|^2 <= d^2) (waypoints) or its complement (repellers) per row.
 
-        ``params`` may carry ``'tail'`` ('saddlepoint', the default, or 'gamma') and
+        ``params`` may carry ``'tail'`` ('saddlepoint', the default, 'gamma' or
+        'conservative': per row the law with the larger violation probability) and
         ``'state'``, a dict kept between calls on the same rows (the saddle points' warm
         start), as the optimiser's batches do (:class:`AdaptationConfig.tail`)."""
         inside = params['inside']
-        if params.get('tail', 'saddlepoint') == 'gamma':
-            # Gamma approximation of |x - x_bar|^2 (Eq. 17-18 with Eq. 15's moment matching)
-            E, V, dE_dm, dE_dS, dV_dm, dV_dS = quadratic_moments(m, S, params['center'])
-            G, dG_dE, dG_dV = gamma_cdf(E, V, params['r2'])
-            dG_dm = dG_dE[:, None] * dE_dm + dG_dV[:, None] * dV_dm
-            dG_dS = dG_dE[:, None, None] * dE_dS + dG_dV[:, None, None] * dV_dS
+        tail = params.get('tail', 'saddlepoint')
+        if tail == 'gamma':
+            G, dG_dm, dG_dS = _gamma_rows(m, S, params)
         else:
             G, dG_dm, dG_dS = quadratic_form_cdf(m, S, params['center'], params['r2'],
                                                  params.get('state'))
+            if tail == 'conservative':
+                Gg, dGg_dm, dGg_dS = _gamma_rows(m, S, params)
+                # the violation is G for a repeller, 1 - G for a waypoint: keep the larger
+                gamma = np.where(inside, Gg < G, Gg > G)
+                G = np.where(gamma, Gg, G)
+                dG_dm = np.where(gamma[:, None], dGg_dm, dG_dm)
+                dG_dS = np.where(gamma[:, None, None], dGg_dS, dG_dS)
         if np.all(inside):
             return G, dG_dm, dG_dS
         if not np.any(inside):

@@ -1,0 +1,69 @@
+"""The ProMP demo's adaptation re-solved offline with each probability law of the quadratic
+forms (``AdaptationConfig.tail``), each result sampled through the kinematics.
+
+From a ``cdmp demo --kind promp`` output directory: the learner's primitive (the first on
+``/primitive``), the sphere's last position, the adapter's default request settings
+(``AdaptRequestConfig``, ``avoid_links`` panda_link4, the request continues the motion); per
+law: converged, KL, evaluations, wall time and the per-step maximum of the sampled violation
+(``--samples`` trajectories, 50 steps) of the end effector and panda_link4 (allowed 1 - alpha).
+
+Run: .venv/bin/python benchmarks/link_point_resolve.py out/demo_promp \
+         --tails gamma conservative saddlepoint
+"""
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+sys.path.insert(0, os.path.join(REPO, 'benchmarks'))
+
+from cdmp_ros.cli.demo_promp import _primitives, _promp  # noqa: E402
+from cdmp_ros.core.adaptation.config import TAILS, AdaptRequestConfig  # noqa: E402
+from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem  # noqa: E402
+from cdmp_ros.core.adaptation.solver import solve_levels  # noqa: E402
+from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
+from cdmp_ros.core.kinematics.closest import Sphere  # noqa: E402
+from cdmp_ros.sim.robot_specs import panda_urdf_path  # noqa: E402
+from link_point_tail import MARGIN, N_STEPS, sampled  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('out', help='output directory of cdmp demo --kind promp')
+    ap.add_argument('--tails', nargs='+', default=['gamma', 'conservative', 'saddlepoint'],
+                    choices=TAILS)
+    ap.add_argument('--samples', type=int, default=200_000)
+    args = ap.parse_args(argv)
+    chain = panda_chain(panda_urdf_path())
+    with open(os.path.join(args.out, 'driver.json')) as f:
+        driver = json.load(f)
+    obs = driver['obstacle']
+    center = np.asarray(driver['crossing'][-1] if driver.get('crossing') else obs['center'],
+                        float)
+    prior = _promp(_primitives(os.path.join(args.out, 'bag'), '/primitive')[0][1], chain)
+    cfg = AdaptRequestConfig(avoid_links=('panda_link4',))
+    req = AdaptRequest(prior, (Sphere(tuple(center), float(obs['radius'])),), continues=True)
+    rng = np.random.default_rng(3)
+    print('| law | converged | KL | evaluations | wall [ms] | end effector per-step max | '
+          'panda_link4 |')
+    print('|---|---|---|---|---|---|---|')
+    for tail in args.tails:
+        built = build_problem(req, chain, cfg)
+        t = time.perf_counter()
+        adapted, rep = solve_levels(built.prior, built.constraints,
+                                    dataclasses.replace(built.config, tail=tail))
+        wall = time.perf_counter() - t
+        S = sampled(adapted, chain, center, float(obs['radius']) + MARGIN,
+                    np.linspace(0.0, 1.0, N_STEPS), args.samples, rng)
+        print(f'| {tail} | {rep.converged} | {rep.kl:.3f} | {rep.n_evaluations} | '
+              f'{wall * 1e3:.0f} | {S[:, 0].max():.5f} | {S[:, 1].max():.5f} |', flush=True)
+
+
+if __name__ == '__main__':
+    main()
