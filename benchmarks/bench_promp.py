@@ -25,7 +25,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 
-from cdmp_ros.core.adaptation.solver import adapt  # noqa: E402
+from cdmp_ros.core.adaptation.guarantee import adapt  # noqa: E402
 from cdmp_ros.experiments.promp_problems import make_problem, panda_problem  # noqa: E402
 
 

@@ -62,7 +62,7 @@ def panda_primitive_json():
 def realtime_listener(priority):
     """SCHED_FIFO for the listener's main thread (before rclpy.init: DDS threads inherit)."""
     if priority:
-        from cdmp_ros.ros.realtime import configure_thread
+        from cdmp_ros.common.realtime import configure_thread
         st = configure_thread(priority)
         if not st.ok:
             print(f'listener: {st.message}', file=sys.stderr)

@@ -14,7 +14,7 @@ What it does (root only, as CI is):
    reach the other namespace and nothing else. It never touches a host interface.
 2. Starts the sim (``config/sim.yaml``) and a probe in the robot namespace, and the streamer,
    adapter and learner (``config/*.yaml``) in the workstation namespace, every process with
-   ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (the setting of the README's two-machine section),
+   ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (the setting of docs/nodes.md, several machines),
    the private ``--domain`` and ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` (no shared-memory
    shortcut: every sample crosses the veth as it would cross a network).
 3. The probe waits until references reach the sim, then:

@@ -142,11 +142,8 @@ class Harness(NodeHarness):
         return msg
 
     def sphere(self, center, radius, mid=1, ns='test'):
-        from visualization_msgs.msg import Marker
-        m = Marker(ns=ns, id=mid, type=Marker.SPHERE, action=Marker.ADD)
-        m.header.frame_id = 'panda_link0'
+        """A SPHERE marker of ``radius`` [m] at ``center``, stamped now."""
+        from markers import marker
+        m = marker(ns=ns, id=mid, position=center, size=2.0 * radius)
         m.header.stamp = self.node.get_clock().now().to_msg()
-        m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in center)
-        m.pose.orientation.w = 1.0
-        m.scale.x = m.scale.y = m.scale.z = 2.0 * radius
         return m

@@ -143,16 +143,14 @@ def joint_state_rejected(h, publish, joint_names, stamp_ns):
 
 def marker_rejected(h, publish, stamp=None):
     """``send_rejected`` for an obstacles topic: a SPHERE in the frame ``token``."""
-    from visualization_msgs.msg import Marker, MarkerArray
+    from visualization_msgs.msg import MarkerArray
+
+    from markers import marker
 
     def send(token):
-        m = Marker(ns='evidence', id=0, type=Marker.SPHERE, action=Marker.ADD)
-        m.header.frame_id = token
+        m = marker(ns='evidence', id=0, position=(2.0, 0.0, 0.0), frame=token)
         if stamp is not None:
             m.header.stamp = stamp()
-        m.pose.position.x = 2.0
-        m.pose.orientation.w = 1.0
-        m.scale.x = m.scale.y = m.scale.z = 0.1
         publish(MarkerArray(markers=[m]))
     return send
 

@@ -4,8 +4,8 @@ the Gamma approximation), and the optimiser's outcome checked by sampling."""
 import numpy as np
 import pytest
 
-from cdmp_ros.core.adaptation.solver import (AdaptationConfig, Problem, adapt,
-                                             monte_carlo_satisfaction)
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, Problem, monte_carlo_satisfaction
 from cdmp_ros.core.adaptation.constraints import (DofPoint, Hyperplane, JointLimit,
                                                   MutualAvoidance, NonConvexCorner, Point,
                                                   Repeller, SmoothnessConstraint, UnboundWaypoint,

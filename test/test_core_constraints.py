@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, monte_carlo_satisfaction
 from cdmp_ros.core.adaptation.constraints import (DofPoint, JointLimit, MutualAvoidance, Repeller,
                                                   SmoothnessConstraint)
 from cdmp_ros.core.promp.gaussian import (UnscentedTransform, batched_cholesky, cholesky_backward,

@@ -12,9 +12,10 @@ from cdmp_ros.core.coupling.terms import (DampingConfig, LimitScale, coupling_3d
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain, planar_chain
-from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere, link_closest_point
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling, joint_coupling
+from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
 from cdmp_ros.core.dmp.transform import TanhTransform
+from closest_oracle import link_closest_point, segment_obstacle
 
 PANDA_URDF = pybullet_data.getDataPath() + '/franka_panda/panda.urdf'
 DAMP = DampingConfig(epsilon=0.02, lambda_max=0.05)
@@ -273,9 +274,10 @@ def test_obstacle_coupling_matches_reference_panda(panda, rng):
         n_active += np.abs(ref).max() > 0
         assert len(coupling.last_distances) == 3
     assert n_active >= 8
-    np.testing.assert_allclose(
-        joint_coupling(panda, q, None, obstacles, ['panda_link3', 'panda_link5'], sphere_field,
-                       box_field, config), got, atol=1e-12)
+    # a fresh coupling (nothing cached) and qd None (zero velocity) give the same result
+    fresh = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], sphere_field, box_field,
+                             config)
+    np.testing.assert_allclose(fresh.joint_acceleration(q, None, obstacles), got, atol=1e-12)
     # nothing within reach: exactly zero
     assert coupling.joint_acceleration(q, None, [Sphere((5.0, 5.0, 5.0), 0.1)]) == [0.0] * 7
 
@@ -288,7 +290,7 @@ def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, l
     (damped_pinv); ``limits = (onset, lock)`` (the CouplingConfig defaults): the limit-aware
     Eq. 12 with the weights of ``limit_scale``, None: Eq. 12 as is. Returns (dq, distances)."""
     scale = None if limits is None else limit_scale(q, chain.lower, chain.upper, *limits)
-    from cdmp_ros.core.kinematics.closest import box_signed_distance, segment_obstacle
+    from cdmp_ros.core.kinematics.closest import box_signed_distance
     Q = np.array([q])
     x, J = chain.forward_and_jacobian(Q, [PointOfInterest('ee')])
     x, J_e = x[0, 0], J[0, 0]

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig
 from cdmp_ros.core.adaptation.constraints.parse import parse_constraint_set
 from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import CdmpError, ConstraintSetError, PrimitiveFileError

@@ -8,8 +8,8 @@ import pytest
 
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.promp.promp import ProMP, RbfBasis
-from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict
-from cdmp_ros.core.promp.primitive_file import promp_body, promp_from_dict
+from cdmp_ros.core.primitive_io import primitive_from_dict, primitive_to_dict, promp_from_dict
+from cdmp_ros.core.promp.primitive_file import base64_length, promp_body
 
 
 def _random_promp(rng, D=2, M=6):
@@ -117,7 +117,7 @@ def test_the_compact_covariance_is_exact_and_checked_before_decoding(rng, repo_r
     ``cov_w``, validates against the schema, and a wrong size, bad characters, a non-finite
     entry, an asymmetric matrix or both forms at once are refused naming the field."""
     import base64
-    from cdmp_ros.core.primitive_io import base64_length, validate_primitive_dict
+    from cdmp_ros.core.primitive_io import validate_primitive_dict
     p = _random_promp(rng)
     p.joint_names = ['a', 'b']
     doc = json.loads(json.dumps(primitive_to_dict(p)))

@@ -13,7 +13,7 @@ Everything is seeded: the same problems and samples on every run.
 import numpy as np
 from scipy import stats
 
-from cdmp_ros.core.adaptation.solver import adapt
+from cdmp_ros.core.adaptation.guarantee import adapt
 from cdmp_ros.experiments.promp_problems import ALPHA, make_problem, sampled_violations
 
 N_SAMPLES = 200_000

@@ -7,7 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, monte_carlo_satisfaction
 from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
 from cdmp_ros.experiments import exp_planar
 

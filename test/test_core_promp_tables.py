@@ -63,7 +63,7 @@ def test_reproduce_promp_tables_full(tmp_path, repo_root):
 
 
 def test_confidence_margin_enforces_the_stricter_level(rng):
-    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
     from cdmp_ros.experiments.exp_promp_tables import parse_margins
     p = make_problem('table2', 2, rng, relative_step=True, confidence_margin=0.2)
     assert p.config.confidence_margin == 0.2

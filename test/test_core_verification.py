@@ -12,7 +12,7 @@ from cdmp_ros.core.adaptation.constraints import (ChainPoint, DofPoint, Hyperpla
                                                   NonConvexCorner, Repeller, UnboundWaypoint,
                                                   Waypoint)
 from cdmp_ros.core.adaptation.guarantee import default_samples
-from cdmp_ros.core.adaptation.solver import adapt
+from cdmp_ros.core.adaptation.guarantee import adapt
 from cdmp_ros.core.adaptation.verification import (clopper_pearson_upper, critical_count,
                                                    detectable_violation,
                                                    trajectory_accepted, verify)

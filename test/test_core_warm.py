@@ -9,7 +9,8 @@ import pytest
 
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, SolverState
 from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, ee_path, run_request
-from cdmp_ros.core.adaptation.solver import adapt, solve_levels
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import solve_levels
 from cdmp_ros.core.adaptation.warm import (KL_SLACK, PREDICT_ATOL, PREDICT_RTOL, WarmStarts,
                                            obstacle_shift, predict_state)
 from cdmp_ros.core.errors import ValidationError

@@ -15,6 +15,7 @@ import pytest
 
 from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, reach_cdmp,
                              reach_promp, start_adapter, stop_process)
+from markers import MARKER_CASES, bad_marker
 from cdmp_ros.core.primitive_io import dumps_primitive
 
 pytestmark = pytest.mark.ros
@@ -75,7 +76,7 @@ def alive(h, proc):
 
 
 def promp_of(d):
-    from cdmp_ros.core.promp.primitive_file import promp_from_dict
+    from cdmp_ros.core.primitive_io import promp_from_dict
     return promp_from_dict(d)
 
 
@@ -457,48 +458,11 @@ def test_bad_goal_points_are_rejected(graph, case):
     alive(h, proc)
 
 
-def _marker(h, **kw):
-    m = h.sphere([2.0, 0.0, 0.0], 0.05, mid=7, ns='bad')
-    m.header.stamp.sec = m.header.stamp.nanosec = 0
-    for k, v in kw.items():
-        if k.startswith('scale_'):
-            setattr(m.scale, k[6:], v)
-        elif k == 'x':
-            m.pose.position.x = v
-        elif k == 'stamp':
-            m.header.stamp.sec = int(time.time() + v)
-        else:
-            setattr(m, k, v)
-    return m
-
-
-MARKER_CASES = {
-    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
-    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
-    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
-    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
-    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
-    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
-    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
-    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
-    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
-                                       'DELETEALL (3), got 5'),
-    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
-    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
-    'other_frame': (dict(), "expected the robot base frame 'panda_link0'"),
-    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
-    'future_stamp': (dict(stamp=3600), 'in the future'),
-}
-
-
 @pytest.mark.parametrize('case', sorted(MARKER_CASES))
 def test_bad_markers_are_rejected(graph, case):
     from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
-    kw, text = MARKER_CASES[case]
-    m = _marker(h, **kw)
-    if case == 'other_frame':
-        m.header.frame_id = 'camera'
+    m, text = bad_marker(case)
     t0 = time.monotonic()
     h.publish('obstacles', MarkerArray(markers=[m]))
     assert h.wait_diag(text, t0, name='input obstacles')

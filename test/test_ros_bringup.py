@@ -258,7 +258,7 @@ def test_the_node_preexec_loads_nothing_in_the_child(monkeypatch):
     """The ``preexec_fn`` runs in the child of a multi-threaded parent (the output pumps),
     where loading a library may deadlock (``find_library`` even starts ``ldconfig``): the
     parent loads the C library when it makes the function, so the child only calls prctl."""
-    import cdmp_ros.core.prctl as prctl_mod
+    import cdmp_ros.common.prctl as prctl_mod
     from cdmp_ros.cli.cmd_bringup import _terminate_with_parent
     monkeypatch.setattr(prctl_mod, '_libc', None)
     preexec = _terminate_with_parent(os.getpid())

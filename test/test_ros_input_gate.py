@@ -436,7 +436,7 @@ def test_a_primitive_replaced_before_it_was_parsed_is_reported():
     losing it silently; primitive and adapted_primitive wait in separate slots (a restarted
     streamer needs both latched messages)."""
     from cdmp_ros.ros.input_gate import reason_category
-    from cdmp_ros.ros.latest_worker import LatestWorker
+    from cdmp_ros.common.latest_worker import LatestWorker
     worker = LatestWorker(lambda req: req, lambda req, exc: None, name='test',
                           key=lambda req: req[0])  # as the streamer's; not started
     assert worker.submit(('primitive', 'a')) is None

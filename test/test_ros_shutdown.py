@@ -388,7 +388,7 @@ def test_a_signal_during_start_up_ends_the_node_cleanly(world, node):
 def test_adapt_is_cancelled_by_should_stop():
     """The adapter's shutdown cancels a solve within one evaluation of the Lagrangian."""
     from adapter_harness import reach_promp
-    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
     from cdmp_ros.core.adaptation.constraints.limits import JointLimit
     from cdmp_ros.core.errors import Cancelled
     calls = []

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
+from markers import MARKER_CASES, bad_marker, marker
 from sim_harness import (LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, stop_process,
                          UPPER)
 
@@ -158,26 +159,6 @@ def test_shuffled_joint_names_are_mapped(graph):
     go_home(h)
 
 
-def _marker(ns='obs', id=1, kind='sphere', position=(0.6, 0.0, 0.5), size=0.1, **kw):
-    from visualization_msgs.msg import Marker
-    m = Marker(ns=ns, id=id, type=Marker.SPHERE if kind == 'sphere' else Marker.CUBE,
-               action=Marker.ADD)
-    m.header.frame_id = 'panda_link0'
-    m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, position)
-    m.pose.orientation.w = 1.0
-    m.scale.x = m.scale.y = m.scale.z = float(size)
-    for k, v in kw.items():
-        if k.startswith('scale_'):
-            setattr(m.scale, k[6:], v)
-        elif k == 'x':
-            m.pose.position.x = v
-        elif k == 'stamp':
-            m.header.stamp.sec = int(time.time() + v)
-        else:
-            setattr(m, k, v)
-    return m
-
-
 def _publish_markers(h, *markers):
     from visualization_msgs.msg import MarkerArray
     h.publish('obstacles', MarkerArray(markers=list(markers)))
@@ -188,12 +169,12 @@ def test_obstacles_change_the_reported_distance(graph):
     h, proc, _ = graph
 
     def add_modify_delete():
-        _publish_markers(h, _marker(position=(0.75, 0.0, 0.5), size=0.1))  # ~0.3 m from the hand
+        _publish_markers(h, marker(position=(0.75, 0.0, 0.5), size=0.1))  # ~0.3 m from the hand
         assert h.wait_state(lambda m, kv: kv.get('obstacles') == '1'
                             and float(kv['min_obstacle_distance_m']) < 1.0)
         d1 = float(h.last_state()[1]['min_obstacle_distance_m'])
         assert 0.2 < d1 < 0.4, d1
-        _publish_markers(h, _marker(position=(0.65, 0.0, 0.5), size=0.1))  # MODIFY: 0.1 m closer
+        _publish_markers(h, marker(position=(0.65, 0.0, 0.5), size=0.1))  # MODIFY: 0.1 m closer
         assert h.wait_state(lambda m, kv: float(kv['min_obstacle_distance_m']) < d1 - 0.05)
         kv = h.last_state()[1]
         d2 = float(kv['min_obstacle_distance_m'])
@@ -214,8 +195,8 @@ def test_contact_when_the_arm_is_driven_into_a_box(graph):
     n0 = int(kv0['contacts_since_start'])
     # a 6 cm cube on the circle of the hand, 0.7 rad further around joint 1 (4-7 cm away)
     a = 0.7
-    box = _marker(ns='box', id=3, kind='cube', size=0.06,
-                  position=(0.307 * np.cos(a), 0.307 * np.sin(a), 0.56))
+    box = marker(ns='box', id=3, kind='cube', size=0.06,
+                 position=(0.307 * np.cos(a), 0.307 * np.sin(a), 0.56))
     t0 = time.monotonic()
 
     def add_box():
@@ -338,32 +319,10 @@ def test_reference_velocity_above_the_limit_is_clipped(graph):
     go_home(h)
 
 
-MARKER_CASES = {
-    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
-    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
-    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
-    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
-    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
-    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
-    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
-    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
-    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
-                                       'DELETEALL (3), got 5'),
-    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
-    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
-    'other_frame': (dict(), "expected the robot base frame 'panda_link0'"),
-    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
-    'future_stamp': (dict(stamp=3600), 'in the future'),
-}
-
-
 @pytest.mark.parametrize('case', sorted(MARKER_CASES))
 def test_bad_markers_are_rejected(graph, case):
     h, proc, _ = graph
-    kw, text = MARKER_CASES[case]
-    m = _marker(**dict(dict(ns='bad', id=7, position=(2.0, 0.0, 0.0)), **kw))
-    if case == 'other_frame':
-        m.header.frame_id = 'camera'
+    m, text = bad_marker(case)
     t0 = time.monotonic()
     _publish_markers(h, m)
     assert h.wait_diag(text, t0, name='sim: input obstacles'), [
@@ -388,14 +347,14 @@ def test_flooding_is_dropped_and_reported(graph):
             name='sim: input joint_reference')), [
             d[1:3] for d in h.diag_messages if d[0] > t0][-6:]
         assert h.wait_state(lambda m, kv: int(kv.get('rejected_flooding', 0)) > 0)
-        msg = MarkerArray(markers=[_marker(ns='flood', id=1, position=(2.0, 0.0, 0.0))])
+        msg = MarkerArray(markers=[marker(ns='flood', id=1, position=(2.0, 0.0, 0.0))])
         assert flood(h, 'obstacles', msg, lambda: h.wait_diag(
             'flooding: more than 5 messages/s', t0, timeout=0.0, name='sim: input obstacles'))
         alive(h, proc)
     finally:
         assert h.set_parameter('max_reference_rate', 200.0).successful
         assert h.set_parameter('max_input_rate', 50.0).successful
-    _publish_markers(h, _marker(ns='flood', action=3))
+    _publish_markers(h, marker(ns='flood', action=3))
     assert h.wait_state(lambda m, kv: kv.get('obstacles') == '0')
 
 
@@ -462,7 +421,7 @@ def test_runtime_parameter_changes_are_validated(graph):
 
 
 def test_reason_categories_and_rate_limiter():
-    from cdmp_ros.core.rate_limit import RateLimiter
+    from cdmp_ros.common.rate_limit import RateLimiter
     from cdmp_ros.ros.input_gate import reason_category
     assert reason_category("joint_reference.position of 'a': expected a finite value, got nan"
                            ) == 'non_finite'
@@ -474,14 +433,3 @@ def test_reason_categories_and_rate_limiter():
     assert sum(lim.allow(0.0) for _ in range(50)) == 10 and lim.dropped == 40
     assert sum(lim.allow(0.05) for _ in range(50)) == 5  # 0.05 s refills 5 tokens
     assert sum(lim.allow(t * 0.01) for t in range(6, 106)) >= 99  # 100/s passes
-
-
-def test_rate_limiter_imports_neither_numpy_nor_scipy():
-    """Node processes import it at start-up: it must stay cheap (scipy costs ~1.5 s of CPU)."""
-    import subprocess
-    import sys
-    code = ('import sys; import cdmp_ros.core.rate_limit; '
-            'print(sorted(m for m in ("numpy", "scipy") if m in sys.modules))')
-    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                         check=True).stdout.strip()
-    assert out == '[]', out

@@ -26,7 +26,7 @@ GOAL_TOL = 0.01  # rad; settled at the end of the reference
 @pytest.fixture(scope='module')
 def primitives():
     """The original and the adapted ProMP of the experiment, at a reduced size."""
-    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
     from cdmp_ros.experiments import exp_dual_arm as exp
     prior = exp.learn_prior(exp.load_demonstrations(), n_basis=5)
     groups = exp.constraints(exp.cell_chains())

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
+from markers import MARKER_CASES, bad_marker
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, Harness,
                               max_acceleration, reach_cdmp, start_streamer, stop_process)
@@ -253,62 +254,15 @@ def test_goal_outside_the_limits_is_clipped_and_reported(graph):
     h.publish('goal', h.joint_state(Q_GOAL))
 
 
-def _marker(**kw):
-    from visualization_msgs.msg import Marker
-    m = Marker(ns='bad', id=7, type=Marker.SPHERE, action=Marker.ADD)
-    m.header.frame_id = 'panda_link0'
-    m.pose.position.x = 2.0
-    m.scale.x = m.scale.y = m.scale.z = 0.1
-    for k, v in kw.items():
-        if k.startswith('scale_'):
-            setattr(m.scale, k[6:], v)
-        elif k == 'x':
-            m.pose.position.x = v
-        elif k == 'stamp':
-            m.header.stamp.sec = int(time.time() + v)
-        else:
-            setattr(m, k, v)
-    return m
-
-
-MARKER_CASES = {
-    'negative_scale': (dict(scale_x=-0.1), 'scale.x: expected a finite positive size'),
-    'zero_scale': (dict(scale_x=0.0), 'scale.x: expected a finite positive size'),
-    'huge_scale': (dict(scale_x=1e6), 'scale.x: expected at most 10.0 m'),
-    'nan_scale': (dict(scale_x=float('nan')), 'scale.x: expected a finite positive size'),
-    'nan_position': (dict(x=float('nan')), 'pose.position.x: expected a finite value'),
-    'far_away': (dict(x=1e9), 'expected within 100.0 m'),
-    'unknown_type': (dict(type=3), 'type: expected SPHERE (2) or CUBE (1), got 3 (CYLINDER)'),
-    'unsupported_type': (dict(type=11), 'got 11 (TRIANGLE_LIST)'),
-    'unknown_action': (dict(action=5), 'action: expected ADD/MODIFY (0), DELETE (2) or '
-                                       'DELETEALL (3), got 5'),
-    'delete_unknown': (dict(action=2, id=999), 'DELETE of unknown obstacle'),
-    'cube_bad_scale': (dict(type=1, scale_z=-1.0), 'scale.z: expected a finite positive size'),
-    'past_stamp': (dict(stamp=-86400), 'markers[0].header.stamp: stamp 86400'),
-    'future_stamp': (dict(stamp=3600), 'in the future'),
-}
-
-
 @pytest.mark.parametrize('case', sorted(MARKER_CASES))
 def test_bad_markers_are_rejected(graph, case):
     from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
-    kw, text = MARKER_CASES[case]
-    t0 = time.monotonic()
-    h.publish('obstacles', MarkerArray(markers=[_marker(**kw)]))
-    assert h.wait_diag(text, t0, name='input obstacles'), h.diag_messages[-3:]
-    assert h.last_state()[1].get('obstacles') == '0'
-    stream_continues(h, proc)
-
-
-def test_marker_in_another_frame_is_rejected(graph):
-    from visualization_msgs.msg import MarkerArray
-    h, proc, _ = graph
-    m = _marker()
-    m.header.frame_id = 'camera'
+    m, text = bad_marker(case)
     t0 = time.monotonic()
     h.publish('obstacles', MarkerArray(markers=[m]))
-    assert h.wait_diag("expected the robot base frame 'panda_link0'", t0, name='input obst')
+    assert h.wait_diag(text, t0, name='input obstacles'), h.diag_messages[-3:]
+    assert h.last_state()[1].get('obstacles') == '0'
     stream_continues(h, proc)
 
 

@@ -9,13 +9,13 @@ import pytest
 
 from cdmp_ros.core.coupling.terms import end_effector_term, link_term
 from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
-from cdmp_ros.core.kinematics.closest import segment_obstacle
 from cdmp_ros.experiments.reaching_coupling import (HoldGains, PANDA_LINK_RADIUS,
                                                     PANDA_SEGMENTS, ReachingCoupling,
                                                     board_field, board_obstacle)
 from cdmp_ros.experiments.results import rows_by_name
 from cdmp_ros.sim import World
 from cdmp_ros.sim.scenes import build_reaching_scene, nominal_path
+from closest_oracle import segment_obstacle
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

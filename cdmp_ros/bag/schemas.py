@@ -127,15 +127,6 @@ def schema_text(type_name: str) -> str:
                        f'and none installed ({exc})') from None
 
 
-def has_schema(type_name: str) -> bool:
-    """Whether :func:`schema_text` knows ``type_name``."""
-    try:
-        schema_text(type_name)
-    except BagError:
-        return False
-    return True
-
-
 def type_hash(type_name: str) -> Optional[str]:
     """RIHS01 type description hash of a recorded type, or None if unknown."""
     return TYPE_HASHES.get(normalize_type(type_name))

@@ -79,7 +79,8 @@ def robot_context(robot: str, n_dims: int):
 
 
 def run(args):
-    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig
     from cdmp_ros.core.adaptation.constraints.parse import parse_constraint_set
     from cdmp_ros.core.errors import CdmpError
     from cdmp_ros.core.primitive_io import load_primitive, save_primitive

@@ -56,8 +56,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import yaml
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.node_signals import DUMP_SIGNAL
-from cdmp_ros.core.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
+from cdmp_ros.common.node_signals import DUMP_SIGNAL
+from cdmp_ros.common.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
 from cdmp_ros.core.readiness import READY_LINE
 
 #: Executables that ``bringup`` can start (modules ``cdmp_ros.nodes.<name>``).
@@ -362,7 +362,7 @@ class Bringup:
 
     def _kill_stuck(self, name: str, p: subprocess.Popen) -> None:
         """SIGKILL a node that did not stop within ``stop_timeout``, after asking it for the
-        stack of every thread (:data:`cdmp_ros.core.node_signals.DUMP_SIGNAL`, written into the
+        stack of every thread (:data:`cdmp_ros.common.node_signals.DUMP_SIGNAL`, written into the
         output, so that the log shows where it was stuck)."""
         with self._lock:
             self.log.write(f'[bringup] {name} did not stop within '

@@ -31,8 +31,7 @@ from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.cdr import decode_string
 from cdmp_ros.core.adaptation.requests import ee_band
 from cdmp_ros.core.kinematics import PointOfInterest
-from cdmp_ros.core.promp.primitive_file import promp_from_dict
-from cdmp_ros.core.primitive_io import validate_primitive_dict
+from cdmp_ros.core.primitive_io import promp_from_dict, validate_primitive_dict
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 
 #: Trajectories sampled per distribution and phases per trajectory in the violation check.

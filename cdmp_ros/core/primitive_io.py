@@ -3,8 +3,6 @@
 Floats are written by :mod:`json` with ``repr`` precision, so a save/load round trip reproduces
 every parameter exactly and therefore every rollout bit for bit.
 """
-import base64
-import binascii
 import json
 import math
 import os
@@ -17,6 +15,9 @@ from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import parse_joint_limits
 from cdmp_ros.core.file_checks import check_document, field_path
+from cdmp_ros.core.promp.primitive_file import (covariance_matrix, promp_from_validated,
+                                                promp_to_dict)
+from cdmp_ros.core.promp.promp import ProMP
 from cdmp_ros.core.resources import load_schema
 
 FORMAT_VERSION = 1
@@ -29,67 +30,6 @@ def primitive_schema() -> dict:
 
 #: Largest number of ProMP weights n_dims * len(promp.basis.centers) (cov_w is its square).
 MAX_PROMP_WEIGHTS = 2048
-
-
-#: Encoding of ``promp.cov_w_base64``: the row-major entries as little-endian IEEE-754 float64,
-#: in base64 (RFC 4648, padded). The adapter sends its adapted covariance this way: encoding
-#: and decoding a 70 x 70 matrix take 0.3 ms, against 2.9 ms to write and 1.9 ms to parse it
-#: as rows of JSON numbers (benchmarks/RESULTS.md, 2026-11-27).
-COV_DTYPE = '<f8'
-
-
-def base64_length(n_entries: int) -> int:
-    """Characters of the base64 text of ``n_entries`` float64 values (padded)."""
-    return 4 * ((8 * n_entries + 2) // 3)
-
-
-def encode_covariance(C) -> str:
-    """``promp.cov_w_base64`` of the square matrix ``C`` (see :data:`COV_DTYPE`)."""
-    C = np.ascontiguousarray(C, dtype=COV_DTYPE)
-    return base64.b64encode(C.tobytes()).decode('ascii')
-
-
-def covariance_matrix(body: Dict[str, Any], nw: int, prefix: str = 'primitive.promp'
-                      ) -> np.ndarray:
-    """Sigma_w (nw, nw) of a ``promp`` object, from ``cov_w`` (rows of numbers) or
-    ``cov_w_base64``; the size is checked before anything is converted or decoded, then every
-    entry must be finite and within [-1e12, 1e12] (the symmetry and semi-definiteness checks
-    are :func:`validate_primitive_dict`'s). Raises PrimitiveFileError naming the field."""
-    why = f'(n_dims * len({prefix}.basis.centers) = {nw})'
-    if ('cov_w' in body) == ('cov_w_base64' in body):
-        raise PrimitiveFileError(f'{prefix}: expected exactly one of cov_w and cov_w_base64, '
-                                 f'got {"both" if "cov_w" in body else "neither"}')
-    if 'cov_w' in body:
-        cov = body['cov_w']
-        if not isinstance(cov, list) or len(cov) != nw:
-            got = len(cov) if isinstance(cov, list) else type(cov).__name__
-            raise PrimitiveFileError(f'{prefix}.cov_w: expected {nw} rows {why}, got {got}')
-        for i, row in enumerate(cov):
-            if not isinstance(row, list) or len(row) != nw:
-                got = len(row) if isinstance(row, list) else type(row).__name__
-                raise PrimitiveFileError(f'{prefix}.cov_w[{i}]: expected {nw} values {why}, '
-                                         f'got {got}')
-        try:
-            return np.asarray(cov, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise PrimitiveFileError(f'{prefix}.cov_w: expected numbers ({exc})') from None
-    text = body['cov_w_base64']
-    size = base64_length(nw * nw)
-    if not isinstance(text, str) or len(text) != size:
-        got = f'{len(text)} characters' if isinstance(text, str) else type(text).__name__
-        raise PrimitiveFileError(f'{prefix}.cov_w_base64: expected {size} characters (the '
-                                 f'base64 of {nw} x {nw} float64 values {why}), got {got}')
-    try:
-        raw = base64.b64decode(text, validate=True)
-    except (binascii.Error, ValueError) as exc:
-        raise PrimitiveFileError(f'{prefix}.cov_w_base64: not valid base64 ({exc})') from None
-    C = np.frombuffer(raw, dtype=COV_DTYPE).astype(np.float64).reshape(nw, nw)
-    bad = ~np.isfinite(C) | (np.abs(C) > 1e12)
-    if np.any(bad):
-        i, j = (int(v) for v in np.argwhere(bad)[0])
-        raise PrimitiveFileError(f'{prefix}.cov_w_base64: entry [{i}][{j}]: expected a finite '
-                                 f'number in [-1e12, 1e12], got {float(C[i, j])!r}')
-    return C
 
 
 def _len(path, value, expected: int, why: str) -> None:
@@ -182,13 +122,13 @@ def _validate_promp(body: Dict[str, Any], n: int) -> None:
 
 
 def primitive_to_dict(prim) -> Dict[str, Any]:
-    """Serialise a fitted DMP, CDMP or ProMP to a schema-valid dict."""
+    """Serialise a fitted DMP, CDMP or ProMP to a schema-valid dict (the file's JSON object;
+    arrays as nested lists, e.g. ``dmp.weights`` of shape (n_dims, n_weights_per_dim))."""
     d: Dict[str, Any] = {'format_version': FORMAT_VERSION, 'kind': prim.kind,
                          'joint_names': list(prim.joint_names), 'n_dims': prim.n_dims}
     if getattr(prim, 'joint_limits', None):
         d['joint_limits'] = prim.joint_limits
     if prim.kind == 'promp':
-        from cdmp_ros.core.promp.primitive_file import promp_to_dict
         body = promp_to_dict(prim)
         d.update({k: v for k, v in body.items() if k not in d})
         validate_primitive_dict(d)
@@ -238,10 +178,10 @@ def primitive_kinematic_limits(d: Dict[str, Any]):
 
 
 def primitive_from_dict(d: Any):
-    """Build a DMP, CDMP or ProMP from a dict; raises :class:`PrimitiveFileError`."""
+    """Build a DMP, CDMP or ProMP from a primitive file's dict (validated against the schema
+    first); raises :class:`PrimitiveFileError` naming the bad field."""
     validate_primitive_dict(d)
     if d['kind'] == 'promp':
-        from cdmp_ros.core.promp.primitive_file import promp_from_validated
         prim = promp_from_validated(d)
         if 'joint_limits' in d:
             prim.joint_limits = d['joint_limits']
@@ -273,13 +213,48 @@ def primitive_from_dict(d: Any):
     return prim
 
 
+def promp_from_dict(d: Dict[str, Any], n_dims: int = None, duration: float = None) -> ProMP:
+    """Rebuild a ProMP from a primitive file dict (kind "promp") or its "promp" sub-object.
+
+    A whole file dict is checked by :func:`validate_primitive_dict` first; a sub-object by
+    :func:`~cdmp_ros.core.promp.primitive_file.promp_from_validated` (sizes, finite
+    covariance). Raises PrimitiveFileError naming the bad field."""
+    if not isinstance(d, dict):
+        raise PrimitiveFileError(f'promp: expected a JSON object, got {type(d).__name__}')
+    if 'promp' in d:
+        validate_primitive_dict(d)
+    return promp_from_validated(d, n_dims, duration)
+
+
 def dumps_primitive(prim) -> str:
-    """JSON text of a primitive (the payload of the primitive topics)."""
+    """JSON text of a primitive (the payload of the primitive topics).
+
+    Parameters
+    ----------
+    prim : DMP, CDMP or ProMP
+        Fitted.
+
+    Returns
+    -------
+    str
+        Schema-valid JSON (``msg_schemas/primitive.schema.json``).
+    """
     return json.dumps(primitive_to_dict(prim))
 
 
 def loads_primitive(text: Union[str, bytes]):
-    """Parse JSON text of a primitive; raises :class:`PrimitiveFileError` on any problem."""
+    """Parse JSON text of a primitive; raises :class:`PrimitiveFileError` on any problem.
+
+    Parameters
+    ----------
+    text : str or bytes
+        JSON of a primitive file or message.
+
+    Returns
+    -------
+    DMP, CDMP or ProMP
+        By the file's ``kind``.
+    """
     try:
         d = json.loads(text)
     except (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError) as exc:
@@ -288,7 +263,15 @@ def loads_primitive(text: Union[str, bytes]):
 
 
 def save_primitive(prim, path: Union[str, os.PathLike]) -> None:
-    """Write a primitive file (atomically: a temporary file renamed into place)."""
+    """Write a primitive file (atomically: a temporary file renamed into place).
+
+    Parameters
+    ----------
+    prim : DMP, CDMP or ProMP
+        Fitted.
+    path : str or path-like
+        The ``*.json`` file (schema ``msg_schemas/primitive.schema.json``).
+    """
     text = json.dumps(primitive_to_dict(prim), indent=1)
     tmp = f'{os.fspath(path)}.tmp'
     with open(tmp, 'w') as f:
@@ -297,7 +280,17 @@ def save_primitive(prim, path: Union[str, os.PathLike]) -> None:
 
 
 def load_primitive(path: Union[str, os.PathLike]):
-    """Read a primitive file; raises :class:`PrimitiveFileError` naming the bad field."""
+    """Read a primitive file; raises :class:`PrimitiveFileError` naming the bad field.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    DMP, CDMP or ProMP
+        By the file's ``kind``; a save/load round trip reproduces every parameter exactly.
+    """
     try:
         with open(path) as f:
             text = f.read()

@@ -359,7 +359,7 @@ def solve(seed: int = 0, n_basis: int = 8, n_steps: int = 50, n_samples: int = 1
           bags: Optional[str] = None, progress: bool = True):
     """Learn, adapt and check; returns (rows, artefacts for the figures and the tests)."""
     from tqdm import tqdm
-    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
     rng = np.random.default_rng(seed)
     prior = learn_prior(load_demonstrations(bags), n_basis)
     chains = cell_chains()

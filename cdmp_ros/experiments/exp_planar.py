@@ -105,7 +105,8 @@ def tasks(chain):
 
 def solve_all(seed=0, n_samples=10000, n_steps=50):
     """Run every experiment; returns (rows, artefacts for plotting)."""
-    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+    from cdmp_ros.core.adaptation.guarantee import adapt
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig, monte_carlo_satisfaction
     from cdmp_ros.core.kinematics import planar_chain
     rng = np.random.default_rng(seed)
     chain = planar_chain([1.0] * 4)
@@ -138,7 +139,8 @@ def solve_all(seed=0, n_samples=10000, n_steps=50):
 
 def mutual(chain, rng, n_samples, n_steps):
     """III-A5: two planar arms (bases 3 m apart, facing) with crossing reaching movements."""
-    from cdmp_ros.core.adaptation.solver import AdaptationConfig, adapt, monte_carlo_satisfaction
+    from cdmp_ros.core.adaptation.guarantee import adapt
+    from cdmp_ros.core.adaptation.solver import AdaptationConfig, monte_carlo_satisfaction
     from cdmp_ros.core.adaptation.constraints import ChainPoint, MutualAvoidance
     from cdmp_ros.core.kinematics import PointOfInterest, planar_chain
     from cdmp_ros.core.promp.promp import ProMP

@@ -7,7 +7,7 @@ step) and KL / n_basis are averaged over the problems that did not fail; the per
 violation (for each constraint its worst step, what alpha bounds; see
 :func:`cdmp_ros.experiments.promp_problems.sampled_violations`) is given as median and max over
 the problems; solve time is the wall-clock time of
-:func:`cdmp_ros.core.adaptation.solver.adapt` (median and p90).
+:func:`cdmp_ros.core.adaptation.guarantee.adapt` (median and p90).
 
 Defaults: the product's optimiser defaults (saddle-point tails, relative EMM step) and no
 confidence margin; ``--tail gamma`` shows the paper's Gamma moment match.
@@ -95,7 +95,7 @@ def solve_row(table, K, n, rng, prior='scripts', n_samples=10000, progress=None,
     """Generate and solve ``n`` problems; returns per-problem records (the violation metric
     on ``n_samples`` fresh samples, independent of the report's own verification)."""
     import dataclasses
-    from cdmp_ros.core.adaptation.solver import adapt
+    from cdmp_ros.core.adaptation.guarantee import adapt
     from cdmp_ros.experiments.promp_problems import make_problem, sampled_violations
     records = []
     for _ in range(n):

@@ -92,20 +92,6 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
     return TableProblem(table, p0, cons, cfg, start, end)
 
 
-def violation_rate(promp: ProMP, problem: TableProblem, rng: np.random.Generator,
-                   n_samples: int = 10000) -> float:
-    """Fraction of sampled trajectories violating at least one constraint (protocol metrics:
-    distance below the radius at any step / never within the radius / n.(x - b) > 0)."""
-    grid = np.linspace(0.0, 1.0, problem.config.n_steps)
-    W = promp.sample_weights(n_samples, rng)
-    ok = np.ones(n_samples, bool)
-    for c in problem.constraints:
-        X = sample_points(promp, c, n_samples, rng, grid, W)
-        sat = c.satisfied(X, c.times(grid))
-        ok &= sat.all(axis=1) if sat.ndim == 2 else sat
-    return float(1.0 - ok.mean())
-
-
 def sampled_violations(promp: ProMP, problem: TableProblem, rng: np.random.Generator,
                        n_samples: int = 200_000, chunk: int = 20_000):
     """Per-constraint sampled violation frequencies of ``promp`` on the problem's grid.

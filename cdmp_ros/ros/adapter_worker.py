@@ -1,6 +1,6 @@
 """The adapter's solver thread: constrained ProMP adaptations off the executor thread.
 
-:class:`SolveWorker` (a :class:`~cdmp_ros.ros.latest_worker.LatestWorker`) runs one request at
+:class:`SolveWorker` (a :class:`~cdmp_ros.common.latest_worker.LatestWorker`) runs one request at
 a time; ``submit`` replaces a request that has not started yet (latest request wins: the
 replaced one is counted as *dropped*). A running solve is never interrupted by a newer request,
 except a refinement (a cold solve of the last request after a warm one,
@@ -31,7 +31,7 @@ from cdmp_ros.core.adaptation.verification import worker_cpu_seconds
 from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts, suspend
 from cdmp_ros.core.errors import Cancelled, CdmpError, ConstraintSetError
 from cdmp_ros.core.streaming.selection import Provenance
-from cdmp_ros.ros.latest_worker import LatestWorker
+from cdmp_ros.common.latest_worker import LatestWorker
 
 
 @dataclass
@@ -131,7 +131,7 @@ def solve_job(job: Job, chain, should_stop: Optional[Callable[[], bool]] = None,
 
 class SolveWorker(LatestWorker):
     """The adapter's latest-request-wins solver thread (see the module docstring): a
-    :class:`~cdmp_ros.ros.latest_worker.LatestWorker` of :class:`Job` -> :class:`JobResult`
+    :class:`~cdmp_ros.common.latest_worker.LatestWorker` of :class:`Job` -> :class:`JobResult`
     that numbers the jobs, marks stale results and time-stamps them.
 
     Parameters

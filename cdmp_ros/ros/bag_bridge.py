@@ -27,7 +27,7 @@ from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.qos import (COMMAND, RECORDER_DEPTH, adapted_subscription_profile,
                               playback_profile, profile_to_dict)
-from cdmp_ros.ros.realtime import check_priority
+from cdmp_ros.common.realtime import check_priority
 from cdmp_ros.ros.recorder_take import (TakeThread, ThreadTakenGroup, drain_subscription,
                                         never_called, write_taken)
 

@@ -154,10 +154,6 @@ class DiagnosticsReporter:
             t = self._timings[name] = _Timing(self.window)
         t.add(seconds)
 
-    def timing_stats(self, name: str) -> Optional[Tuple[float, float, float]]:
-        t = self._timings.get(name)
-        return None if t is None else t.stats()
-
     def build(self, stamp) -> DiagnosticArray:
         """The DiagnosticArray of the current state (``stamp``: builtin_interfaces/Time)."""
         arr = DiagnosticArray()

@@ -3,7 +3,7 @@
 Every subscription made through :meth:`InputGate.subscribe` is a serialized (``raw=True``)
 subscription, so that nothing is done for a message before it is admitted. In order:
 
-1. **rate limit** (:class:`~cdmp_ros.core.rate_limit.RateLimiter`, per topic): the excess is
+1. **rate limit** (:class:`~cdmp_ros.common.rate_limit.RateLimiter`, per topic): the excess is
    dropped before anything else, every drop counted (reason ``flooding``);
 2. **constant-time size checks** on the CDR bytes, before deserialisation: the message size,
    and the element count read from the CDR header (markers of a ``MarkerArray``, names of a
@@ -31,7 +31,7 @@ from typing import Callable, Dict, Optional
 from rclpy.serialization import deserialize_message
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.rate_limit import RateLimiter
+from cdmp_ros.common.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
 from cdmp_ros.ros.recorder_take import (ThreadTakenGroup, never_called, take_newest,
                                         to_monotonic)

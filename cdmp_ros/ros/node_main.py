@@ -52,7 +52,7 @@ import time
 from typing import Callable, List, Optional
 
 from cdmp_ros.core.errors import CdmpError
-from cdmp_ros.core.node_signals import DUMP_SIGNAL, STOP_SIGNALS
+from cdmp_ros.common.node_signals import DUMP_SIGNAL, STOP_SIGNALS
 
 #: How often the graceful loop checks the stop flag and ``done()`` (seconds).
 SPIN_PERIOD = 0.05

@@ -19,7 +19,7 @@ and the demo driver's ``joint_reference``: read now and then, newest message onl
 
 Optionally (``priority`` > 0) the take thread, the main (executor) thread and the process's
 Fast DDS receive threads (``dds.shm.*``, ``dds.udp.*``) run under SCHED_FIFO, through
-:func:`cdmp_ros.ros.realtime.configure_thread` for the calling thread and
+:func:`cdmp_ros.common.realtime.configure_thread` for the calling thread and
 ``os.sched_setscheduler`` by thread id for the others; a refusal is logged, never fatal.  The
 main thread is included because it shares the GIL with the take thread: a normal-priority
 holder of the GIL descheduled by the machine's load would stall the real-time take thread.
@@ -32,7 +32,7 @@ from typing import Callable, List, Optional, Tuple
 from rclpy.callback_groups import CallbackGroup
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.ros.realtime import configure_thread
+from cdmp_ros.common.realtime import configure_thread
 
 #: Prefixes of the Fast DDS receive threads' names (Fast DDS >= 2.13 names its threads).
 DDS_RECEIVE_THREADS = ('dds.shm.', 'dds.udp.')

@@ -115,7 +115,7 @@ from cdmp_ros.ros.input_gate import InputGate, joint_names, marker_count
 from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers
-from cdmp_ros.ros.realtime import process_thread_ids, set_threads_fifo
+from cdmp_ros.common.realtime import process_thread_ids, set_threads_fifo
 from cdmp_ros.ros.robot_description import RobotDescriptionInput
 from cdmp_ros.ros.robot_model import RobotModelSelector
 from cdmp_ros.sim.live import limit_clip, LiveSim

@@ -25,10 +25,11 @@ trigger stamp to the stamp of the first reference computed from it
 (``joint_reference`` or the controller topic) and, closed loop, ``joint_states`` a publisher.
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
-deadlines ``t0 + k / rate`` of the steady clock (:class:`cdmp_ros.ros.realtime.DeadlineSleeper`),
-optionally under SCHED_FIFO (``realtime_priority``) and pinned (``tick_cpu``); rclpy allows
-publishing from any thread. The executor thread only runs the subscriptions, the diagnostics
-timer and the parameter services, so a slow callback delays a tick by the GIL and one short
+deadlines ``t0 + k / rate`` of the steady clock
+(:class:`cdmp_ros.common.realtime.DeadlineSleeper`), optionally under SCHED_FIFO
+(``realtime_priority``) and pinned (``tick_cpu``); rclpy allows publishing from any thread.
+The executor thread only runs the subscriptions, the diagnostics timer and the parameter
+services, so a slow callback delays a tick by the GIL and one short
 lock at most, not by a whole callback queue. One lock (``_lock``) serialises the tick and the
 callbacks that change the streamer's state (diagnostics are built and published outside it).
 Everything allocated at start-up is frozen out of the garbage collector (``gc.freeze``), so a
@@ -88,11 +89,11 @@ from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointS
 from cdmp_ros.ros.diagnostics import OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, InputGate, joint_names, json_bytes,
                                      marker_count)
-from cdmp_ros.ros.latest_worker import LatestWorker
+from cdmp_ros.common.latest_worker import LatestWorker
 from cdmp_ros.ros.limits_params import robot_limits
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers, has_subscribers
-from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, report_scheduling
+from cdmp_ros.common.realtime import DeadlineSleeper, configure_thread, report_scheduling
 from cdmp_ros.ros.robot_description import RobotDescriptionInput
 from cdmp_ros.ros.robot_model import RobotModelSelector
 
@@ -247,7 +248,7 @@ class StreamerNode(Node):
         """The publisher and writer of ``controller_output`` (None, None for 'none'); the
         reorder index into the controller's joint order is computed here, once."""
         joints = cfg.controller_joint_names
-        # the topic from a parameter: listed as <controller_topic> in the README topic table
+        # the topic from a parameter: listed as <controller_topic> in the table of docs/nodes.md
         self.controller_topic = (cfg.controller_topic
                                  or DEFAULT_CONTROLLER_TOPICS.get(cfg.controller_output, ''))
         if cfg.controller_output == 'forward_command':

@@ -79,14 +79,6 @@ def joint_to_exogenous(q: ArrayLike, lower: ArrayLike, upper: ArrayLike,
     return _transform(lower, upper, margin).to_exogenous(q)
 
 
-def exogenous_to_joint(xi: ArrayLike, lower: ArrayLike, upper: ArrayLike
-                       ) -> NDArray[np.float64]:
-    """``q = delta tanh(xi) + q_o``, Eq. (3), paper 000 (wraps
-    :meth:`~cdmp_ros.core.dmp.transform.TanhTransform.to_joint`, which saturates ``xi`` so that
-    ``q`` stays at least 1e-9 of the half-range inside the limits)."""
-    return _transform(lower, upper).to_joint(xi)
-
-
 def inertia_scaled_gains(robot, kp: float, kd: float, q: Optional[ArrayLike] = None
                          ) -> Tuple[Tuple[float, ...], Tuple[float, ...]]:
     """Per-joint torque gains ``(kp M_ii(q), kd M_ii(q))`` from acceleration-level gains.

@@ -221,10 +221,6 @@ class World:
             self.step()
         return self.t
 
-    def reset_pacing(self) -> None:
-        """Restart real-time pacing from now (after a pause, e.g. while the node was idle)."""
-        self._pace_anchor = None
-
     def _pace(self) -> None:
         now = time.perf_counter()
         if self._pace_anchor is None:

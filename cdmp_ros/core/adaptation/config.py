@@ -9,7 +9,7 @@ state become a constrained ProMP adaptation problem, paper 003; parameters ``ada
 Ranges and descriptions live in the field metadata (used for the parameter descriptors).
 """
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, List, Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,12 +22,10 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_chain_fie
                                          robot_description_timeout_param, stamp_age_param,
                                          stamp_lead_param, tcp_offset_param, tip_link_param,
                                          urdf_path_param)
+from cdmp_ros.core.adaptation.verification_report import GUARANTEES, Verification
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
 from cdmp_ros.core.validation import check_positive
-
-if TYPE_CHECKING:  # pragma: no cover
-    from cdmp_ros.core.adaptation.verification import Verification
 
 
 #: Ranges of the settings a constraint set may override (its schema's "optimizer", the
@@ -39,8 +37,6 @@ _INTEGERS = ('n_steps', 'max_outer', 'max_inner')
 TAILS = ('auto', 'saddlepoint', 'gamma', 'conservative')
 
 
-#: Meanings of alpha (constraint-set field ``guarantee``, parameter adaptation.guarantee).
-GUARANTEES = ('per_step', 'trajectory')
 #: When the outer loop of the solver stops (AdaptationConfig.stop_rule).
 STOP_RULES = ('feasible', 'kkt')
 #: Largest sampled verification a file or a parameter may ask for.
@@ -324,7 +320,34 @@ class KKTResiduals:
 
 @dataclass
 class AdaptationReport:
-    """Outcome of :func:`adapt`. ``converged`` is False for infeasible/unconverged problems."""
+    """Outcome of :func:`~cdmp_ros.core.adaptation.guarantee.adapt` (``as_dict``:
+    ``cdmp adapt --json``; ``to_text``: its summary).
+
+    Attributes
+    ----------
+    converged : bool
+        Every constraint holds at its confidence under the approximation and the sampled
+        ``verification`` confirms it; False for infeasible or unconverged problems.
+    status : str
+        ``converged``, ``max_outer_reached``, ``stalled_infeasible``,
+        ``infeasible_or_unconverged``, ``evaluation_budget_exhausted`` or
+        ``verification_failed``.
+    kl, kl_per_basis : float
+        KL(adapted || prior), and divided by the number of weights D * M.
+    n_outer, n_inner, n_evaluations : int
+        Multiplier updates, L-BFGS iterations and Lagrangian evaluations.
+    time_s : float
+        Wall time of the solve and its verification [s].
+    constraints : list of ConstraintReport
+        Per constraint: name, kind, alpha, approximate probability at the worst time,
+        satisfied, largest multiplier.
+    guarantee : {'per_step', 'trajectory'}
+    verification : Verification or None
+        The sampled check of the adapted distribution.
+
+    The other fields (levels, warm starts, KKT residuals, solver state) are commented in the
+    source.
+    """
     converged: bool
     status: str
     kl: float
@@ -336,10 +359,10 @@ class AdaptationReport:
     constraints: List[ConstraintReport] = field(default_factory=list)
     guarantee: str = 'per_step'
     #: sampled check of the adapted distribution (cdmp_ros.core.adaptation.verification)
-    verification: Optional['Verification'] = None
+    verification: Optional[Verification] = None
     #: guarantee ``trajectory``: the check that selected the returned solution among the
     #: solves (``verification`` re-checks it on fresh samples); None otherwise
-    selection_verification: Optional['Verification'] = None
+    selection_verification: Optional[Verification] = None
     #: per constraint (order of ``constraints``), the per-step violation level 1 - alpha'
     #: the optimiser enforced (guarantee ``trajectory``: tightened below 1 - alpha)
     levels: List[float] = field(default_factory=list)

@@ -1,4 +1,7 @@
-"""What a constraint's confidence alpha guarantees, checked by sampling (issue 12).
+"""What a constraint's confidence alpha guarantees, checked by sampling (issue 12), and
+:func:`adapt`, the entry point of the constrained ProMP adaptation: the optimiser
+(:func:`~cdmp_ros.core.adaptation.solver.solve_levels`, paper 003) at the levels the guarantee
+asks for, then the sampled verification of the result.
 
 - :func:`attach_verification`: every adaptation report carries the sampled
   :class:`~cdmp_ros.core.adaptation.verification.Verification` of the adapted distribution, and
@@ -30,12 +33,14 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport,
-                                             MAX_VERIFICATION_SAMPLES)
+                                             MAX_VERIFICATION_SAMPLES, SolverState)
 from cdmp_ros.core.adaptation.constraints.base import Constraint
+from cdmp_ros.core.adaptation.solver import solve_levels
 from cdmp_ros.core.adaptation.verification import critical_count, detectable_violation, verify
+from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
-__all__ = ['TARGET', 'adapt_trajectory', 'attach_verification', 'default_samples',
+__all__ = ['TARGET', 'adapt', 'adapt_trajectory', 'attach_verification', 'default_samples',
            'samples_to_detect', 'verification_samples']
 
 #: Trajectory mode aims the sampled violation at this fraction of 1 - alpha, so that its
@@ -65,6 +70,58 @@ FK_BUDGET = 100_000
 #: steps: 60,000 samples, 1.84 times, 80-95 ms on one core).
 SAMPLES_LINEAR = (10_000, 20_000, 40_000, 60_000, 80_000, 100_000)
 DETECTABLE_TARGET = 2.0
+
+
+def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
+          should_stop: Optional[Callable[[], bool]] = None,
+          rng: Optional[np.random.Generator] = None,
+          start: Optional[SolverState] = None) -> Tuple[ProMP, AdaptationReport]:
+    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003) and verify the result.
+
+    With ``config.guarantee == 'per_step'`` (the paper's semantics) one solve of
+    :func:`solve_levels`; with ``'trajectory'`` the per-step levels are tightened until the
+    sampled trajectory-level violation's upper bound is <= 1 - alpha
+    (:func:`adapt_trajectory`). Either way the report
+    carries the sampled :class:`~cdmp_ros.core.adaptation.verification.Verification` of the
+    adapted distribution (``config.verification_samples`` trajectories).
+
+    Parameters
+    ----------
+    prior : ProMP
+        The learned distribution (D dimensions, M basis functions: weights of shape
+        (D * M,)).
+    constraints : sequence of Constraint or WeightConstraint
+        Each with its confidence ``alpha`` (e.g. from
+        :func:`~cdmp_ros.core.adaptation.constraints.parse.parse_constraint_set`).
+    config : AdaptationConfig, optional
+    should_stop : callable, optional
+        Polled during the solve; True abandons it with
+        :class:`~cdmp_ros.core.errors.Cancelled` (:func:`solve_levels`).
+    rng : numpy.random.Generator, optional
+        Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
+        reports).
+    start : SolverState, optional
+        Warm start (:func:`solve_levels`); guarantee ``per_step`` only (the ``trajectory``
+        guarantee re-solves at tightened levels and always starts cold).
+
+    Returns
+    -------
+    adapted : ProMP
+    report : AdaptationReport
+        ``converged`` is True only if every constraint holds at its confidence under the
+        approximation and the sampled verification confirms the claimed level (per step or
+        per trajectory; rules in :mod:`cdmp_ros.core.adaptation.verification`).
+    """
+    config = config or AdaptationConfig()
+    rng = np.random.default_rng(0) if rng is None else rng
+    if config.guarantee == 'trajectory':
+        if start is not None:
+            raise ValidationError('adapt: a warm start needs the per_step guarantee')
+        return adapt_trajectory(prior, constraints, config, should_stop, rng)
+    t_start = time.perf_counter()
+    adapted, report = solve_levels(prior, constraints, config, should_stop, start)
+    attach_verification(report, adapted, constraints, config, rng, t_start)
+    return adapted, report
 
 
 def default_samples(constraints: Sequence, n_steps: int) -> int:
@@ -143,9 +200,8 @@ def _with_level(c, scale: float):
 def adapt_trajectory(prior: ProMP, constraints: Sequence, config: AdaptationConfig,
                      should_stop: Optional[Callable[[], bool]], rng: np.random.Generator
                      ) -> Tuple[ProMP, AdaptationReport]:
-    """:func:`~cdmp_ros.core.adaptation.solver.adapt` with the trajectory-level guarantee
+    """:func:`adapt` with the trajectory-level guarantee
     (module docstring); at most ``1 + config.max_refinements`` solves."""
-    from cdmp_ros.core.adaptation.solver import solve_levels
     t_start = time.perf_counter()
     constraints = list(constraints)
     n = verification_samples(config, constraints)

@@ -23,7 +23,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport, adapt
+from cdmp_ros.core.adaptation.guarantee import adapt
+from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
 from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts
@@ -356,7 +357,7 @@ def run_request(req: AdaptRequest, chain, cfg: AdaptRequestConfig,
     A request known to be infeasible (:attr:`BuiltProblem.infeasible`) gets a short solve
     only (one outer iteration, at most 50 L-BFGS iterations), enough to report the
     satisfaction probabilities without keeping the solver thread from newer requests.
-    ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.solver.adapt` (raises
+    ``should_stop`` is passed to :func:`cdmp_ros.core.adaptation.guarantee.adapt` (raises
     :class:`~cdmp_ros.core.errors.Cancelled` when it returns True). ``warm``: the warm
     starts of the caller's stream of requests (:mod:`cdmp_ros.core.adaptation.warm`; with
     ``cfg.warm_start``).

@@ -36,7 +36,6 @@ from cdmp_ros.core.errors import Cancelled, ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'SolverState',
-           'adapt',
            'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels']
 
 
@@ -53,51 +52,6 @@ def _jumped(worst: float, before: float) -> bool:
     """Whether the largest violation ``worst`` jumped away from ``before`` (its value at the
     iterate before): BACKTRACK_GROWTH times and by BACKTRACK_MIN at least."""
     return worst - before >= BACKTRACK_MIN and worst > BACKTRACK_GROWTH * before
-
-
-def adapt(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,
-          should_stop: Optional[Callable[[], bool]] = None,
-          rng: Optional[np.random.Generator] = None,
-          start: Optional[SolverState] = None) -> Tuple[ProMP, AdaptationReport]:
-    """Adapt ``prior`` to the constraints (Algorithm 1, paper 003) and verify the result.
-
-    With ``config.guarantee == 'per_step'`` (the paper's semantics) one solve of
-    :func:`solve_levels`; with ``'trajectory'`` the per-step levels are tightened until the
-    sampled trajectory-level violation's upper bound is <= 1 - alpha
-    (:func:`cdmp_ros.core.adaptation.guarantee.adapt_trajectory`). Either way the report
-    carries the sampled :class:`~cdmp_ros.core.adaptation.verification.Verification` of the
-    adapted distribution (``config.verification_samples`` trajectories).
-
-    Parameters
-    ----------
-    prior, constraints, config, should_stop
-        As :func:`solve_levels`.
-    rng : numpy.random.Generator, optional
-        Of the sampled verification (default: ``numpy.random.default_rng(0)``, reproducible
-        reports).
-    start : SolverState, optional
-        Warm start (:func:`solve_levels`); guarantee ``per_step`` only (the ``trajectory``
-        guarantee re-solves at tightened levels and always starts cold).
-
-    Returns
-    -------
-    adapted : ProMP
-    report : AdaptationReport
-        ``converged`` is True only if every constraint holds at its confidence under the
-        approximation and the sampled verification confirms the claimed level (per step or
-        per trajectory; rules in :mod:`cdmp_ros.core.adaptation.verification`).
-    """
-    from cdmp_ros.core.adaptation.guarantee import adapt_trajectory, attach_verification
-    config = config or AdaptationConfig()
-    rng = np.random.default_rng(0) if rng is None else rng
-    if config.guarantee == 'trajectory':
-        if start is not None:
-            raise ValidationError('adapt: a warm start needs the per_step guarantee')
-        return adapt_trajectory(prior, constraints, config, should_stop, rng)
-    t_start = time.perf_counter()
-    adapted, report = solve_levels(prior, constraints, config, should_stop, start)
-    attach_verification(report, adapted, constraints, config, rng, t_start)
-    return adapted, report
 
 
 def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[AdaptationConfig] = None,

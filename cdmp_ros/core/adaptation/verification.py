@@ -13,7 +13,8 @@ and reports per constraint
 - ``trajectory``: the fraction of sampled trajectories that violate it at any step of its
   support, with ``upper95``, its one-sided 95 % Clopper-Pearson upper confidence bound;
 
-and overall the fraction of trajectories violating any constraint (and its upper bound).
+and overall the fraction of trajectories violating any constraint (and its upper bound), in a
+:class:`~cdmp_ros.core.adaptation.verification_report.Verification`.
 
 Each report also says what its test can detect (:func:`detectable_violation`): the smallest
 true violation probability at which the constraint's rule fails with 95 % power, in absolute
@@ -45,22 +46,21 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import beta as beta_dist, binom
 
-from cdmp_ros.core.adaptation.config import GUARANTEES
 from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
 from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint
+from cdmp_ros.core.adaptation.verification_report import (DETECTION_POWER, GUARANTEES,
+                                                          ConstraintVerification, Verification)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
-__all__ = ['ConstraintVerification', 'Verification', 'GUARANTEES', 'clopper_pearson_upper',
-           'critical_count', 'detectable_violation', 'trajectory_accepted', 'DETECTION_POWER',
-           'sample_points', 'verify', 'worker_cpu_seconds']
+__all__ = ['clopper_pearson_upper', 'critical_count', 'detectable_violation',
+           'trajectory_accepted', 'sample_points', 'verify', 'worker_cpu_seconds']
 
 # (sample, step) pairs evaluated per chunk: bounds the memory of the batched evaluation
 _CHUNK_POINTS = 50_000
@@ -121,10 +121,6 @@ def critical_count(n: int, p: float, level: float) -> int:
     return int(binom.isf(level, n, p))
 
 
-#: Power at which :func:`detectable_violation` states what a test detects.
-DETECTION_POWER = 0.95
-
-
 @functools.lru_cache(maxsize=256)
 def detectable_violation(n: int, accepted: int, power: float = DETECTION_POWER) -> float:
     """The smallest violation probability p at which a rule that accepts at most ``accepted``
@@ -168,90 +164,6 @@ def sample_points(promp: ProMP, c, n_samples: int, rng: np.random.Generator,
     W3 = W.reshape(-1, promp.n_dims, promp.n_basis)[:, dofs, :]
     Z = (W3.reshape(-1, promp.n_basis) @ phi.T).reshape(W.shape[0], len(dofs), -1)
     return c.point.forward(np.ascontiguousarray(Z.transpose(0, 2, 1)))
-
-
-@dataclass
-class ConstraintVerification:
-    """Sampled figures of one constraint (see the module docstring).
-
-    Attributes
-    ----------
-    name, kind : str
-    alpha : float
-        The constraint's confidence.
-    steps : int
-        Time steps tested (1 for temporally unbound waypoints and weight constraints, whose
-        event is one per trajectory).
-    per_step_max : float
-        Largest sampled per-step violation frequency.
-    per_step_limit : float
-        Critical frequency of the per-step rule (a larger per_step_max rejects the per-step
-        level alpha beyond Monte Carlo noise).
-    trajectory : float
-        Fraction of samples violating the constraint at any step of its support.
-    upper95 : float
-        One-sided 95 % Clopper-Pearson upper bound of ``trajectory``.
-    holds : bool
-        The claimed level holds by the rule of the report's guarantee.
-    detectable : float
-        The smallest true violation probability (per step, or per trajectory with the
-        trajectory guarantee) that the rule rejects with 95 % power
-        (:func:`detectable_violation`).
-    detectable_excess : float
-        ``detectable / (1 - alpha)``: how many times the asked level a violation must be to
-        be caught (below 1 for the trajectory rule, which is conservative).
-    """
-    name: str
-    kind: str
-    alpha: float
-    steps: int
-    per_step_max: float
-    per_step_limit: float
-    trajectory: float
-    upper95: float
-    holds: bool
-    detectable: float = float('nan')
-    detectable_excess: float = float('nan')
-
-
-@dataclass
-class Verification:
-    """Result of :func:`verify` (``cdmp adapt --json``: key ``verification``)."""
-    n_samples: int
-    guarantee: str
-    trajectory_violation: float
-    trajectory_violation_upper95: float
-    holds: bool
-    time_s: float = 0.0
-    constraints: List[ConstraintVerification] = field(default_factory=list)
-    #: fraction of the (sample, step) pairs of chain points whose forward kinematics ran;
-    #: the screen decided the others exactly (1.0 without chain points)
-    kinematics_fraction: float = 1.0
-
-    def as_dict(self) -> dict:
-        d = dict(self.__dict__)
-        d['constraints'] = [dict(c.__dict__) for c in self.constraints]
-        return d
-
-    def to_text(self) -> str:
-        claim = {'per_step': 'per-step level', 'trajectory': 'trajectory level'}[self.guarantee]
-        lines = [f'sampled verification ({self.n_samples} trajectories, {self.time_s * 1e3:.1f} '
-                 f'ms): trajectory-level violation {self.trajectory_violation * 100:.3f} % '
-                 f'(95 % upper bound {self.trajectory_violation_upper95 * 100:.3f} %); '
-                 f'{claim} {"holds" if self.holds else "NOT MET"}']
-        for c in self.constraints:
-            lines.append(f'  {c.name}: per-step max {c.per_step_max * 100:.3f} % (limit '
-                         f'{c.per_step_limit * 100:.3f} %), trajectory {c.trajectory * 100:.3f} % '
-                         f'(upper95 {c.upper95 * 100:.3f} %) {"ok" if c.holds else "NOT MET"}; '
-                         f'detects {c.detectable_excess:.2g}x the asked level with '
-                         f'{DETECTION_POWER * 100:.0f} % power')
-        return '\n'.join(lines)
-
-    @property
-    def detectable_excess(self) -> float:
-        """The largest :attr:`ConstraintVerification.detectable_excess` of the report (what
-        its weakest test needs to catch a violation; nan without constraints)."""
-        return max((c.detectable_excess for c in self.constraints), default=float('nan'))
 
 
 def _grid_times(constraints, grid) -> Dict[bytes, NDArray]:

@@ -81,8 +81,8 @@ from numpy.typing import NDArray
 
 from cdmp_ros.core.adaptation.config import (AdaptationConfig, AdaptationReport,
                                              AdaptRequestConfig, SolverState)
-from cdmp_ros.core.adaptation.guarantee import attach_verification
-from cdmp_ros.core.adaptation.solver import adapt, solve_levels
+from cdmp_ros.core.adaptation.guarantee import adapt, attach_verification
+from cdmp_ros.core.adaptation.solver import solve_levels
 from cdmp_ros.core.errors import Cancelled
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 from cdmp_ros.core.promp.promp import ProMP
@@ -287,7 +287,7 @@ class WarmStarts:
                                                                          AdaptationReport]:
         """Adapt ``built`` (the problem of ``req``), warm when :meth:`start_for` allows it
         (from the predictor's start first when it applies); remembers the outcome. Returns
-        ``(adapted, report)`` as :func:`~cdmp_ros.core.adaptation.solver.adapt`."""
+        ``(adapted, report)`` as :func:`~cdmp_ros.core.adaptation.guarantee.adapt`."""
         usable = self.start_for(req, built, cfg, guard=False)
         guarded = usable is not None and self._memory.cold_next
         start, withheld = (None, usable) if guarded else (usable, None)

@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Union
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d, scalar_coupling
 from cdmp_ros.core.config_fields import param
@@ -445,14 +444,3 @@ class ClosestPointGate:
             out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         self.distances = dists
         return out if active else None
-
-
-def joint_coupling(chain: Chain, q: ArrayLike, qd: Optional[ArrayLike],
-                   obstacles: Sequence[Union[Sphere, Box]], links: Sequence = (),
-                   sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
-                   config: CouplingConfig = CouplingConfig(),
-                   tcp_offset: Optional[Sequence[float]] = None) -> NDArray[np.float64]:
-    """One-shot :meth:`ObstacleCoupling.joint_acceleration` (builds the coupling each call;
-    keep an :class:`ObstacleCoupling` for repeated use)."""
-    coupling = ObstacleCoupling(chain, links, sphere_field, box_field, config, tcp_offset)
-    return np.array(coupling.joint_acceleration(q, qd, obstacles))

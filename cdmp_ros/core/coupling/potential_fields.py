@@ -90,7 +90,17 @@ class ConstantField:
     """The constant potential field of paper 000, IV-B: a constant acceleration ``magnitude``
     [m/s^2] while the point is closer than ``influence_distance`` [m] to the obstacle, along
     ``direction`` (a fixed world vector, normalised) or, if ``direction`` is None, along the
-    obstacle normal (away from the obstacle)."""
+    obstacle normal (away from the obstacle).
+
+    Attributes
+    ----------
+    magnitude : float
+        Acceleration [m/s^2], >= 0.
+    influence_distance : float
+        Distance [m] below which the field acts.
+    direction : tuple of 3 float, optional
+        Fixed world direction (normalised); None: the obstacle normal.
+    """
 
     magnitude: float = param(
         1.0, 'Acceleration [m/s^2] of the constant box field (paper 000, IV-B), away from the '

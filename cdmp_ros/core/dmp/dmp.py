@@ -16,7 +16,7 @@ state-dependent coupling is given, through the equivalent second-order linear re
 streaming). They agree to rounding (tested).
 """
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -83,10 +83,18 @@ class DmpConfig:
 
 @dataclass
 class Trajectory:
-    """A rollout. Arrays have shape (n_steps,) for ``T`` and (n_steps, n_dims) otherwise.
+    """A rollout (:meth:`DMP.rollout`).
 
-    ``X, Xd`` are the internal states (``xi, xid`` for a CDMP, equal to ``Y, Yd`` for a
-    DMP); ``phase`` is ``s`` at every step.
+    Attributes
+    ----------
+    T : ndarray, shape (n_steps,)
+        Times [s].
+    Y, Yd, Ydd : ndarray, shape (n_steps, n_dims)
+        Joint positions, velocities, accelerations.
+    X, Xd : ndarray, shape (n_steps, n_dims)
+        Internal states (``xi, xid`` for a CDMP, equal to ``Y, Yd`` for a DMP).
+    phase : ndarray, shape (n_steps,)
+        The canonical system ``s`` at every step.
     """
 
     T: NDArray[np.float64]
@@ -149,7 +157,19 @@ class DMP:
 
     # -- learning ------------------------------------------------------------------------------
     def fit(self, T: ArrayLike, Y: ArrayLike) -> 'DMP':
-        """Fit to one demonstration; see :meth:`fit_demonstrations`."""
+        """Fit to one demonstration; see :meth:`fit_demonstrations`.
+
+        Parameters
+        ----------
+        T : array-like, shape (n_steps,)
+            Strictly increasing times [s].
+        Y : array-like, shape (n_steps, n_dims)
+            Joint positions.
+
+        Returns
+        -------
+        self
+        """
         return self.fit_demonstrations([(T, Y)])
 
     def fit_demonstrations(self, demos: Sequence[Tuple[ArrayLike, ArrayLike]]) -> 'DMP':
@@ -374,7 +394,20 @@ class DMP:
     def stepper(self, dt: float, start_y: Optional[ArrayLike] = None,
                 start_yd: Optional[ArrayLike] = None, goal_y: Optional[ArrayLike] = None,
                 tau: Optional[float] = None, velocity_limits: Optional[ArrayLike] = None):
-        """A :class:`cdmp_ros.core.dmp.stepper.DmpStepper` for streaming this primitive."""
+        """A :class:`cdmp_ros.core.dmp.stepper.DmpStepper` for streaming this primitive.
+
+        Parameters
+        ----------
+        dt : float
+            Step [s].
+        start_y, start_yd, goal_y : array-like, shape (n_dims,), optional
+            Start position and velocity, goal (defaults: the fitted start, zero, the fitted
+            goal).
+        tau : float, optional
+            Duration [s] (default the fitted one).
+        velocity_limits : array-like, shape (n_dims,), optional
+            The phase slows so that ``|yd| <= velocity_limits``.
+        """
         from cdmp_ros.core.dmp.stepper import DmpStepper
         return DmpStepper(self, dt, start_y=start_y, start_yd=start_yd, goal_y=goal_y,
                           tau=tau, velocity_limits=velocity_limits)
@@ -429,9 +462,3 @@ def limit_usage(Y: ArrayLike, y_min: ArrayLike, y_max: ArrayLike) -> float:
     lo = np.asarray(y_min, dtype=np.float64)
     hi = np.asarray(y_max, dtype=np.float64)
     return float(np.max(np.abs(Y - 0.5 * (lo + hi)) / (0.5 * (hi - lo))))
-
-
-def demos_from_arrays(T: ArrayLike, Ys: List[ArrayLike]) -> List[Tuple[NDArray, NDArray]]:
-    """Pair one time vector with several position arrays (convenience for tests/scripts)."""
-    T = np.asarray(T, dtype=np.float64)
-    return [(T, np.asarray(Y, dtype=np.float64)) for Y in Ys]

@@ -250,8 +250,14 @@ def _forcing_nodes(basis: PhaseBasis, weights: NDArray[np.float64], u: NDArray[n
 
 
 class StepInput:
-    """Per-tick input. ``coupling``: list of n_dims floats, the coupling term ``P`` of
-    Eq. 13/21 in the internal space (``tau^2`` times an internal acceleration)."""
+    """Per-tick input of :meth:`DmpStepper.update`.
+
+    Attributes
+    ----------
+    coupling : list of float, length n_dims
+        The coupling term ``P`` of Eq. 13/21 in the internal space (``tau^2`` times an
+        internal acceleration; CDMP: the exogenous space).
+    """
 
     __slots__ = ('coupling',)
 
@@ -260,7 +266,24 @@ class StepInput:
 
 
 class StepOutput:
-    """Per-tick output (lists of floats, reused between ticks)."""
+    """Per-tick output of :meth:`DmpStepper.update` (lists of floats, reused between ticks:
+    copy what you keep).
+
+    Attributes
+    ----------
+    t : float
+        Time since the start [s].
+    phase : float
+        Canonical system ``s`` (1 at the start, decays towards 0).
+    u : float
+        Normalised (warped) time, 1 at the nominal end of the movement.
+    kappa : float
+        Phase speed factor in (0, 1] of the velocity limits (1: nominal).
+    y, yd, ydd : list of float, length n_dims
+        Joint position, velocity and acceleration.
+    xi, xid : list of float, length n_dims
+        Internal state and its velocity (CDMP: exogenous; DMP: equal to ``y``, ``yd``).
+    """
 
     __slots__ = ('t', 'phase', 'u', 'kappa', 'y', 'yd', 'ydd', 'xi', 'xid')
 
@@ -440,10 +463,6 @@ class DmpStepper:
         g0 = self.prim.to_internal(as_array('goal_y', goal_y, (self.n_dims,)))
         self._g0[:] = g0.tolist()
 
-    @property
-    def goal_internal(self) -> List[float]:
-        return list(self._g0)
-
     def set_joint_coupling(self, dq_dd: Optional[Sequence[float]]) -> CouplingResult:
         """Set the coupling term of the next ticks (``input.coupling``) from a joint-space
         acceleration change (a :class:`~cdmp_ros.core.coupling.contract.Coupling` result) at
@@ -548,7 +567,19 @@ class DmpStepper:
         return f0, f1, d0, d1, e0, e1, w0, w1, w2, w3, w4, w5
 
     def update(self, inp: StepInput):
-        """Advance one step of ``dt``; returns ``(output, status)``. Never raises."""
+        """Advance one step of ``dt``. Never raises.
+
+        Parameters
+        ----------
+        inp : StepInput
+            The coupling term of this step (``self.input``, or one of your own).
+
+        Returns
+        -------
+        output : StepOutput
+            The new state (``y``, ``yd``, ``ydd``: n_dims floats each), reused by every call.
+        status : StepStatus
+        """
         status = 0
         P = inp.coupling
         n = self.n_dims

@@ -127,6 +127,20 @@ def panda_chain(urdf_path: str, base_transform: Optional[ArrayLike] = None,
     ``PointOfInterest('ee')`` is the tool centre point between the fingertips,
     :data:`PANDA_EE_OFFSET` in the ``panda_hand`` frame (the URDF's ``panda_grasptarget``);
     ``PointOfInterest('panda_hand')`` is the hand (flange) frame origin.
+
+    Parameters
+    ----------
+    urdf_path : str
+        The Panda URDF (e.g. ``pybullet_data``'s ``franka_panda/panda.urdf``).
+    base_transform : array-like (4, 4), optional
+        World pose of ``panda_link0``; default identity.
+    urdf_text : str, optional
+        The URDF XML itself (a ``robot_description``); ``urdf_path`` then only names it.
+
+    Returns
+    -------
+    Chain
+        7 degrees of freedom; joint limits from the URDF.
     """
     return chain_from_urdf(urdf_path, PANDA_TIP_LINK, base_transform=base_transform,
                            ee_offset=PANDA_EE_OFFSET, urdf_text=urdf_text,

@@ -360,21 +360,6 @@ class Chain:
             self._work[key] = bufs
         return [b[:k].reshape(shape) for b, k, (shape, _) in zip(bufs, sizes, specs)]
 
-    def link_frames(self, Q: ArrayLike) -> NDArray[np.float64]:
-        """World poses (..., n_links, 4, 4) of the URDF frames of ``link_names``."""
-        Q = self._check_q(Q)
-        lead = Q.shape[:-1]
-        R, p = self._frames(Q.reshape(-1, self.n_dofs))
-        Rb = R[..., :3].transpose(0, 2, 1, 3)               # (n+1, B, 3, 3)
-        pb = p.transpose(0, 2, 1)                           # (n+1, B, 3)
-        out = np.zeros((Q.reshape(-1, self.n_dofs).shape[0], len(self.link_names), 4, 4))
-        out[..., 3, 3] = 1.0
-        for i, link in enumerate(self.link_names):
-            k, C = self.attachments[link]
-            out[:, i, :3, :3] = Rb[k] @ C[:3, :3]
-            out[:, i, :3, 3] = pb[k] + Rb[k] @ C[:3, 3]
-        return out.reshape(lead + out.shape[1:])
-
     def joint_origins(self, Q: ArrayLike) -> NDArray[np.float64]:
         """World positions (..., n_dofs + 1, 3) of the base and of every movable joint."""
         Q = self._check_q(Q)

@@ -18,7 +18,7 @@ from cdmp_ros.core.dmp.dmp import CDMP, DmpConfig
 from cdmp_ros.core.errors import PrimitiveFileError, ValidationError
 from cdmp_ros.core.joint_limits import LimitMismatch, describe_mismatches, merge_limits
 from cdmp_ros.core.primitive_io import (primitive_from_dict, primitive_kinematic_limits,
-                                        validate_primitive_dict)
+                                        promp_from_dict, validate_primitive_dict)
 from cdmp_ros.core.dmp.stepper import DmpStepper
 from cdmp_ros.core.streaming.selection import primitive_id
 from cdmp_ros.core.validation import check_limits
@@ -109,7 +109,6 @@ def _reorder_dmp_dict(d: Dict[str, Any], perm: List[int]) -> Dict[str, Any]:
 def _promp_to_cdmp(d: Dict[str, Any], perm: List[int], lower: NDArray, upper: NDArray,
                    config: DmpConfig, joint_names: Sequence[str]) -> CDMP:
     """A CDMP fitted to the mean trajectory of the ProMP in ``d`` (paper 003 Eq. 1-2)."""
-    from cdmp_ros.core.promp.primitive_file import promp_from_dict  # PROMP engineer's module
     duration = float(d['duration'])
     promp = promp_from_dict(d['promp'], d['n_dims'], duration)
     n = max(100, int(PROMP_FIT_RATE * duration) + 1)

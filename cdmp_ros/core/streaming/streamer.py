@@ -296,10 +296,6 @@ class ReferenceStreamer:
     def dt(self) -> float:
         return self.config.dt
 
-    @property
-    def has_reference(self) -> bool:
-        return self.state is not StreamState.WAITING
-
     # -- inputs (outside the tick) ------------------------------------------------------------
     def note_joint_states(self, q: ArrayLike, now: float) -> None:
         """A valid measurement arrived (streamer order); the first one sets the reference."""

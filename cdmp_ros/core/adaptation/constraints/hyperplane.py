@@ -33,8 +33,13 @@ class Hyperplane(Constraint):
     Parameters
     ----------
     point : Point
-    normal : (k,) normal n, pointing into the forbidden side.
-    offset : (k,) a point b on the plane.
+        Point of interest x_t (k = ``point.n_out`` coordinates).
+    normal : array-like, shape (k,)
+        Normal n, pointing into the forbidden side.
+    offset : array-like, shape (k,)
+        A point b on the plane.
+    support, alpha, lambda0, eta, name
+        As :class:`~cdmp_ros.core.adaptation.constraints.base.Constraint`.
     """
     kind = 'hyperplane'
 
@@ -74,7 +79,17 @@ class Hyperplane(Constraint):
 
 class NonConvexCorner(Constraint):
     """Avoid the corner {n1^T (x - b1) >= 0 and n2^T (x - b2) >= 0} (Eq. 20), with the product
-    approximation P(A and B) ~ P(A) P(B) of Eq. (21): F = 1 - P1 P2."""
+    approximation P(A and B) ~ P(A) P(B) of Eq. (21): F = 1 - P1 P2.
+
+    Parameters
+    ----------
+    point : Point
+        Point of interest x_t (k = ``point.n_out`` coordinates).
+    normal1, offset1, normal2, offset2 : array-like, shape (k,)
+        The two half-spaces' normals (pointing into the corner) and points on their planes.
+    support, alpha, lambda0, eta, name
+        As :class:`~cdmp_ros.core.adaptation.constraints.base.Constraint`.
+    """
     kind = 'corner'
 
     def __init__(self, point: Point, normal1, offset1, normal2, offset2, support=(0.0, 1.0),

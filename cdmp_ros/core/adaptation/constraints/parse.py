@@ -161,11 +161,20 @@ def parse_constraint_set(doc: Any, promp, ctx: Optional[RobotContext] = None
                          ) -> Tuple[List, dict]:
     """Build constraints and optimiser overrides from a constraint-set dict or JSON string.
 
+    Parameters
+    ----------
+    doc : dict, str or bytes
+        A constraint set (schema ``msg_schemas/constraints.schema.json``).
+    promp : ProMP
+        The primitive the constraints apply to (its ``n_dims`` and joint names).
+    ctx : RobotContext, optional
+        What link and end-effector points refer to (default: joints only, no chain).
+
     Returns
     -------
     constraints : list
     optimizer : dict
-        Keyword overrides for :class:`cdmp_ros.core.adaptation.solver.AdaptationConfig`
+        Keyword overrides for :class:`cdmp_ros.core.adaptation.config.AdaptationConfig`
         (the set's ``optimizer`` settings and its ``guarantee``).
     """
     if isinstance(doc, (str, bytes)):

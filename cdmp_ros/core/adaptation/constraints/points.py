@@ -40,7 +40,13 @@ class Point:
 
 
 class DofPoint(Point):
-    """x_t = z_t[dofs]: joints of a joint-space ProMP or coordinates of a Cartesian ProMP."""
+    """x_t = z_t[dofs]: joints of a joint-space ProMP or coordinates of a Cartesian ProMP.
+
+    Parameters
+    ----------
+    dofs : sequence of int, length k
+        ProMP dimensions; x_t has shape (k,).
+    """
     linear = True
 
     def __init__(self, dofs: Sequence[int]):
@@ -89,7 +95,13 @@ class ChainPoint(Point):
 
 
 class DifferencePoint(Point):
-    """x_t = a(z_t) - b(z_t): relative position of two points (mutual avoidance, Eq. 22)."""
+    """x_t = a(z_t) - b(z_t): relative position of two points (mutual avoidance, Eq. 22).
+
+    Parameters
+    ----------
+    a, b : Point
+        With equal ``n_out`` (k); x_t has shape (k,).
+    """
 
     def __init__(self, a: Point, b: Point):
         if a.n_out != b.n_out:

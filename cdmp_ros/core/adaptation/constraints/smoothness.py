@@ -34,9 +34,12 @@ class SmoothnessConstraint(WeightConstraint):
 
     Parameters
     ----------
-    Phi : (n, n) matrix of the quadratic form (Eq. 14).
+    Phi : array-like, shape (D * M, D * M)
+        Matrix of the quadratic form R(w) = w^T Phi w (Eq. 14).
     bound : float
         d in P(R(w) <= d).
+    alpha, lambda0, eta, name
+        As :class:`~cdmp_ros.core.adaptation.constraints.base.Constraint`.
     """
     kind = 'smoothness'
 

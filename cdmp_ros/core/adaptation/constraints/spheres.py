@@ -156,7 +156,13 @@ class _Sphere(Constraint):
 
 
 class Waypoint(_Sphere):
-    """P(|x_t - x_bar|^2 <= d^2) >= alpha at every time of the support (Eq. 17)."""
+    """P(|x_t - x_bar|^2 <= d^2) >= alpha at every time of the support (Eq. 17).
+
+    Parameters
+    ----------
+    point, center, radius, support, alpha, lambda0, eta, name
+        As :class:`Repeller` (``radius``: the tolerance d [m]).
+    """
     kind = 'waypoint'
     inside = True
 
@@ -165,7 +171,19 @@ class Waypoint(_Sphere):
 
 
 class Repeller(_Sphere):
-    """P(|x_t - x_bar|^2 > d^2) >= alpha at every time of the support (Eq. 18)."""
+    """P(|x_t - x_bar|^2 > d^2) >= alpha at every time of the support (Eq. 18).
+
+    Parameters
+    ----------
+    point : Point
+        Point of interest x_t (k = ``point.n_out`` coordinates).
+    center : array-like, shape (k,), or callable(times) -> array (n_times, k)
+        Centre x_bar (fixed or moving).
+    radius : float
+        d [m].
+    support, alpha, lambda0, eta, name
+        As :class:`~cdmp_ros.core.adaptation.constraints.base.Constraint`.
+    """
     kind = 'repeller'
     inside = False
 
@@ -175,7 +193,13 @@ class Repeller(_Sphere):
 
 class UnboundWaypoint(_Sphere):
     """max_t P(|x_t - x_bar|^2 <= d^2) >= alpha over the support (Eq. 19): one multiplier,
-    gradient through t_max = argmax_t of the approximate probability."""
+    gradient through t_max = argmax_t of the approximate probability.
+
+    Parameters
+    ----------
+    point, center, radius, support, alpha, lambda0, eta, name
+        As :class:`Repeller` (``radius``: the tolerance d [m]).
+    """
     kind = 'unbound_waypoint'
     inside = True
     reduce = 'max'
@@ -186,7 +210,18 @@ class UnboundWaypoint(_Sphere):
 
 class MutualAvoidance(Repeller):
     """P(|x1_t - x2_t|^2 > d^2) >= alpha (Eq. 22): a repeller at 0 on the difference of two
-    points of interest of a joint ProMP w = (w1, w2)."""
+    points of interest of a joint ProMP w = (w1, w2).
+
+    Parameters
+    ----------
+    point1, point2 : Point
+        Points of interest of the two robots, with equal ``n_out`` (e.g. two
+        :class:`~cdmp_ros.core.adaptation.constraints.points.ChainPoint` s).
+    distance : float
+        d [m].
+    support, alpha, lambda0, eta, name
+        As :class:`~cdmp_ros.core.adaptation.constraints.base.Constraint`.
+    """
     kind = 'mutual_avoidance'
 
     def __init__(self, point1: Point, point2: Point, distance: float, support=(0.0, 1.0),

@@ -1,4 +1,4 @@
-"""cdmp_ros.ros.realtime: SCHED_FIFO / affinity / timer slack of the calling thread, and the
+"""cdmp_ros.common.realtime: SCHED_FIFO / affinity / timer slack of the calling thread, and the
 deadline sleeper of periodic threads. Each setting is checked by reading it back from the
 kernel in the thread that made it (other threads must stay untouched)."""
 import ctypes
@@ -8,9 +8,8 @@ import time
 
 import pytest
 
-from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.ros import realtime
-from cdmp_ros.ros.realtime import DeadlineSleeper, configure_thread, thread_policy
+from cdmp_ros.common import realtime
+from cdmp_ros.common.realtime import DeadlineSleeper, configure_thread, thread_policy
 
 PR_GET_TIMERSLACK = 30
 
@@ -46,7 +45,7 @@ def fifo_permitted():
 
 @pytest.mark.parametrize('bad', [-1, 100, 1.5, True, '10', None])
 def test_bad_priorities_are_refused_naming_the_variable(bad):
-    with pytest.raises(ValidationError, match=r'priority: expected an int in \[0, 99\]'):
+    with pytest.raises(ValueError, match=r'priority: expected an int in \[0, 99\]'):
         realtime.check_priority('priority', bad)
 
 
@@ -172,5 +171,5 @@ def test_wake_ends_the_current_sleep_early():
 def test_realtime_sleeper_never_spins_and_bad_spin_is_refused():
     assert DeadlineSleeper(spin=0.001, realtime=True).spin == 0.0
     assert DeadlineSleeper(spin=0.001).spin == 0.001
-    with pytest.raises(ValidationError, match='spin: expected a value in'):
+    with pytest.raises(ValueError, match='spin: expected a value in'):
         DeadlineSleeper(spin=-0.1)

@@ -23,6 +23,9 @@ Rules for a thread under SCHED_FIFO (it preempts every normal process of its CPU
 The helpers allocate nothing per period: :meth:`DeadlineSleeper.sleep_until` is a
 ``time.sleep`` (``clock_nanosleep`` on CLOCK_MONOTONIC in CPython >= 3.11) or a timed
 ``Lock.acquire`` (``sem_clockwait`` on CLOCK_MONOTONIC) when a wake-up lock is given.
+
+Standard library only (:mod:`cdmp_ros.common`): a bad argument raises ``ValueError`` (the
+nodes validate their parameters before, with :class:`~cdmp_ros.core.errors.ValidationError`).
 """
 import os
 import threading
@@ -30,8 +33,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Tuple
 
-from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.prctl import PR_SET_TIMERSLACK, prctl
+from cdmp_ros.common.prctl import PR_SET_TIMERSLACK, prctl
 
 #: Highest SCHED_FIFO priority accepted (Linux: 1..99).
 MAX_PRIORITY = 99
@@ -71,8 +73,8 @@ def check_priority(name: str, priority: int) -> int:
     """Validate a SCHED_FIFO priority ``0..99`` (0 = off); returns it as int."""
     if isinstance(priority, bool) or not isinstance(priority, int) or not (
             0 <= priority <= MAX_PRIORITY):
-        raise ValidationError(f'{name}: expected an int in [0, {MAX_PRIORITY}] '
-                              f'(0 = normal scheduling), got {priority!r}')
+        raise ValueError(f'{name}: expected an int in [0, {MAX_PRIORITY}] '
+                         f'(0 = normal scheduling), got {priority!r}')
     return priority
 
 
@@ -236,7 +238,7 @@ class DeadlineSleeper:
     def __init__(self, spin: float = 0.0, realtime: bool = False,
                  clock: Callable[[], float] = time.monotonic):
         if not (0.0 <= spin < 1.0):
-            raise ValidationError(f'spin: expected a value in [0, 1) s, got {spin!r}')
+            raise ValueError(f'spin: expected a value in [0, 1) s, got {spin!r}')
         self.spin = 0.0 if realtime else float(spin)
         self.clock = clock
         self._wake = threading.Lock()

@@ -1,6 +1,6 @@
 """The one ``prctl(2)`` call of the package (Linux; standard library only, so every layer may
-use it): the streamer's timer slack (:mod:`cdmp_ros.ros.realtime`) and the parent-death signal
-of a graph's nodes (:mod:`cdmp_ros.cli.cmd_bringup`)."""
+use it): the streamer's timer slack (:mod:`cdmp_ros.common.realtime`) and the parent-death
+signal of a graph's nodes (:mod:`cdmp_ros.cli.cmd_bringup`)."""
 import ctypes
 import ctypes.util
 
