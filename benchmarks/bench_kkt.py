@@ -21,7 +21,6 @@ Run: .venv/bin/python benchmarks/bench_kkt.py                       (~10 min, on
      .venv/bin/python benchmarks/bench_kkt.py --problems 3 --samples 20000   (quick)
 """
 import argparse
-import copy
 import dataclasses
 import os
 import sys
@@ -43,15 +42,8 @@ BINDING = 0.25
 
 
 def problem(table, i, alpha):
-    pr = make_problem(table, TABLES[table][i % 3], np.random.default_rng(1000 + i),
-                      relative_step=True)
-    cons = []
-    for c in pr.constraints:
-        c = copy.copy(c)
-        c.alpha = alpha
-        cons.append(c)
-    pr.constraints = cons
-    return pr
+    return make_problem(table, TABLES[table][i % 3], np.random.default_rng(1000 + i),
+                        relative_step=True, alpha=alpha)
 
 
 def main(argv=None):

@@ -45,10 +45,11 @@ def original_promp(n_basis: int, rng: np.random.Generator, prior: str = 'scripts
 
 def make_problem(table: str, K: int, rng: np.random.Generator,
                  prior: str = 'scripts', relative_step: bool = False,
-                 confidence_margin: float = 1.0) -> TableProblem:
+                 confidence_margin: float = 1.0, alpha: float = ALPHA) -> TableProblem:
     """One random problem of ``table`` ('table2', 'table3', 'table4') with K constraints,
-    with the authors' optimiser settings (``relative_step=False``: the paper's EMM step;
-    ``confidence_margin``: see AdaptationConfig)."""
+    each at confidence ``alpha`` (the protocol's 0.999 by default), with the authors'
+    optimiser settings (``relative_step=False``: the paper's EMM step; ``confidence_margin``:
+    see AdaptationConfig)."""
     n_steps, n_basis, lambda0 = SETTINGS[table]
     p0, start, end = original_promp(n_basis, rng, prior)
     cons: List = []
@@ -56,7 +57,7 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
         for k in range(K):
             t = rng.uniform(0.2, 0.8)
             centre = p0.mean([t])[0] + np.array([0.0, rng.uniform(-1.5, 1.5)])
-            cons.append(Repeller(XY, centre, rng.uniform(0.3, 0.6), alpha=ALPHA,
+            cons.append(Repeller(XY, centre, rng.uniform(0.3, 0.6), alpha=alpha,
                                  name=f'obstacle_{k + 1}'))
     elif table == 'table3':
         grid = np.linspace(0.0, 1.0, n_steps)
@@ -66,7 +67,7 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
             x = x + rng.uniform(0.4, 0.6) * 6.0 / (K + 2)
             i = int(np.argmin(np.abs(mean[:, 0] - x)))
             y = mean[i, 1] + rng.uniform(-0.7, 0.7)
-            cons.append(UnboundWaypoint(XY, [x, y], rng.uniform(0.05, 0.2), alpha=ALPHA,
+            cons.append(UnboundWaypoint(XY, [x, y], rng.uniform(0.05, 0.2), alpha=alpha,
                                         name=f'waypoint_{k + 1}'))
     elif table == 'table4':
         m = 0.5 * (start + end)
@@ -82,7 +83,7 @@ def make_problem(table: str, K: int, rng: np.random.Generator,
                           np.sin(a) * d[0] + np.cos(a) * d[1]])
             if n @ (start - b) > 0 or n @ (end - b) > 0:
                 continue          # reject walls that forbid the start or the end
-            cons.append(Hyperplane(XY, n, b, alpha=ALPHA, name=f'wall_{k + 1}'))
+            cons.append(Hyperplane(XY, n, b, alpha=alpha, name=f'wall_{k + 1}'))
             k += 1
     else:
         raise ValidationError(f'table: expected table2, table3 or table4, got {table!r}')

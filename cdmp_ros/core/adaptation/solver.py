@@ -180,7 +180,8 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             objective = value - float(np.sum(lam * (prob.alpha - F)))
             if best_feasible is None or objective < best_feasible[0]:
                 best_feasible = (objective, theta.copy(), lam.copy(), jac)
-            if duality_gap(lam, F, alpha_aim) <= config.kkt_tol * max(1.0, objective):
+            if kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, objective,
+                             config).reached:
                 best_feasible = None     # a KKT point: this iterate
                 break
         if budget is not None and prob.n_evaluations >= budget:
