@@ -19,7 +19,7 @@ Results are collected with :meth:`LatestWorker.take` (from the executor or the t
 ``notify()`` (e.g. a ROS guard condition's ``trigger``) is called after each result so the
 executor does not poll. No ROS call is made from the worker thread.
 
-Used by the adapter's solver (:class:`cdmp_ros.ros.adapter_worker.SolveWorker`) and the
+Used by the adapter's solver (:class:`cdmp_ros.core.adaptation.jobs.SolveWorker`) and the
 streamer's primitive parsing (``StreamerNode.worker``). The learner's ``~/improve`` run
 (:class:`cdmp_ros.ros.learner_improve.ImproveWorker`) is not a latest-wins queue: it is one
 long run per service call, refused (not replaced) while another runs, and reports progress.

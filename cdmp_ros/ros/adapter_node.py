@@ -1,4 +1,6 @@
-"""The adapter node: the slow path of the graph (design.md, Data flow).
+"""The adapter node: the slow path of the graph (design.md, Data flow). ROS glue around
+:class:`~cdmp_ros.core.adaptation.session.AdaptationSession` (the request policy) and
+:class:`~cdmp_ros.core.adaptation.jobs.SolveWorker` (the solver thread).
 
 Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
 (MarkerArray), ``goal`` (JointState), ``goal_point`` (PointStamped, base frame),
@@ -12,7 +14,7 @@ latched; the robot model, below); publishes ``adapted_primitive``
   streamer's coupling terms; the adapter only shows them on ``visualization``.
 - ProMPs: every change of the primitive, the obstacles, the goal or the constraint set submits
   an adaptation request (:mod:`cdmp_ros.core.adaptation.requests`) to the solver thread
-  (:mod:`cdmp_ros.ros.adapter_worker`: latest request wins, stale converged results are still
+  (:mod:`cdmp_ros.core.adaptation.jobs`: latest request wins, stale converged results are still
   published; results for a primitive replaced meanwhile are dropped). Only converged
   adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
   ``/diagnostics`` with the satisfaction probabilities and the last good primitive stays
@@ -88,7 +90,6 @@ streamer gets the latest adapted one); ``visualization`` transient-local (a late
 the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
 ``/diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
 """
-import dataclasses
 import json
 import math
 import sys
@@ -104,22 +105,20 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.adaptation.requests import (AdaptRequest, clip_goal, retarget_clipped,
-                                               retarget_primitive_dict, rollout_path,
-                                               solve_goal_point)
+from cdmp_ros.core.adaptation.requests import rollout_path, solve_goal_point
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.adaptation.warm import WarmStarts
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches
-from cdmp_ros.core.streaming.selection import Provenance
 from cdmp_ros.core.primitive_io import primitive_from_dict
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.adapter_inputs import (goal_point_target, parse_constraints, parse_primitive,
                                          primitive_goal, primitive_limits)
 from cdmp_ros.ros.adapter_viz import build_markers
-from cdmp_ros.ros.adapter_worker import (Job, JobResult, SolveWorker, Suspensions, result_values,
-                                         solve_job, violated)
+from cdmp_ros.core.adaptation.jobs import Job, JobResult, SolveWorker, solve_job
+from cdmp_ros.core.adaptation import session as policy
+from cdmp_ros.core.adaptation.session import AdaptationSession, ResultAction
 from cdmp_ros.ros.convert import JointStateMapper, ObstacleSet, stamp_to_ns
 from cdmp_ros.ros.diagnostics import ERROR, OK, WARN, DiagnosticsReporter
 from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGate, joint_names,
@@ -136,8 +135,8 @@ INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: callback and the start of its solve reached 13-36 ms in 3 of 4 runs of the tracked latency
 #: benchmark, against at most 6-8 ms in 6 runs with 1 ms (benchmarks/RESULTS.md, 2026-11-27).
 SWITCH_INTERVAL = 0.001
-#: Triggers whose adaptation reshapes the running motion (Provenance.continues).
-CONTINUING_TRIGGERS = ('obstacles', 'constraints')
+#: The session's state levels (:mod:`cdmp_ros.core.adaptation.session`) as diagnostics levels.
+LEVELS = {policy.OK: OK, policy.WARN: WARN, policy.ERROR: ERROR}
 #: Diagnostics keys describing the last result (replaced as a whole by the next one).
 RESULT_KEYS = ('outcome', 'solve_time_ms', 'solve_cpu_ms', 'trigger', 'request_id', 'stale',
                'kl', 'iterations', 'outer_iterations', 'backtracks', 'evaluations', 'start',
@@ -169,29 +168,10 @@ class AdapterNode(Node):
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
-        # state
-        self.primitive = None        # dict: kind, d (validated dict), prim, perm
-        self.primitive_id = 0
-        self._generation = 0         # of the last adaptation (ROS time [ns] at the request)
-        #: the refinement a newer request cancelled: the next refinement continues it
-        self.suspensions = Suspensions()
-        # continuing requests need a motion to continue: the primitive_id whose motion-starting
-        # (phase-0 conditioned) adaptation was published, and the generation of the newest
-        # motion-starting request still to be published (0: none)
-        self._motion_of = 0
-        self._restart_generation = 0
-        self.constraint_doc = None
-        self.goal_y: Optional[np.ndarray] = None
-        self.goal_point: Optional[np.ndarray] = None
+        self.session = AdaptationSession(self.joint_names)
         self.q: Optional[np.ndarray] = None
         self.q_time = -math.inf
         self._obstacle_items = ()
-        self.counts = {'published': 0, 'outcome_converged': 0, 'outcome_infeasible': 0,
-                       'outcome_unconverged': 0, 'outcome_rejected': 0,
-                       'requests_outdated': 0, 'refinements_started': 0,
-                       'refinements_published': 0, 'refinements_kept_warm': 0,
-                       'refinements_cancelled': 0, 'refinements_failed': 0,
-                       'refinements_resumed': 0}
 
         self.pub = self.create_publisher(String, 'adapted_primitive', qos.LATCHED)
         self.viz_pub = self.create_publisher(MarkerArray, 'visualization', qos.LATCHED)
@@ -227,7 +207,7 @@ class AdapterNode(Node):
         self.worker.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.readiness = ReadinessProbe(self, {
-            'primitive': ('a primitive received', lambda: self.primitive is not None),
+            'primitive': ('a primitive received', lambda: self.session.primitive is not None),
             'consumer': ('a subscriber on adapted_primitive',
                          has_subscribers(self, 'adapted_primitive')),
             'joint_states': ('a publisher on joint_states (the start of an adaptation)',
@@ -297,9 +277,7 @@ class AdapterNode(Node):
             self.gate.reject('primitive', str(exc))
             return
         prim['limits'] = (lo, hi)
-        self.primitive_id += 1
-        self.primitive = prim
-        self.goal_y = self.goal_point = None
+        self.session.set_primitive(prim)
         self.reporter.values['limit_mismatch'] = describe_mismatches(mismatches)
         self.get_logger().info(f'new {prim["kind"]} primitive ({len(msg.data)} bytes)')
         if mismatches:
@@ -310,14 +288,14 @@ class AdapterNode(Node):
         self._trigger('primitive', 0)
 
     def _on_constraints(self, msg: String) -> None:
-        p = self.primitive
+        p = self.session.primitive
         try:
             doc = parse_constraints(msg.data, p['prim'] if p and p['kind'] == 'promp' else None,
                                     self.chain, self.config.max_json_bytes)
         except CdmpError as exc:
             self.gate.reject('constraints', str(exc))
             return
-        self.constraint_doc = doc
+        self.session.set_constraints(doc)
         self.get_logger().info(f'constraint set with '
                                f'{len(doc["constraints"]) if doc else 0} constraints')
         self._trigger('constraints', 0)
@@ -343,21 +321,19 @@ class AdapterNode(Node):
 
     def _ik_seeds(self):
         """IK seeds: the current joint state, the primitive's goal, the middle of the limits."""
-        g = primitive_goal(self.primitive)
+        g = primitive_goal(self.session.primitive)
         mid = 0.5 * (self.chain.lower + self.chain.upper)
         return [q for q in (self._current_q(), g, mid) if q is not None]
 
     def _set_goal(self, topic: str, g: np.ndarray, point, stamp_ns: int) -> None:
-        # the limits the primitive is adapted within (the robot's before the first primitive)
-        p = self.primitive
-        lo, hi = p['limits'] if p is not None else (self.chain.lower, self.chain.upper)
-        gc, clipped = clip_goal(g, lo, hi, self.config.goal_margin)
+        clipped = self.session.set_goal(g, point, self.chain.lower, self.chain.upper,
+                                        self.config.goal_margin)
+        gc = self.session.goal_y
         if clipped:
             changes = ', '.join(f'{self.joint_names[j]} {g[j]:.4g} -> {gc[j]:.4g}'
                                 for j in clipped)
             self.gate.reject(topic, f'{topic} outside the limits, clipped with the CDMP margin: '
                                     f'{changes}')
-        self.goal_y, self.goal_point = gc, point
         self.get_logger().info(f'new goal from {topic}: {np.round(gc, 4).tolist()}',
                                throttle_duration_sec=1.0)
         self._trigger(topic, stamp_ns)
@@ -372,49 +348,29 @@ class AdapterNode(Node):
         if items == self._obstacle_items:
             return
         self._obstacle_items = items
-        if self.primitive is not None and self.primitive['kind'] == 'promp':
+        if self.session.is_promp:
             self._trigger(topic, stamp_ns)
         else:  # DMP / CDMP: the streamer's coupling handles obstacles
             self._publish_dmp_visualization()
 
     # -- requests ----------------------------------------------------------------------------
     def _trigger(self, topic: str, stamp_ns: int) -> None:
-        p = self.primitive
-        if p is None:
-            self.reporter.set_state(OK, f'waiting for a primitive ({topic} stored)')
-            self._publish_dmp_visualization()
-            return
-        if p['kind'] != 'promp':
-            if topic == 'constraints':
-                self.reporter.set_state(OK, f'constraint set stored: it applies to ProMPs, the '
-                                            f'primitive is a {p["kind"]}')
-            elif topic == 'goal' and not self.config.retarget_dmp_on_goal:
-                self.reporter.set_state(OK, f'goal left to the streamer ({p["kind"]}, '
-                                            f'retarget_dmp_on_goal false)')
-                self._publish_dmp_visualization(
-                    retarget_primitive_dict(p['d'], self.goal_y, self.joint_names))
-            else:
-                self._retarget_dmp(topic, stamp_ns)
-            return
         cfg = self.config
-        q = self._current_q()
-        start = q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
-        # obstacles and constraints reshape the running motion (the streamer continues it at
-        # its phase), once a motion of this primitive was published and no motion-starting
-        # request waits (it may be superseded by this one); a new primitive or goal starts a
-        # motion from the current state
-        continues = (topic in CONTINUING_TRIGGERS and self._motion_of == self.primitive_id
-                     and not self._restart_generation)
-        generation = self._next_generation()
-        if not continues:
-            self._restart_generation = generation
-        req = AdaptRequest(p['prim'], tuple(self.obstacles.snapshot.items), self.constraint_doc,
-                           self.goal_y, start, p['limits'], continues=continues)
-        replaced = self.worker.submit(Job(req, self.params['adaptation'], cfg, topic, stamp_ns,
-                                          time.monotonic(), self.primitive_id, p['sha1'],
-                                          generation=generation))
-        if replaced is not None and replaced.refine_kl is not None:
-            self.counts['refinements_cancelled'] += 1   # not started yet: it gives way
+        start = None
+        if self.session.is_promp:
+            q = self._current_q()
+            start = q if time.monotonic() - self.q_time <= cfg.joint_states_timeout else None
+        t = self.session.trigger(topic, stamp_ns, self.obstacles.snapshot.items, start,
+                                 self.params['adaptation'], cfg,
+                                 self.get_clock().now().nanoseconds, time.monotonic())
+        if t.action == 'solve':
+            self.session.replaced(self.worker.submit(t.job))
+        elif t.action == 'retarget':
+            self._retarget_dmp(topic, stamp_ns)
+        else:
+            self.reporter.set_state(OK, t.message)
+            if t.action == 'wait' or t.retargeted is not None:
+                self._publish_dmp_visualization(t.retargeted)
 
     def _solve(self, job: Job) -> JobResult:
         """Solve ``job`` (in the solver thread); a refinement gives way to any newer request."""
@@ -425,56 +381,33 @@ class AdapterNode(Node):
                          lambda: worker.stopping() or worker.has_pending(), self.warm)
 
     def _refine(self, res: JobResult) -> None:
-        """After a warm solve was published, with the solver idle: solve the same request
-        cold, or continue the refinement a newer request suspended (``Suspensions``), on this
-        request (``adaptation.warm_start_refine``; :mod:`cdmp_ros.core.adaptation.warm`)."""
-        job = res.job
-        # only with the solver idle: a refinement must run before any newer request (its
-        # generation is newer than theirs), which then cancels it
-        if (res.stale or job.refine_kl is not None or res.result.report.start != 'warm'
-                or not job.config.warm_start_refine or self.worker.busy
-                or self.worker.has_pending()):
-            return
-        self.counts['refinements_started'] += 1
-        resume = self.suspensions.resume_for(job)
-        self.counts['refinements_resumed'] += resume is not None
-        self.worker.submit(dataclasses.replace(job, refine_kl=float(res.result.report.kl),
-                                               refine_resume=resume,
-                                               generation=self._next_generation(),
-                                               received=time.monotonic()))
-
-    def _next_generation(self) -> int:
-        """Generation of a new adaptation: the ROS time [ns] now, strictly increasing (also
-        across adapter restarts, as the clock moves on)."""
-        self._generation = max(self.get_clock().now().nanoseconds, self._generation + 1)
-        return self._generation
+        """A refinement of a published warm solve, if the session asks for one."""
+        job = self.session.refinement(
+            res, not (self.worker.busy or self.worker.has_pending()),
+            self.get_clock().now().nanoseconds, time.monotonic())
+        if job is not None:
+            self.worker.submit(job)
 
     def _retarget_dmp(self, topic: str, stamp_ns: int = 0) -> None:
         """DMP / CDMP: publish the primitive with the new goal (same weights)."""
-        if self.goal_y is None:
+        d, clipped = self.session.retarget(topic, stamp_ns, self.config.goal_margin,
+                                           self.get_clock().now().nanoseconds)
+        if d is None:
             self._publish_dmp_visualization()
             return
-        p = self.primitive
-        d, clipped = retarget_clipped(p['d'], self.goal_y, self.joint_names,
-                                      self.config.goal_margin)
         if clipped:
             self.gate.reject(topic, f'{topic} outside the primitive limits, clipped: '
                                     + ', '.join(self.joint_names[j] for j in clipped))
-        d['metadata'] = dict(d.get('metadata') or {})
-        d['metadata']['adapter'] = {'outcome': 'retargeted', 'source_sha1': p['sha1'],
-                                    **Provenance(p['sha1'], self._next_generation(), topic,
-                                                 stamp_ns).as_dict()}
         self.pub.publish(String(data=json.dumps(d)))
-        self.counts['published'] += 1
         self._clear_result_values()
-        self.reporter.set_state(OK, f'{p["kind"]} retargeted to the goal from {topic}',
-                                outcome='retargeted', trigger=topic)
+        self.reporter.set_state(OK, f'{self.session.primitive["kind"]} retargeted to the goal '
+                                    f'from {topic}', outcome='retargeted', trigger=topic)
         self._publish_dmp_visualization(d)
 
     def _publish_dmp_visualization(self, d=None) -> None:
         """Obstacles and (with a DMP/CDMP primitive) its rollout from the current state."""
         path = None
-        p = self.primitive
+        p = self.session.primitive
         if p is not None and p['kind'] != 'promp':
             try:
                 prim = primitive_from_dict(d) if d is not None else p['prim']
@@ -487,7 +420,8 @@ class AdapterNode(Node):
     def _publish_markers(self, path, band) -> None:
         self.viz_pub.publish(build_markers(self.config.base_frame,
                                            self.get_clock().now().to_msg(), path, band,
-                                           self.obstacles.snapshot.items, self.goal_point))
+                                           self.obstacles.snapshot.items,
+                                           self.session.goal_point))
 
     # -- results -----------------------------------------------------------------------------
     def _on_results(self) -> None:
@@ -495,62 +429,24 @@ class AdapterNode(Node):
             self._handle_result(res)
 
     def _handle_result(self, res: JobResult) -> None:
-        job = res.job
-        outdated = job.primitive_id != self.primitive_id  # adapted a primitive replaced since
-        if job.refine_kl is not None and (outdated or res.stale or res.outcome != 'converged'):
-            # a refinement that gave way to a newer request, found no lower KL or failed: the
-            # warm solution stays published
-            # a refinement cancelled by a newer request resumes on it after its warm solve
-            self.suspensions.refinement_ended(res, outdated)
-            if res.outcome == 'kept_warm':
-                key = 'kept_warm'
-            elif res.outcome == 'rejected' and not (outdated or res.stale):
-                key = 'failed'
-            else:
-                key = 'cancelled'
-            self.counts[f'refinements_{key}'] += 1
-            if key == 'failed':
-                self.get_logger().warning(f'refinement {job.id} failed: {res.error}')
-            self._publish_now()
-            return
-        if outdated:
-            self.counts['requests_outdated'] += 1
-            return
-        self.counts[f'outcome_{res.outcome}'] += 1
-        self.reporter.timing('solve', res.solve_time)
-        self._clear_result_values()
-        kv = result_values(res)
-        if res.outcome == 'rejected':
-            self.gate.reject(res.error_topic or job.trigger, res.error)
-            self.reporter.set_state(ERROR, f'request {job.id} ({job.trigger}) rejected: '
-                                           f'{res.error}', **kv)
-            self._publish_now()
-            return
-        if res.outcome == 'converged':
-            self.suspensions.published(res)
-            if not job.request.continues and job.generation >= self._restart_generation:
-                self._motion_of, self._restart_generation = job.primitive_id, 0
-            self.pub.publish(String(data=res.text))
-            self._publish_markers(res.path, res.band)
-            self.counts['published'] += 1
-            if job.refine_kl is not None:
-                self.counts['refinements_published'] += 1
-            latency = time.monotonic() - job.received
-            self.reporter.timing('request_to_publish', latency)
-            kv['latency_ms'] = f'{latency * 1e3:.1f}'
-            self.reporter.set_state(OK, f'request {job.id} ({job.trigger}) converged'
-                                    + (' (refinement)' if job.refine_kl is not None else '')
-                                    + (' (stale: a newer request is pending)'
-                                       if res.stale else ''), **kv)
+        act: ResultAction = self.session.result(res, time.monotonic())
+        for name, seconds in act.timings:
+            self.reporter.timing(name, seconds)
+        if act.level is not None:
+            self._clear_result_values()
+        if act.reject is not None:
+            self.gate.reject(*act.reject)
+        if act.publish is not None:
+            self.pub.publish(String(data=act.publish))
+            self._publish_markers(*act.markers)
+        if act.level is not None:
+            self.reporter.set_state(LEVELS[act.level], act.message, **act.values)
+        if act.warning is not None:
+            self.get_logger().warning(act.warning)
+        if act.refine:
             self._refine(res)
-        else:
-            bad = '; '.join(res.result.problem.infeasible[:2] + violated(res)[:5])
-            level = ERROR if res.outcome == 'infeasible' else WARN
-            self.reporter.set_state(level, f'request {job.id} ({job.trigger}) {res.outcome}: '
-                                           f'{bad}; last good primitive kept', **kv)
-            self.get_logger().warning(f'adaptation {res.outcome} '
-                                      f'({res.result.report.status}): {bad}')
-        self._publish_now()
+        if act.report:
+            self._publish_now()
 
     # -- diagnostics -------------------------------------------------------------------------
     def _clear_result_values(self) -> None:
@@ -565,14 +461,14 @@ class AdapterNode(Node):
                                                      'warm_then_cold', 'cold_then_warm',
                                                      'over_guard')}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
-                                **self.worker.summary(), **self.counts, **starts,
+                                **self.worker.summary(), **self.session.counts, **starts,
                                 **self.readiness.values(), **self.gate.values())
         self.reporter.publish(self.get_clock().now().to_msg())
 
     def _publish_diagnostics(self) -> None:
         if self.obstacles.expire(time.monotonic()):
             self._obstacles_changed('obstacles', 0)
-        p = self.primitive
+        p, session = self.session.primitive, self.session
         self._poll_joint_states()
         age = time.monotonic() - self.q_time
         self.reporter.set_state(self.reporter.level, self.reporter.message,
@@ -581,10 +477,10 @@ class AdapterNode(Node):
                                              if age <= self.config.joint_states_timeout
                                              else 'stale'),
                                 obstacles=len(self.obstacles),
-                                constraints=(len(self.constraint_doc['constraints'])
-                                             if self.constraint_doc else 0),
-                                goal=('none' if self.goal_y is None
-                                      else np.round(self.goal_y, 4).tolist()))
+                                constraints=(len(session.constraint_doc['constraints'])
+                                             if session.constraint_doc else 0),
+                                goal=('none' if session.goal_y is None
+                                      else np.round(session.goal_y, 4).tolist()))
         self._publish_now()
 
     def close(self) -> None:

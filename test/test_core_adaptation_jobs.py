@@ -1,4 +1,4 @@
-"""The adapter's solver thread (cdmp_ros.ros.adapter_worker.SolveWorker), without ROS: latest
+"""The adapter's solver thread (cdmp_ros.core.adaptation.jobs.SolveWorker), without ROS: latest
 request wins, a running solve is not interrupted, its result is marked stale when a newer
 request waits, a failing solve becomes a 'rejected' result and the thread survives;
 refinements are not counted among the requests; a refinement a newer request cancels says
@@ -7,7 +7,7 @@ import threading
 
 import numpy as np
 
-from cdmp_ros.ros.adapter_worker import Job, JobResult, SolveWorker
+from cdmp_ros.core.adaptation.jobs import Job, JobResult, SolveWorker
 
 
 def _job(name, refine_kl=None):
@@ -84,7 +84,7 @@ def test_a_cancelled_refinement_says_where_it_was_and_resumes(chain, prior):
     from cdmp_ros.core.adaptation.requests import AdaptRequest, ee_path
     from cdmp_ros.core.adaptation.warm import WarmStarts
     from cdmp_ros.core.kinematics import Sphere
-    from cdmp_ros.ros.adapter_worker import solve_job
+    from cdmp_ros.core.adaptation.jobs import solve_job
     cfg = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000)
     centre = ee_path(chain, prior.mean([0.5]))[0]
 
@@ -114,7 +114,7 @@ def test_the_node_resumes_only_the_refinement_a_newer_request_suspended():
     from types import SimpleNamespace
     from cdmp_ros.core.adaptation.config import SolverState
     from cdmp_ros.core.adaptation.warm import Suspended
-    from cdmp_ros.ros.adapter_worker import Suspensions
+    from cdmp_ros.core.adaptation.jobs import Suspensions
 
     def job(primitive_id=1, refine_kl=None):
         j = _job('obstacles', refine_kl)
