@@ -55,6 +55,8 @@ def start_adapter(domain_id, params=(), log_path=None, params_file='config/adapt
 
 
 class Harness(NodeHarness):
+    target = 'adapter'
+
     def __init__(self, domain_id: int):
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray

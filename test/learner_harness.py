@@ -36,7 +36,7 @@ class LearnerHarness(NodeHarness):
         self.subscribe(String, 'primitive', self._on_primitive, qos.LATCHED)
         self.clients = {s: n.create_client(Trigger, f'/{node_name}/{s}')
                         for s in ('refit', 'save', 'improve')}
-        self.node_name = node_name
+        self.target = node_name
         self.start()
 
     def _on_primitive(self, msg):
@@ -58,9 +58,6 @@ class LearnerHarness(NodeHarness):
 
     def call(self, service, timeout=30.0):
         return self.call_trigger(self.clients[service], timeout)
-
-    def set_parameter(self, name, value, timeout=10.0):
-        return self.set_node_parameter(self.node_name, name, value, timeout)
 
     def publish_demo(self, T, Y, names=PANDA_JOINTS, order=None, end=True, period=0.0,
                      start_ns=None):

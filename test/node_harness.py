@@ -10,10 +10,14 @@
   parameter service calls, and stamped JointState messages. The per-node harnesses
   (``streamer_harness``, ``adapter_harness``, ``sim_harness``, ``learner_harness``,
   ``bag_ros_util``) subclass it with what is specific to their node.
-- The Panda test data shared by those tests (joint names, limits, start and goal).
+- The Panda test data shared by those tests (joint names, limits, start and goal), the
+  malformed JointState cases every node with JointState input rejects
+  (:func:`bad_joint_state`), and the parameter files' contents and the defaults they mirror.
+- :func:`running` (a node process serving a test) and :func:`expect_startup_failures`.
 
 Every wait is on a condition (:func:`conftest.wait_for`) with a generous timeout.
 """
+import contextlib
 import os
 import signal
 import subprocess
@@ -120,6 +124,128 @@ def stop_process(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = WAI
                 proc.kill()
             return proc.wait(5)
     return proc.returncode
+
+
+@contextlib.contextmanager
+def running(proc: subprocess.Popen, harness: 'NodeHarness', log, ready: Callable,
+            timeout: float, what: str = 'node', exit_code: Optional[int] = 0):
+    """The node process ``proc`` (log file ``log``) serving a test with ``harness``: waits
+    until ``ready()`` (asserting that the process is alive then); at the end closes the
+    harness and stops the process (:func:`stop_process`), which must exit with ``exit_code``
+    (None: not checked) when the body did not fail."""
+    try:
+        ok = harness.wait(lambda: ready() or proc.poll() is not None, timeout)
+        assert ok and proc.poll() is None, log.read_text()
+        yield
+    finally:
+        harness.close()
+        code = stop_process(proc)
+    if exit_code is not None:
+        assert code == exit_code, f'{what} exit code {code}\n{log.read_text()}'
+
+
+@contextlib.contextmanager
+def graph_running(bringup, harness: 'NodeHarness', log):
+    """A started node graph (:class:`cdmp_ros.cli.cmd_bringup.Bringup` ``bringup``, writing to
+    the open file ``log``) serving a test with ``harness``: at the end closes the harness,
+    stops the graph and the log; every node must have exited with 0 or by SIGINT when the body
+    did not fail."""
+    try:
+        yield
+    finally:
+        harness.close()
+        codes = bringup.stop()
+        log.close()
+    with open(log.name) as f:
+        tail = f.read()[-3000:]
+    assert all(c in (0, -signal.SIGINT) for c in codes.values()), f'{codes}\n{tail}'
+
+
+def expect_startup_failures(procs, timeout: float) -> None:
+    """Each of ``procs`` [(process, text, log path)], started together (start-up is slow),
+    exits with code 2 and ``text`` in its log; every one is stopped in the end."""
+    try:
+        for proc, text, log_path in procs:
+            code = proc.wait(timeout)
+            with open(log_path) as f:
+                log = f.read()
+            assert code == 2 and text in log, log
+    finally:
+        for proc, _, _ in procs:
+            stop_process(proc)
+
+
+# -- bad input ---------------------------------------------------------------------------------
+#: JointState case of :func:`bad_joint_state` -> the text of the nodes' rejection reason.
+JOINT_STATE_CASES = {
+    'nan': 'expected a finite value, got nan', 'inf': 'expected a finite value, got -inf',
+    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
+    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
+    'future_stamp': 'in the future', 'past_stamp': 'in the past'}
+#: The same on a goal, where the joints must be the robot's ones only.
+GOAL_CASES = dict(JOINT_STATE_CASES, unknown_name="unknown joints ['elbow_joint']")
+
+
+def bad_joint_state(make: Callable, case: str, names: Sequence[str] = PANDA_JOINTS,
+                    inf: float = float('-inf')):
+    """A JointState broken as ``case`` says: 'nan' / 'inf' (``inf``) / 'nan_velocity' values,
+    'wrong_length' / 'velocity_length' arrays, 'unknown_name' / 'missing_name' /
+    'duplicate_name' joints, 'future_stamp' (60 s ahead) / 'past_stamp' (an hour behind).
+
+    ``make(stamp_offset)`` returns a valid message of the joints ``names`` stamped now +
+    ``stamp_offset`` [s]; a case not listed here returns that valid message unchanged, for
+    the caller to break."""
+    if case == 'future_stamp':
+        return make(60.0)
+    if case == 'past_stamp':
+        return make(-3600.0)
+    names = list(names)
+    msg = make(0.0)
+    if case == 'nan':
+        msg.position[2] = float('nan')
+    elif case == 'inf':
+        msg.position[4] = inf
+    elif case == 'nan_velocity':
+        msg.velocity = [0.0] * 6 + [float('nan')]
+    elif case == 'wrong_length':
+        msg.position = msg.position[:5]
+    elif case == 'velocity_length':
+        msg.velocity = [0.0, 0.0]
+    elif case == 'unknown_name':
+        msg.name = names[:6] + ['elbow_joint']
+    elif case == 'missing_name':
+        msg.name = names[:6]
+        msg.position = msg.position[:6]
+    elif case == 'duplicate_name':
+        msg.name = names[:6] + [names[0]]
+    return msg
+
+
+# -- parameter files ---------------------------------------------------------------------------
+def config_file_parameters(name: str) -> dict:
+    """The ``/**`` parameters of ``config/<name>.yaml``, one level of sections flattened to
+    'section.name' keys, lists as tuples."""
+    import yaml
+    with open(os.path.join(REPO_ROOT, 'config', f'{name}.yaml')) as f:
+        params = yaml.safe_load(f)['/**']['ros__parameters']
+    flat = {}
+    for k, v in params.items():
+        if isinstance(v, dict):
+            flat.update({f'{k}.{kk}': vv for kk, vv in v.items()})
+        else:
+            flat[k] = tuple(v) if isinstance(v, list) else v
+    return flat
+
+
+def parameter_defaults(sections) -> dict:
+    """'prefix.name' (or 'name' for the prefix '') -> default of every parameter of the
+    config classes of ``sections`` [(prefix, class)]."""
+    from cdmp_ros.ros.params import parameter_fields
+    expected = {}
+    for prefix, cls in sections:
+        for f, kind, default in parameter_fields(cls):
+            expected[f'{prefix}.{f.name}' if prefix else f.name] = default
+    return expected
 
 
 # -- the test-side node ------------------------------------------------------------------------
@@ -283,6 +409,31 @@ class NodeHarness:
                            and (name is None or name in d.name) for d in self.diag_messages)
         return self.wait(found, timeout)
 
+    def reject(self, topic: str, make: Callable, text: str, name: Optional[str] = None,
+               resend: bool = False, timeout: float = WAIT_S) -> float:
+        """Publish ``make()`` (a message or a list of them) on ``topic`` and assert that the
+        node reports its rejection: a diagnostics status whose message contains ``text`` and
+        whose name contains ``name`` (default 'input <topic>'). With ``resend`` it is
+        published again at every poll until reported (a best-effort topic may lose it).
+        Returns the time before the first publication."""
+        name = f'input {topic}' if name is None else name
+        t0 = time.monotonic()
+
+        def send():
+            msgs = make()
+            for msg in (msgs if isinstance(msgs, list) else [msgs]):
+                self.publish(topic, msg)
+        if resend:
+            def reported():
+                send()
+                return self.wait_diag(text, t0, timeout=0.0, name=name)
+            ok = self.wait(reported, timeout)
+        else:
+            send()
+            ok = self.wait_diag(text, t0, timeout, name)
+        assert ok, [d[1:3] for d in self.diag_messages if d.t >= t0][-6:]
+        return t0
+
     def _is_state(self, name: str) -> bool:
         return name.endswith(': state')
 
@@ -308,6 +459,20 @@ class NodeHarness:
         fut = client.call_async(Trigger.Request())
         assert self.wait(fut.done, timeout), f'{client.srv_name}: no answer'
         return fut.result()
+
+    #: Name of the node under test, whose parameters :meth:`set_parameter` sets.
+    target: Optional[str] = None
+
+    def set_parameter(self, name: str, value, timeout: float = WAIT_S):
+        """Set parameter ``name`` of the node under test (:attr:`target`)."""
+        return self.set_node_parameter(self.target, name, value, timeout)
+
+    def refusal(self, name: str, value, timeout: float = WAIT_S) -> str:
+        """Set parameter ``name`` of the node under test to ``value``; asserts that the node
+        refused it and returns the reason."""
+        r = self.set_parameter(name, value, timeout)
+        assert not r.successful, f'{name} := {value!r} was accepted'
+        return r.reason
 
     def set_node_parameter(self, node_name: str, name: str, value, timeout: float = 10.0):
         """Set parameter ``name`` of node ``node_name`` by its service; returns the

@@ -18,6 +18,8 @@ def start_sim(domain_id, params=(), log_path=None, params_file=None):
 
 
 class SimHarness(NodeHarness):
+    target = 'sim'
+
     def __init__(self, domain_id: int, clock: bool = False):
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState
@@ -106,6 +108,3 @@ class SimHarness(NodeHarness):
 
     def call(self, service, timeout=30.0):
         return self.call_trigger(self.clients[service], timeout)
-
-    def set_parameter(self, name, value, timeout=10.0):
-        return self.set_node_parameter('sim', name, value, timeout)

@@ -68,6 +68,8 @@ def start_streamer(domain_id, params=(), log_path=None, params_file=None):
 
 # -- the test-side node -------------------------------------------------------------------------
 class Harness(NodeHarness):
+    target = 'streamer'
+
     def __init__(self, domain_id: int):
         from sensor_msgs.msg import JointState
 

@@ -148,23 +148,8 @@ def test_batched_lagrangian_matches_the_reference(name, whiten, rng):
                                   'gamma_tail'])
 def test_batched_gradient_matches_finite_differences(name, rng):
     prior, cons, cfg = _problem(name, True, rng)
-    prob = Problem(prior, cons, cfg, evaluator='batched')
-    theta = prob.initial_theta() + 0.05 * rng.standard_normal(prob.initial_theta().size)
-    lam = rng.uniform(0.5, 2.0, prob.n_values)
-    f, g = prob.lagrangian(theta, lam)
-    h = 1e-6
-    idx = np.unique(np.r_[rng.choice(theta.size, 12, replace=False), 0, theta.size - 1])
-    for i in idx:
-        e = np.zeros_like(theta)
-        e[i] = h
-        fd = (prob.lagrangian(theta + e, lam)[0] - prob.lagrangian(theta - e, lam)[0]) / (2 * h)
-        scale = max(abs(fd), abs(g[i]), 1e-3 * np.linalg.norm(g) / np.sqrt(g.size))
-        assert abs(fd - g[i]) / scale <= 1e-5, (i, fd, g[i])
-    v = rng.standard_normal(theta.size)
-    v /= np.linalg.norm(v)
-    fd = (prob.lagrangian(theta + h * v, lam)[0]
-          - prob.lagrangian(theta - h * v, lam)[0]) / (2 * h)
-    assert abs(fd - g @ v) <= 1e-5 * max(abs(fd), 1e-8)
+    from test_core_adaptation import _check_gradient
+    _check_gradient(Problem(prior, cons, cfg, evaluator='batched'), rng)
 
 
 @pytest.fixture(scope='module')

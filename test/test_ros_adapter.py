@@ -16,6 +16,8 @@ import pytest
 from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, reach_cdmp,
                              reach_promp, start_adapter, stop_process)
 from markers import MARKER_CASES, bad_marker
+from node_harness import (GOAL_CASES, JOINT_STATE_CASES, bad_joint_state,
+                          expect_startup_failures, running)
 from cdmp_ros.core.primitive_io import dumps_primitive
 
 pytestmark = pytest.mark.ros
@@ -39,19 +41,13 @@ def graph(tmp_path_factory):
     log = tmp_path_factory.mktemp('adapter') / 'adapter.log'
     proc = start_adapter(DOMAIN, PARAMS, log_path=str(log))
     h = Harness(DOMAIN)
-    try:
-        ok = h.wait(lambda: bool(h.states_since(0)) or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: bool(h.states_since(0)), STARTUP, 'adapter'):
         h.robot_q = Q_ROBOT
         # the ProMP tests condition on this state: wait until the adapter has it
         t0 = time.monotonic()
         assert h.wait_state(lambda m, lv, kv: kv.get('robot_state') == 'fresh', t0, TIMEOUT), \
             h.states_since(t0)[-1:]
         yield h, proc, log
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'adapter exit code {code}\n{log.read_text()}'
 
 
 def use(h, prims, kind):
@@ -184,11 +180,11 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
         assert st is not None, h.states_since(t0)[-1:]
         after = ended(st[2])
         assert after[3:] == before[3:] and after[1] + after[2] == before[1] + before[2] + 1
-        assert _set_param(h, 'adaptation.warm_start', False).successful
+        assert h.set_parameter('adaptation.warm_start', False).successful
         rep, _ = move_to(centre + [0.0, 0.02, 0.0])
         assert rep['start'] == 'cold', rep
     finally:
-        assert _set_param(h, 'adaptation.warm_start', True).successful
+        assert h.set_parameter('adaptation.warm_start', True).successful
         n0 = h.n_adapted()
         h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
         assert h.wait_adapted(n0, trigger='obstacles') is not None
@@ -332,24 +328,10 @@ def test_cdmp_goal_point_goes_through_the_ik(graph, prims, chain):
     assert np.linalg.norm(ee(chain, d['dmp']['goal']) - target) <= 1e-3 + 1e-9
 
 
-def _set_param(h, name, value):
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import Parameter
-    client = h.node.create_client(SetParameters, '/adapter/set_parameters')
-    try:
-        assert client.wait_for_service(timeout_sec=10.0)
-        fut = client.call_async(SetParameters.Request(
-            parameters=[Parameter(name, value=value).to_parameter_msg()]))
-        assert h.wait(fut.done, TIMEOUT)
-        return fut.result().results[0]
-    finally:
-        h.node.destroy_client(client)
-
-
 def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
     h, proc, _ = graph
     use(h, prims, 'cdmp')
-    assert _set_param(h, 'retarget_dmp_on_goal', False).successful
+    assert h.set_parameter('retarget_dmp_on_goal', False).successful
     try:
         t0 = time.monotonic()
         n0 = h.n_adapted()
@@ -357,7 +339,7 @@ def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
         assert h.wait_state(lambda m, lv, kv: 'goal left to the streamer' in m, t0, TIMEOUT)
         assert h.n_adapted() == n0
     finally:
-        assert _set_param(h, 'retarget_dmp_on_goal', True).successful
+        assert h.set_parameter('retarget_dmp_on_goal', True).successful
 
 
 def test_cdmp_obstacles_are_only_shown(graph, prims):
@@ -374,61 +356,28 @@ def test_cdmp_obstacles_are_only_shown(graph, prims):
 
 # -- bad input: one test per case --------------------------------------------------------------
 def _bad_joint_state(h, case):
-    names = list(PANDA_JOINTS)
-    msg = h.joint_state(Q_ROBOT)
-    if case == 'nan':
-        msg.position[2] = float('nan')
-    elif case == 'inf':
-        msg.position[4] = float('-inf')
-    elif case == 'wrong_length':
-        msg.position = msg.position[:5]
-    elif case == 'velocity_length':
-        msg.velocity = [0.0, 0.0]
-    elif case == 'unknown_name':
-        msg.name = names[:6] + ['elbow_joint']
-    elif case == 'missing_name':
-        msg.name = names[:6]
-        msg.position = msg.position[:6]
-    elif case == 'duplicate_name':
-        msg.name = names[:6] + [names[0]]
-    elif case == 'future_stamp':
-        msg = h.joint_state(Q_ROBOT, stamp_offset=60.0)
-    elif case == 'past_stamp':
-        msg = h.joint_state(Q_ROBOT, stamp_offset=-3600.0)
-    elif case == 'outside_limits':
+    msg = bad_joint_state(lambda dt: h.joint_state(Q_ROBOT, stamp_offset=dt), case)
+    if case == 'outside_limits':
         msg.position[3] = 1.0
     return msg
 
 
-JS_CASES = {  # case -> expected text in the diagnostics reason
-    'nan': 'expected a finite value, got nan', 'inf': 'expected a finite value, got -inf',
-    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
-    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
-    'future_stamp': 'in the future', 'past_stamp': 'in the past',
-    'outside_limits': "'panda_joint4': 1 is outside the limits"}
-GOAL_CASES = dict({k: v for k, v in JS_CASES.items() if k != 'outside_limits'},
-                  unknown_name="unknown joints ['elbow_joint']")
+JS_CASES = dict(JOINT_STATE_CASES, outside_limits="'panda_joint4': 1 is outside the limits")
 
 
 @pytest.mark.parametrize('case', sorted(JS_CASES))
 def test_bad_joint_states_are_rejected(graph, case):
     h, proc, _ = graph
-    t0 = time.monotonic()
-
-    def publish():  # joint_states is best effort (sensor QoS): until the rejection is reported
-        h.publish('joint_states', _bad_joint_state(h, case))
-        return h.wait_diag(JS_CASES[case], t0, timeout=0.0, name='input joint_states')
-    assert h.wait(publish, TIMEOUT)
+    # joint_states is best effort (sensor QoS): published until the rejection is reported
+    h.reject('joint_states', lambda: _bad_joint_state(h, case), JS_CASES[case], resend=True)
     alive(h, proc)
 
 
 @pytest.mark.parametrize('case', sorted(GOAL_CASES))
 def test_bad_goals_are_rejected(graph, case):
     h, proc, _ = graph
-    t0 = time.monotonic()
     n0 = h.n_adapted()
-    h.publish('goal', _bad_joint_state(h, case))
-    assert h.wait_diag(GOAL_CASES[case], t0, name='input goal')
+    h.reject('goal', lambda: _bad_joint_state(h, case), GOAL_CASES[case])
     assert h.n_adapted() == n0
     alive(h, proc)
 
@@ -450,10 +399,8 @@ def test_bad_goal_points_are_rejected(graph, case):
     kw, text = GOAL_POINT_CASES[case]
     kw = dict(kw)
     xyz = kw.pop('xyz', [0.4, 0.0, 0.5])
-    t0 = time.monotonic()
     n0 = h.n_adapted()
-    h.publish('goal_point', h.make_point(xyz, **kw))
-    assert h.wait_diag(text, t0, name='input goal_point')
+    h.reject('goal_point', lambda: h.make_point(xyz, **kw), text)
     assert h.n_adapted() == n0
     alive(h, proc)
 
@@ -463,9 +410,7 @@ def test_bad_markers_are_rejected(graph, case):
     from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     m, text = bad_marker(case)
-    t0 = time.monotonic()
-    h.publish('obstacles', MarkerArray(markers=[m]))
-    assert h.wait_diag(text, t0, name='input obstacles')
+    t0 = h.reject('obstacles', lambda: MarkerArray(markers=[m]), text)
     assert h.wait_state(lambda msg, lv, kv: kv.get('obstacles') == '0', t0, TIMEOUT)
     alive(h, proc)
 
@@ -494,10 +439,8 @@ def test_bad_primitives_are_rejected(graph, prims, case):
     h, proc, _ = graph
     use(h, prims, 'cdmp')
     make, text = PRIMITIVE_CASES[case]
-    t0 = time.monotonic()
     n0 = h.n_adapted()
-    h.publish('primitive', String(data=make(_promp_dict(prims))))
-    assert h.wait_diag(text, t0, name='input primitive')
+    t0 = h.reject('primitive', lambda: String(data=make(_promp_dict(prims))), text)
     assert h.wait_state(lambda m, lv, kv: kv.get('primitive') == 'cdmp', t0, TIMEOUT)  # kept
     assert h.n_adapted() == n0
     alive(h, proc)
@@ -530,9 +473,7 @@ def test_bad_constraint_sets_are_rejected(graph, prims, case):
     h, proc, _ = graph
     use(h, prims, 'promp')
     text, reason = CONSTRAINT_CASES[case]
-    t0 = time.monotonic()
-    h.publish('constraints', String(data=text))
-    assert h.wait_diag(reason, t0, name='input constraints'), h.diag_messages[-3:]
+    h.reject('constraints', lambda: String(data=text), reason)
     alive(h, proc)
 
 
@@ -555,41 +496,21 @@ def test_parameters_have_descriptors_with_ranges(graph):
 
 
 def test_runtime_parameter_changes_are_validated(graph):
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import Parameter
     h, proc, _ = graph
-    client = h.node.create_client(SetParameters, '/adapter/set_parameters')
-    try:
-        assert client.wait_for_service(timeout_sec=10.0)
-
-        def set_(name, value):
-            req = SetParameters.Request(
-                parameters=[Parameter(name, value=value).to_parameter_msg()])
-            fut = client.call_async(req)
-            assert h.wait(fut.done, TIMEOUT)
-            return fut.result().results[0]
-
-        r = set_('adaptation.alpha', 1.5)
-        assert not r.successful and 'alpha' in r.reason
-        r = set_('adaptation.avoid_links', ['panda_link4', 'nose'])
-        assert not r.successful and "['nose'] are not links of the robot" in r.reason
-        r = set_('max_input_rate', -5.0)
-        assert not r.successful and 'max_input_rate' in r.reason
-        r = set_('joint_names', ['a'])
-        assert not r.successful and 'read-only' in r.reason.lower()
-        r = set_('adaptation.obstacle_margin', 0)  # an integer for a float is accepted
+    assert 'alpha' in h.refusal('adaptation.alpha', 1.5)
+    assert "['nose'] are not links of the robot" in h.refusal('adaptation.avoid_links',
+                                                              ['panda_link4', 'nose'])
+    assert 'max_input_rate' in h.refusal('max_input_rate', -5.0)
+    assert 'read-only' in h.refusal('joint_names', ['a']).lower()
+    r = h.set_parameter('adaptation.obstacle_margin', 0)  # an integer for a float is accepted
+    assert r.successful, r.reason
+    r = h.set_parameter('adaptation.obstacle_margin', 0.02)
+    assert r.successful, r.reason
+    assert 'guarantee' in h.refusal('adaptation.guarantee', 'sometimes')
+    for mode in ('trajectory', 'per_step'):
+        r = h.set_parameter('adaptation.guarantee', mode)
         assert r.successful, r.reason
-        r = set_('adaptation.obstacle_margin', 0.02)
-        assert r.successful, r.reason
-        r = set_('adaptation.guarantee', 'sometimes')
-        assert not r.successful and 'guarantee' in r.reason
-        for mode in ('trajectory', 'per_step'):
-            r = set_('adaptation.guarantee', mode)
-            assert r.successful, r.reason
-        r = set_('adaptation.verification_samples', -1)
-        assert not r.successful and 'verification_samples' in r.reason
-    finally:
-        h.node.destroy_client(client)
+    assert 'verification_samples' in h.refusal('adaptation.verification_samples', -1)
     alive(h, proc)
 
 
@@ -606,14 +527,14 @@ def test_flooding_is_dropped_and_latest_request_wins(graph, prims):
         for _ in range(n):
             h.publish('goal', h.joint_state(Q_GOAL + 0.001 * (sent[0] % 50), zero=True))
             sent[0] += 1
-    assert _set_param(h, 'max_input_rate', 2.0).successful
+    assert h.set_parameter('max_input_rate', 2.0).successful
     try:
         t0 = time.monotonic()
         assert h.wait(lambda: goals(20) or h.wait_diag('flooding: more than 2 messages/s', t0,
                                                        timeout=0.0, name='input goal'),
                       TIMEOUT)
         # goals admitted faster than the solver runs: the waiting request is replaced
-        assert _set_param(h, 'max_input_rate', 1000.0).successful
+        assert h.set_parameter('max_input_rate', 1000.0).successful
         t1 = time.monotonic()
         _, _, kv = h.wait_state(lambda m, lv, kv: True, t1)  # the count before this part
         dropped0 = int(kv.get('requests_dropped', 0))
@@ -621,7 +542,7 @@ def test_flooding_is_dropped_and_latest_request_wins(graph, prims):
             lambda m, lv, kv: int(kv.get('requests_dropped', 0)) > dropped0, t1, 0.0),
             TIMEOUT), h.states_since(t1)[-1:]
     finally:
-        assert _set_param(h, 'max_input_rate', 20.0).successful
+        assert h.set_parameter('max_input_rate', 20.0).successful
     alive(h, proc)
 
 
@@ -650,24 +571,20 @@ def test_startup_bad_parameters_exit_nonzero_and_a_restarted_adapter_gets_the_pr
     bad_file.write_text('/**:\n  ros__parameters:\n    adaptation:\n      n_steps: 1\n')
     cases = [([p], None, text) for p, text in STARTUP_CASES]
     cases.append(([], str(bad_file), 'n_steps'))
-    procs = [(start_adapter(DOMAIN, params, log_path=str(tmp_path / f'{i}.log'),
-                            params_file=pf or 'config/adapter.yaml'), text, i)
-             for i, (params, pf, text) in enumerate(cases)]
+    logs = [str(tmp_path / f'{i}.log') for i in range(len(cases))]
+    procs = [(start_adapter(DOMAIN, params, log_path=path,
+                            params_file=pf or 'config/adapter.yaml'), text, path)
+             for path, (params, pf, text) in zip(logs, cases)]
     log = tmp_path / 'restart.log'
     second = start_adapter(DOMAIN, PARAMS, log_path=str(log),
                            remaps=['__node:=adapter_restart', 'adapted_primitive:=adapted_restart',
                                    'visualization:=viz_restart', '/diagnostics:=/diag_restart'])
     try:
-        for p, text, i in procs:
-            code = p.wait(STARTUP)
-            out = (tmp_path / f'{i}.log').read_text()
-            assert code == 2 and text in out, out
+        expect_startup_failures(procs, STARTUP)
         assert h.wait(lambda: bool(got) or second.poll() is not None, STARTUP), log.read_text()
         meta = got[0]['metadata']['adapter']
         assert meta['trigger'] == 'primitive' and meta['outcome'] == 'converged'
     finally:
-        for p, _, _ in procs:
-            stop_process(p)
         code = stop_process(second)
         h.node.destroy_subscription(sub)
     assert code == 0, log.read_text()

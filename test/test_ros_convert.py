@@ -403,27 +403,12 @@ def test_diagnostics_status_names_start_with_the_fully_qualified_node_name(node)
 
 
 def test_config_file_mirrors_every_parameter_with_its_default():
-    import os
-    import yaml
     from cdmp_ros.core.coupling.terms import DampingConfig
     from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
     from cdmp_ros.core.coupling.obstacle import CouplingConfig
     from cdmp_ros.core.streaming.streamer import StreamerConfig
-    from cdmp_ros.ros.params import parameter_fields
-    from conftest import REPO_ROOT
-    with open(os.path.join(REPO_ROOT, 'config', 'streamer.yaml')) as f:
-        params = yaml.safe_load(f)['/**']['ros__parameters']
+    from node_harness import config_file_parameters, parameter_defaults
     sections = [('', StreamerConfig), ('coupling', CouplingConfig), ('damping', DampingConfig),
                 ('repeller', RepellerField), ('box_field', ConstantField),
                 ('board_field', BoardField)]
-    expected = {}
-    for prefix, cls in sections:
-        for f, kind, default in parameter_fields(cls):
-            expected[f'{prefix}.{f.name}' if prefix else f.name] = default
-    flat = {}
-    for k, v in params.items():
-        if isinstance(v, dict):
-            flat.update({f'{k}.{kk}': vv for kk, vv in v.items()})
-        else:
-            flat[k] = tuple(v) if isinstance(v, list) else v
-    assert flat == expected
+    assert config_file_parameters('streamer') == parameter_defaults(sections)

@@ -16,7 +16,7 @@ import pytest
 
 from cdmp_ros.cli.cmd_bringup import Bringup, parse_graph
 from conftest import ros_env, module_domain
-from node_harness import wait_matched
+from node_harness import graph_running, wait_matched
 from streamer_harness import LOWER, PANDA_JOINTS, UPPER, Harness, max_acceleration
 
 pytestmark = pytest.mark.ros
@@ -62,7 +62,7 @@ def graph(tmp_path_factory):
     b.start()
     h = Harness(DOMAIN)
     h.robot_on = False  # the sim is the robot
-    try:
+    with graph_running(b, h, log):
         # evidence from every node, not this node's view of the graph: DDS discovery between
         # two other nodes (learner -> adapter) can lag by seconds on a loaded machine, and a
         # primitive reaching the adapter after the goal would clear that goal
@@ -76,12 +76,6 @@ def graph(tmp_path_factory):
         assert wait_matched(h.pub['goal'], 2, STARTUP) and \
             wait_matched(h.pub['obstacles'], 3, STARTUP), log_path.read_text()[-3000:]
         yield h, b, log_path
-    finally:
-        h.close()
-        codes = b.stop()
-        log.close()
-    assert all(c in (0, -signal.SIGINT) for c in codes.values()), \
-        f'{codes}\n{log_path.read_text()[-3000:]}'
     assert not h.violations, h.violations[:5]
 
 

@@ -5,6 +5,7 @@ diagnostics, and a following valid input is still accepted.
 Unit tests of the CDR peeks and of the gate's order (rate limit, size, deserialisation) run
 without processes; one process test per node (sim, streamer, adapter, learner).
 """
+import contextlib
 import json
 import struct
 import time
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import module_domain
+from node_harness import running
 
 DOMAIN = module_domain(17)
 STARTUP = 60.0   # s; interpreter + rclpy + pybullet start-up on a loaded 2-core machine
@@ -89,6 +91,51 @@ def expect_oversize(h, node, topic, text, publish):
     reason = last_kv(h, name)['last_reason']
     assert text in reason and 'rejected unparsed' in reason, reason
     return reason
+
+
+def too_many_markers(h):
+    """The oversize case of ``obstacles`` (for :func:`expect_all_oversize`)."""
+    return 'obstacles', '640 markers exceed', lambda: h.publish('obstacles', marker_array(640))
+
+
+def too_many_names(h, topic):
+    """The oversize case of the JointState topic ``topic``."""
+    return (topic, '10000 names exceed the limit of 7',
+            lambda: h.publish(topic, joint_state(10000)))
+
+
+def accepts_an_obstacle(h, node):
+    """A valid obstacle (after the rejected ones) is accepted: the node's state counts it."""
+    assert until(lambda: count(h, f'{node}: state', 'obstacles') == 1,
+                 lambda: h.publish('obstacles', marker_array(1)))
+
+
+@contextlib.contextmanager
+def serving(tmp_path, start, harness, params, ready, **kw):
+    """The node process ``start(DOMAIN, ['diagnostics_period:=0.2'] + params, ...)`` and a
+    test-side ``harness``, once ``ready(h)``: yields (h, process)."""
+    log = tmp_path / 'node.log'
+    proc = start(DOMAIN, ['diagnostics_period:=0.2'] + params, log_path=str(log), **kw)
+    h = harness(DOMAIN)
+    with running(proc, h, log, lambda: ready(h), STARTUP, exit_code=None):
+        yield h, proc
+
+
+def expect_all_oversize(h, node, cases):
+    """:func:`expect_oversize` of each of ``cases`` [(topic, text, publish)] in turn, then the
+    node's state counts them all; returns their reasons."""
+    reasons = [expect_oversize(h, node, topic, text, publish) for topic, text, publish in cases]
+    assert wait_for(lambda: count(h, f'{node}: state', 'rejected_oversize') >= len(cases))
+    return reasons
+
+
+def rejects_oversize_and_accepts_an_obstacle(tmp_path, node, start, harness, ready, cases, **kw):
+    """The JSON-reading ``node`` (max_json_bytes 1000) rejects each of ``cases(h)`` unparsed,
+    then accepts a valid obstacle, and is still up."""
+    with serving(tmp_path, start, harness, ['max_json_bytes:=1000'], ready, **kw) as (h, proc):
+        expect_all_oversize(h, node, cases(h))
+        accepts_an_obstacle(h, node)
+        assert proc.poll() is None
 
 
 # -- unit tests of the CDR peeks and of the gate -------------------------------------------------
@@ -326,108 +373,54 @@ class _Qos:
 # -- one process test per node -----------------------------------------------------------------
 @pytest.mark.ros
 def test_sim_rejects_oversize_input_and_accepts_the_next(tmp_path):
-    from sim_harness import SimHarness, start_sim, stop_process
-    log = tmp_path / 'sim.log'
-    proc = start_sim(DOMAIN, ['diagnostics_period:=0.2'], log_path=str(log),
-                     params_file='config/sim.yaml')
-    h = SimHarness(DOMAIN)
-    try:
-        assert wait_for(lambda: h.n_states() > 0 or proc.poll() is not None, STARTUP)
-        assert proc.poll() is None, log.read_text()
-        reason = expect_oversize(h, 'sim', 'obstacles', '640 markers exceed',
-                                 lambda: h.publish('obstacles', marker_array(640)))
+    from sim_harness import SimHarness, start_sim
+    with serving(tmp_path, start_sim, SimHarness, [], lambda h: h.n_states() > 0,
+                 params_file='config/sim.yaml') as (h, proc):
+        reason, _ = expect_all_oversize(h, 'sim', [too_many_markers(h),
+                                                   too_many_names(h, 'joint_reference')])
         assert 'max_obstacles + 1 = 65' in reason
-        expect_oversize(h, 'sim', 'joint_reference', '10000 names exceed the limit of 7',
-                        lambda: h.publish('joint_reference', joint_state(10000)))
-        assert wait_for(lambda: count(h, 'sim: state', 'rejected_oversize') >= 2)
         n0 = count(h, 'sim: state', 'references_received')
         assert until(lambda: count(h, 'sim: state', 'references_received') > n0,
                      lambda: h.publish('joint_reference', h.reference(Q_HOME)))
-        assert until(lambda: count(h, 'sim: state', 'obstacles') == 1,
-                     lambda: h.publish('obstacles', marker_array(1)))
+        accepts_an_obstacle(h, 'sim')
         assert proc.poll() is None
-    finally:
-        h.close()
-        stop_process(proc)
 
 
 @pytest.mark.ros
 def test_streamer_rejects_oversize_input_and_accepts_the_next(tmp_path):
     from std_msgs.msg import String
-    from streamer_harness import Harness, start_streamer, stop_process
-    log = tmp_path / 'streamer.log'
-    proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
-                          log_path=str(log), params_file='config/streamer.yaml')
-    h = Harness(DOMAIN)
-    try:
-        assert wait_for(lambda: h.n_refs() > 0 or proc.poll() is not None, STARTUP)
-        assert proc.poll() is None, log.read_text()
-        expect_oversize(h, 'streamer', 'obstacles', '640 markers exceed',
-                        lambda: h.publish('obstacles', marker_array(640)))
-        expect_oversize(h, 'streamer', 'goal', '10000 names exceed the limit of 7',
-                        lambda: h.publish('goal', joint_state(10000)))
-        expect_oversize(h, 'streamer', 'adapted_primitive',
-                        'payload of 2000 bytes exceeds max_json_bytes = 1000',
-                        lambda: h.publish('adapted_primitive', String(data='x' * 2000)))
-        assert wait_for(lambda: count(h, 'streamer: state', 'rejected_oversize') >= 3)
-        assert until(lambda: count(h, 'streamer: state', 'obstacles') == 1,
-                     lambda: h.publish('obstacles', marker_array(1)))
-        assert proc.poll() is None
-    finally:
-        h.close()
-        stop_process(proc)
+    from streamer_harness import Harness, start_streamer
+    rejects_oversize_and_accepts_an_obstacle(
+        tmp_path, 'streamer', start_streamer, Harness, lambda h: h.n_refs() > 0,
+        lambda h: [too_many_markers(h), too_many_names(h, 'goal'),
+                   ('adapted_primitive', 'payload of 2000 bytes exceeds max_json_bytes = 1000',
+                    lambda: h.publish('adapted_primitive', String(data='x' * 2000)))],
+        params_file='config/streamer.yaml')
 
 
 @pytest.mark.ros
 def test_adapter_rejects_oversize_input_and_accepts_the_next(tmp_path):
     from std_msgs.msg import String
-    from adapter_harness import Harness, start_adapter, stop_process
-    log = tmp_path / 'adapter.log'
-    proc = start_adapter(DOMAIN, ['diagnostics_period:=0.2', 'max_json_bytes:=1000'],
-                         log_path=str(log))
-    h = Harness(DOMAIN)
-    try:
-        assert wait_for(lambda: bool(last_kv(h, 'adapter: state')) or proc.poll() is not None,
-                        STARTUP)
-        assert proc.poll() is None, log.read_text()
-        big = json.dumps({'constraints': [], 'pad': 'x' * 5000})
-        expect_oversize(h, 'adapter', 'constraints', 'exceeds max_json_bytes = 1000',
-                        lambda: h.publish('constraints', String(data=big)))
-        expect_oversize(h, 'adapter', 'obstacles', '640 markers exceed',
-                        lambda: h.publish('obstacles', marker_array(640)))
-        expect_oversize(h, 'adapter', 'goal', '10000 names exceed the limit of 7',
-                        lambda: h.publish('goal', joint_state(10000)))
-        assert wait_for(lambda: count(h, 'adapter: state', 'rejected_oversize') >= 3)
-        assert until(lambda: count(h, 'adapter: state', 'obstacles') == 1,
-                     lambda: h.publish('obstacles', marker_array(1)))
-        assert proc.poll() is None
-    finally:
-        h.close()
-        stop_process(proc)
+    from adapter_harness import Harness, start_adapter
+    big = json.dumps({'constraints': [], 'pad': 'x' * 5000})
+    rejects_oversize_and_accepts_an_obstacle(
+        tmp_path, 'adapter', start_adapter, Harness, lambda h: bool(last_kv(h, 'adapter: state')),
+        lambda h: [('constraints', 'exceeds max_json_bytes = 1000',
+                    lambda: h.publish('constraints', String(data=big))),
+                   too_many_markers(h), too_many_names(h, 'goal')])
 
 
 @pytest.mark.ros
 def test_learner_rejects_oversize_input_and_accepts_the_next(tmp_path):
     from learner_harness import LearnerHarness, start_learner
-    from sim_harness import stop_process
-    log = tmp_path / 'learner.log'
-    proc = start_learner(DOMAIN, ['diagnostics_period:=0.2', 'fit_on_start:=false'],
-                         log_path=str(log))
-    h = LearnerHarness(DOMAIN)
-    try:
-        assert wait_for(lambda: bool(last_kv(h, 'learner: state')) or proc.poll() is not None,
-                        STARTUP)
-        assert proc.poll() is None, log.read_text()
-        expect_oversize(h, 'learner', 'demonstration', '10000 names exceed the limit of 7',
-                        lambda: h.demo_pub.publish(joint_state(10000)))
+    with serving(tmp_path, start_learner, LearnerHarness, ['fit_on_start:=false'],
+                 lambda h: bool(last_kv(h, 'learner: state'))) as (h, proc):
+        expect_oversize(h, 'learner', *too_many_names(h, 'demonstration'))
         n0 = count(h, 'learner: state', 'samples')
         assert until(lambda: count(h, 'learner: state', 'samples') > n0,
                      lambda: h.demo_pub.publish(joint_state(7, Q_HOME)))
         assert count(h, 'learner: state', 'rejected_oversize') >= 1
         assert proc.poll() is None
-    finally:
-        h.close()
-        stop_process(proc)
 
 
 def test_a_primitive_replaced_before_it_was_parsed_is_reported():

@@ -16,7 +16,8 @@ import pytest
 
 from conftest import REPO_ROOT, module_domain
 from learner_harness import PANDA_JOINTS, LearnerHarness, start_learner
-from node_harness import stop_process
+from node_harness import (GOAL_CASES, bad_joint_state, config_file_parameters,
+                          expect_startup_failures, parameter_defaults, running, stop_process)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(4)
@@ -51,16 +52,10 @@ def graph(tmp_path_factory):
                                   'improve.updates:=30', 'improve.rollouts_per_update:=8'],
                          log_path=str(log), params_file='config/learner.yaml')
     h = LearnerHarness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.n_primitives() > 0 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.n_primitives() > 0, STARTUP, 'learner'):
         h.first_primitive_s = h.primitives[0][0] - t_start
         h.limits = (lo, hi)
         yield h, proc, log
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'learner exit code {code}\n{log.read_text()}'
 
 
 def alive(h, proc):
@@ -127,54 +122,29 @@ def _bad(h, case):
     from sensor_msgs.msg import JointState
     q = bag_demos()[0][1][0]
     now = h.now_ns()
-    msg = h.joint_state(q, stamp_ns=now)
-    names = list(PANDA_JOINTS)
-    if case == 'nan':
-        msg.position[2] = float('nan')
-    elif case == 'inf':
-        msg.position[4] = float('inf')
-    elif case == 'wrong_length':
-        msg.position = msg.position[:5]
-    elif case == 'velocity_length':
-        msg.velocity = [0.0, 0.0]
-    elif case == 'unknown_name':
-        msg.name = names[:6] + ['elbow_joint']
-    elif case == 'missing_name':
-        msg.name, msg.position = names[:6], msg.position[:6]
-    elif case == 'duplicate_name':
-        msg.name = names[:6] + [names[0]]
-    elif case == 'future_stamp':
-        msg = h.joint_state(q, stamp_ns=now + 60 * 10 ** 9)
-    elif case == 'past_stamp':
-        msg = h.joint_state(q, stamp_ns=now - 3600 * 10 ** 9)
-    elif case == 'outside_limits':
-        msg.position[1] = float(h.limits[1][1] + 0.5)
-    elif case == 'non_monotonic':
+    if case == 'non_monotonic':
         return [h.joint_state(q, stamp_ns=now), h.joint_state(q, stamp_ns=now - 10 ** 8)]
-    elif case == 'too_short':
+    if case == 'too_short':
         return [h.joint_state(q, stamp_ns=now + i * 10 ** 7) for i in range(3)] + [JointState()]
+    msg = bad_joint_state(lambda dt: h.joint_state(q, stamp_ns=now + int(dt * 10 ** 9)), case,
+                          inf=float('inf'))
+    if case == 'outside_limits':
+        msg.position[1] = float(h.limits[1][1] + 0.5)
     return [msg]
 
 
-BAD_CASES = {  # case -> expected text in the diagnostics reason
-    'nan': "position of 'panda_joint3': expected a finite value, got nan",
-    'inf': "position of 'panda_joint5': expected a finite value, got inf",
-    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
-    'unknown_name': "unknown joints ['elbow_joint']",
-    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
-    'future_stamp': 'in the future', 'past_stamp': 'in the past',
-    'outside_limits': "of 'panda_joint2': ", 'non_monotonic': 'non-monotonic time',
-    'too_short': 'expected at least min_samples=10'}
+BAD_CASES = dict(  # case -> expected text in the diagnostics reason
+    GOAL_CASES, nan="position of 'panda_joint3': expected a finite value, got nan",
+    inf="position of 'panda_joint5': expected a finite value, got inf",
+    outside_limits="of 'panda_joint2': ", non_monotonic='non-monotonic time',
+    too_short='expected at least min_samples=10')
 
 
 @pytest.mark.parametrize('case', sorted(BAD_CASES))
 def test_bad_demonstration_samples_are_rejected(graph, case):
     from sensor_msgs.msg import JointState
     h, proc, _ = graph
-    t0 = time.monotonic()
-    for msg in _bad(h, case):
-        h.demo_pub.publish(msg)
-    assert h.wait_diag(BAD_CASES[case], t0, name='input demonstration'), h.recent_diag()
+    h.reject('demonstration', lambda: _bad(h, case), BAD_CASES[case])
     assert proc.poll() is None
     h.demo_pub.publish(JointState())  # discard what a case left pending, before the next one
     t1 = time.monotonic()
@@ -300,16 +270,11 @@ def test_improve_against_the_sim(graph):
 
 def test_runtime_parameter_changes_are_validated(graph):
     h, proc, _ = graph
-    r = h.set_parameter('kind', 'spline')
-    assert not r.successful and "kind: expected one of ['cdmp', 'dmp', 'promp']" in r.reason
-    r = h.set_parameter('dmp.alpha_y', -1.0)
-    assert not r.successful and 'alpha_y' in r.reason
-    r = h.set_parameter('improve.rollouts_per_update', 1)
-    assert not r.successful and 'rollouts_per_update' in r.reason
-    r = h.set_parameter('joint_names', ['a', 'b'])
-    assert not r.successful and 'read-only' in r.reason.lower()
-    r = h.set_parameter('limits.lower', [0.0] * 7)
-    assert not r.successful and 'read-only' in r.reason.lower()
+    assert "kind: expected one of ['cdmp', 'dmp', 'promp']" in h.refusal('kind', 'spline')
+    assert 'alpha_y' in h.refusal('dmp.alpha_y', -1.0)
+    assert 'rollouts_per_update' in h.refusal('improve.rollouts_per_update', 1)
+    assert 'read-only' in h.refusal('joint_names', ['a', 'b']).lower()
+    assert 'read-only' in h.refusal('limits.lower', [0.0] * 7).lower()
     r = h.set_parameter('kind', 'promp')
     assert r.successful, r.reason
     try:
@@ -333,7 +298,8 @@ STARTUP_CASES = [('kind:=spline', 'kind: expected one of'),
 
 
 def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_path):
-    procs = [(start_learner(173 + i, [param], log_path=str(tmp_path / f'{i}.log')), text, i)
+    logs = [str(tmp_path / f'{i}.log') for i in range(len(STARTUP_CASES))]
+    procs = [(start_learner(173 + i, [param], log_path=logs[i]), text, logs[i])
              for i, (param, text) in enumerate(STARTUP_CASES)]  # in parallel: start-up is slow
     broken = tmp_path / 'broken.yaml'
     broken.write_text('/**:\n  ros__parameters:\n    kind: [unclosed\n')
@@ -344,10 +310,7 @@ def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_p
                              log_path=str(tmp_path / 'bags.log'))
     h = None
     try:
-        for proc, text, i in procs:
-            code = proc.wait(STARTUP)
-            log = (tmp_path / f'{i}.log').read_text()
-            assert code == 2 and text in log, log
+        expect_startup_failures(procs, STARTUP)
         code = broken_proc.wait(STARTUP)  # rclpy refuses the file before the node exists
         log = (tmp_path / 'broken.log').read_text()
         assert code != 0 and "Couldn't parse params file" in log and 'line 3' in log, log
@@ -362,32 +325,18 @@ def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_p
     finally:
         if h is not None:
             h.close()
-        for proc in [p for p, _, _ in procs] + [broken_proc]:
-            stop_process(proc)
+        stop_process(broken_proc)  # expect_startup_failures stopped the others
         assert stop_process(bad_bags) == 0
 
 
 # -- files -------------------------------------------------------------------------------------
 def test_config_file_mirrors_every_parameter_with_its_default():
-    import yaml
     from cdmp_ros.core.dmp.dmp import DmpConfig
     from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
     from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig
-    from cdmp_ros.ros.params import parameter_fields
-    with open(os.path.join(REPO_ROOT, 'config', 'learner.yaml')) as f:
-        params = yaml.safe_load(f)['/**']['ros__parameters']
-    expected = {}
-    for prefix, cls in [('', LearnerConfig), ('dmp', DmpConfig), ('promp', PrompLearnConfig),
-                        ('improve', ImproveConfig), ('cost', CostConfig)]:
-        for f, kind, default in parameter_fields(cls):
-            expected[f'{prefix}.{f.name}' if prefix else f.name] = default
-    flat = {}
-    for k, v in params.items():
-        if isinstance(v, dict):
-            flat.update({f'{k}.{kk}': vv for kk, vv in v.items()})
-        else:
-            flat[k] = tuple(v) if isinstance(v, list) else v
-    assert flat == expected
+    assert config_file_parameters('learner') == parameter_defaults(
+        [('', LearnerConfig), ('dmp', DmpConfig), ('promp', PrompLearnConfig),
+         ('improve', ImproveConfig), ('cost', CostConfig)])
 
 
 def test_default_bags_resolve_in_the_source_tree_and_an_install(tmp_path, monkeypatch):

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from conftest import module_domain, wait_for
-from node_harness import LOWER, UPPER
+from node_harness import LOWER, UPPER, running
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(33)
@@ -59,18 +59,17 @@ def _list(v):
 
 def test_adapter_adapts_within_the_tighter_limits(tmp_path):
     from std_msgs.msg import String
-    from adapter_harness import Harness, Q_GOAL, Q_START, reach_promp, start_adapter, stop_process
+    from adapter_harness import Harness, Q_GOAL, Q_START, reach_promp, start_adapter
     from cdmp_ros.core.primitive_io import dumps_primitive, primitive_from_dict
     log = tmp_path / 'adapter.log'
     proc = start_adapter(DOMAIN, ['diagnostics_period:=0.2'], log_path=str(log),
                          params_file=params_file(tmp_path))
     h = Harness(DOMAIN)
-    try:
-        def state():
-            st = h.states_since(0.0)
-            return st[-1][2] if st else {}
-        assert h.wait(lambda: state() or proc.poll() is not None, STARTUP), log.read_text()
-        assert proc.poll() is None, log.read_text()
+
+    def state():
+        st = h.states_since(0.0)
+        return st[-1][2] if st else {}
+    with running(proc, h, log, state, STARTUP, 'adapter'):
         assert state()['limits_source'] == 'robot_description'
         assert state()['limit_mismatch'] == 'none'
         # the ProMP's limits: pybullet's URDF (wider than the robot on panda_joint1),
@@ -113,15 +112,10 @@ def test_adapter_adapts_within_the_tighter_limits(tmp_path):
         # the mismatch is in the log too
         assert wait_for(lambda: 'the primitive limits differ from the robot' in log.read_text(),
                         10.0), log.read_text()
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'adapter exit code {code}\n{log.read_text()}'
 
 
 def test_learner_fits_within_the_tighter_limits(tmp_path):
     from learner_harness import LearnerHarness, start_learner
-    from adapter_harness import stop_process
     log = tmp_path / 'learner.log'
     lo, hi = LOWER.copy(), UPPER.copy()
     lo[0], hi[0] = -3.0, 3.0       # wider than the robot
@@ -130,9 +124,7 @@ def test_learner_fits_within_the_tighter_limits(tmp_path):
                                   f'limits.upper:={_list(hi)}'],
                          log_path=str(log), params_file=params_file(tmp_path, 'learner'))
     h = LearnerHarness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.n_primitives() > 0 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.n_primitives() > 0, STARTUP, 'learner'):
         d = h.last_primitive()
         tight_lo, tight_hi = np.maximum(robot_limits()[0], lo), np.minimum(robot_limits()[1], hi)
         assert d['kind'] == 'cdmp'
@@ -155,22 +147,16 @@ def test_learner_fits_within_the_tighter_limits(tmp_path):
         assert d['kind'] == 'promp'
         assert d['limits']['lower'] == pytest.approx(tight_lo.tolist(), abs=1e-12)
         assert d['limits']['upper'] == pytest.approx(tight_hi.tolist(), abs=1e-12)
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'learner exit code {code}\n{log.read_text()}'
 
 
 def test_sim_holds_the_robot_description_limits(tmp_path):
-    from sim_harness import PANDA_HOME, SimHarness, start_sim, stop_process
+    from sim_harness import PANDA_HOME, SimHarness, start_sim
     from conftest import last_reason
     log = tmp_path / 'sim.log'
     proc = start_sim(DOMAIN, ['diagnostics_period:=0.2', 'reference_timeout:=0.0'],
                      log_path=str(log), params_file=params_file(tmp_path, 'sim'))
     h = SimHarness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.last_state()[0] is not None or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.last_state()[0] is not None, STARTUP, 'sim'):
         kv = h.last_state()[1]
         assert kv['limits_source'] == 'robot_description'
         assert kv['limit_mismatch'] == ('panda_joint1 lower: pybullet -2.9671, robot -2.5 -> '
@@ -193,7 +179,3 @@ def test_sim_holds_the_robot_description_limits(tmp_path):
         assert h.wait(lambda: len(h.states_since(t)) > 50, STARTUP)
         Q = np.array([s[3] for s in h.states_since(t)])
         assert np.abs(Q[:, 0] - ROBOT_J1).max() < 0.01, (Q[:, 0].min(), Q[:, 0].max())
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'sim exit code {code}\n{log.read_text()}'

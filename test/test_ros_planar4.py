@@ -9,7 +9,6 @@ effector moves the reference away from it (the coupling on the chain from the UR
 is on a condition, bounded by a generous timeout.
 """
 import os
-import signal
 
 import numpy as np
 import pytest
@@ -17,7 +16,7 @@ import yaml
 
 from cdmp_ros.cli.cmd_bringup import Bringup, load_graph
 from conftest import REPO_ROOT, module_domain, ros_env
-from node_harness import NodeHarness, stamp_ns
+from node_harness import NodeHarness, graph_running, stamp_ns
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(57)
@@ -124,17 +123,11 @@ def graph(tmp_path_factory):
                 log=log, extra_env=ros_env(DOMAIN))
     h = Listener()
     b.start()
-    try:
+    with graph_running(b, h, log):
         why = b.wait_ready(STARTUP)
         assert why is None, f'not ready ({why}): {b.not_ready()}\n' + \
             log_path.read_text()[-3000:]
         yield h, b, log_path
-    finally:
-        h.close()
-        codes = b.stop()
-        log.close()
-    assert all(c in (0, -signal.SIGINT) for c in codes.values()), \
-        f'{codes}\n{log_path.read_text()[-3000:]}'
 
 
 def test_every_node_gets_ready_and_the_sim_receives_the_planar_references(graph):

@@ -14,6 +14,7 @@ force is visible in the ``limits`` a node reports.
 import pytest
 
 from conftest import module_domain
+from node_harness import running
 from test_core_robot_description import FILE, PANDA, tightened
 
 pytestmark = pytest.mark.ros
@@ -192,21 +193,28 @@ def test_the_glue_reports_through_the_gate_and_keeps_the_model():
 
 
 # -- the nodes as processes ---------------------------------------------------------------
-def test_the_streamer_takes_its_limits_from_the_topic_and_keeps_them(tmp_path):
+def streamer_given(tmp_path, description, timeout):
+    """A streamer harness that published ``description`` on the latched robot_description
+    before starting the streamer (robot_description_timeout ``timeout`` [s]): (harness,
+    process, log path)."""
     from std_msgs.msg import String
 
     from cdmp_ros.ros import qos
-    from streamer_harness import Harness, start_streamer, stop_process
+    from streamer_harness import Harness, start_streamer
     h = Harness(DOMAIN)
     h.publisher(String, 'robot_description', qos.LATCHED)
-    h.publish('robot_description', String(data=tightened()))   # latched before the start
+    h.publish('robot_description', String(data=description))   # latched before the start
     log = tmp_path / 'streamer.log'
-    proc = start_streamer(DOMAIN, ['robot_description_timeout:=60.0',
+    proc = start_streamer(DOMAIN, [f'robot_description_timeout:={timeout}',
                                    'diagnostics_period:=0.2'], log_path=str(log))
+    return h, proc, log
+
+
+def test_the_streamer_takes_its_limits_from_the_topic_and_keeps_them(tmp_path):
+    from std_msgs.msg import String
+    h, proc, log = streamer_given(tmp_path, tightened(), 60.0)
     state = 'streamer: state'
-    try:
-        ok = h.wait(lambda: last_kv(h, state) or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: last_kv(h, state), STARTUP, 'streamer'):
         kv = last_kv(h, state)
         assert kv['limits_source'] == 'robot_description topic'
         assert TIGHT in kv['limits'], kv['limits']
@@ -251,30 +259,15 @@ def test_the_streamer_takes_its_limits_from_the_topic_and_keeps_them(tmp_path):
         assert 'robot_description topic' not in last_status(h, state).message
         n0 = h.n_refs()
         assert h.wait(lambda: h.n_refs() > n0 + 50, EVIDENCE)
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
     assert not h.violations, h.violations[:5]
 
 
 def test_a_garbage_description_at_start_up_gives_urdf_path_at_once(tmp_path):
     """The wait ends with the (rejected) message: the test waits far less than the
     node's 600 s timeout."""
-    from std_msgs.msg import String
-
-    from cdmp_ros.ros import qos
-    from streamer_harness import Harness, start_streamer, stop_process
-    h = Harness(DOMAIN)
-    h.publisher(String, 'robot_description', qos.LATCHED)
-    h.publish('robot_description', String(data='not xml at all'))
-    log = tmp_path / 'streamer.log'
-    proc = start_streamer(DOMAIN, ['robot_description_timeout:=600.0',
-                                   'diagnostics_period:=0.2'], log_path=str(log))
+    h, proc, log = streamer_given(tmp_path, 'not xml at all', 600.0)
     state = 'streamer: state'
-    try:
-        ok = h.wait(lambda: last_kv(h, state) or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: last_kv(h, state), STARTUP, 'streamer'):
         kv = last_kv(h, state)
         assert kv['limits_source'] == FILE
         assert 'velocity [2.175, 2.175' in kv['limits']
@@ -284,10 +277,6 @@ def test_a_garbage_description_at_start_up_gives_urdf_path_at_once(tmp_path):
         text = log.read_text()
         assert 'robot_description: not a valid URDF' in text and f'using urdf_path {FILE}' in text
         assert h.wait(lambda: h.n_refs() > 50 and proc.poll() is None, EVIDENCE)
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
 
 
 def test_adapter_and_sim_with_and_without_the_wait(tmp_path):

@@ -18,8 +18,8 @@ import pytest
 
 from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
 from markers import MARKER_CASES, bad_marker, marker
-from sim_harness import (LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, stop_process,
-                         UPPER)
+from node_harness import bad_joint_state, running
+from sim_harness import LOWER, PANDA_HOME, PANDA_JOINTS, SimHarness, start_sim, UPPER
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(5)
@@ -35,14 +35,8 @@ def graph(tmp_path_factory):
                               'max_reference_rate:=200.0'],
                      log_path=str(log), params_file='config/sim.yaml')
     h = SimHarness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.n_states() > 10 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.n_states() > 10, STARTUP, 'sim'):
         yield h, proc, log
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'sim exit code {code}\n{log.read_text()}'
 
 
 def alive(h, proc, n=20):
@@ -217,34 +211,6 @@ def test_contact_when_the_arm_is_driven_into_a_box(graph):
 
 
 # -- bad input: one test per case --------------------------------------------------------------
-def _bad_reference(h, case):
-    q = PANDA_HOME
-    names = list(PANDA_JOINTS)
-    msg = h.reference(q)
-    if case == 'nan':
-        msg.position[2] = float('nan')
-    elif case == 'inf':
-        msg.position[4] = float('-inf')
-    elif case == 'nan_velocity':
-        msg.velocity = [0.0] * 6 + [float('nan')]
-    elif case == 'wrong_length':
-        msg.position = msg.position[:5]
-    elif case == 'velocity_length':
-        msg.velocity = [0.0, 0.0]
-    elif case == 'unknown_name':
-        msg.name = names[:6] + ['elbow_joint']
-    elif case == 'missing_name':
-        msg.name = names[:6]
-        msg.position = msg.position[:6]
-    elif case == 'duplicate_name':
-        msg.name = names[:6] + [names[0]]
-    elif case == 'future_stamp':
-        msg = h.reference(q, stamp_offset=60.0)
-    elif case == 'past_stamp':
-        msg = h.reference(q, stamp_offset=-3600.0)
-    return msg
-
-
 REFERENCE_CASES = {  # case -> (text in the diagnostics reason, rejected_<category>)
     'nan': ('expected a finite value, got nan', 'non_finite'),
     'inf': ('expected a finite value, got -inf', 'non_finite'),
@@ -267,9 +233,9 @@ def test_bad_references_are_rejected(graph, case):
     # the arm may still settle from the previous test: compare against a resting arm
     assert h.wait(lambda: at_rest(h), TIMEOUT), h.q()
     q_before = h.q()
-    t0 = time.monotonic()
-    h.publish('joint_reference', _bad_reference(h, case))
-    assert h.wait_diag(text, t0, name='sim: input joint_reference'), h.diag_messages[-3:]
+    h.reject('joint_reference',
+             lambda: bad_joint_state(lambda dt: h.reference(PANDA_HOME, stamp_offset=dt), case),
+             text, name='sim: input joint_reference')
     assert h.wait_state(lambda m, kv: int(kv.get(f'rejected_{category}', 0)) > before)
     alive(h, proc)
     assert np.abs(h.q() - q_before).max() < 0.01  # nothing of it reached the robot
@@ -321,12 +287,10 @@ def test_reference_velocity_above_the_limit_is_clipped(graph):
 
 @pytest.mark.parametrize('case', sorted(MARKER_CASES))
 def test_bad_markers_are_rejected(graph, case):
+    from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     m, text = bad_marker(case)
-    t0 = time.monotonic()
-    _publish_markers(h, m)
-    assert h.wait_diag(text, t0, name='sim: input obstacles'), [
-        d for d in h.diag_messages if d[0] >= t0 and 'obstacles' in d[1]][-4:]
+    h.reject('obstacles', lambda: MarkerArray(markers=[m]), text, name='sim: input obstacles')
     assert h.wait_state(lambda msg, kv: kv.get('obstacles') == '0'
                         and int(kv.get('rejected_total', 0)) > 0)
     alive(h, proc)
@@ -395,16 +359,12 @@ def test_snapshot_and_reset_services(graph, tmp_path):
 
 def test_runtime_parameter_changes_are_validated(graph):
     h, proc, _ = graph
-    r = h.set_parameter('kp', -1.0)
-    assert not r.successful and 'kp' in r.reason
-    r = h.set_parameter('control', 'velocity')
-    assert not r.successful and "control: expected one of ['position'" in r.reason
-    r = h.set_parameter('physics_rate', 500.0)
-    assert not r.successful and 'read-only' in r.reason.lower()
-    r = h.set_parameter('initial_positions', [0.0, 1.0])
-    assert not r.successful and 'expected 7 values' in r.reason
-    r = h.set_parameter('initial_positions', [0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0])
-    assert not r.successful and 'initial_positions[3] (panda_joint4)' in r.reason
+    assert 'kp' in h.refusal('kp', -1.0)
+    assert "control: expected one of ['position'" in h.refusal('control', 'velocity')
+    assert 'read-only' in h.refusal('physics_rate', 500.0).lower()
+    assert 'expected 7 values' in h.refusal('initial_positions', [0.0, 1.0])
+    assert 'initial_positions[3] (panda_joint4)' in h.refusal(
+        'initial_positions', [0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0])
     for value in (False, True):  # switching the pacing keeps the node publishing
         r = h.set_parameter('real_time', value)
         assert r.successful, r.reason

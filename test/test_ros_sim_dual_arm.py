@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from conftest import module_domain, wait_for
-from sim_harness import SimHarness, start_sim, stop_process
+from node_harness import running
+from sim_harness import SimHarness, start_sim
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(34)
@@ -42,16 +43,10 @@ def graph(tmp_path_factory):
     proc = start_sim(DOMAIN, ['robot:=dual_panda', 'control:=computed_torque',
                               'diagnostics_period:=0.2'], log_path=str(log))
     h = SimHarness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.n_states() > 10 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.n_states() > 10, STARTUP, 'sim'):
         # the sim's joint_reference subscription is matched before anything is streamed
         assert h.wait(lambda: h.pub['joint_reference'].get_subscription_count() > 0, TIMEOUT)
         yield h, proc, log
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'sim exit code {code}\n{log.read_text()}'
 
 
 def _table(h):

@@ -16,9 +16,11 @@ import pytest
 
 from conftest import assert_not_rejected, joint_state_rejected, marker_rejected, module_domain
 from markers import MARKER_CASES, bad_marker
+from node_harness import (GOAL_CASES, JOINT_STATE_CASES, bad_joint_state,
+                          expect_startup_failures, running)
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, Harness,
-                              max_acceleration, reach_cdmp, start_streamer, stop_process)
+                              max_acceleration, reach_cdmp, start_streamer)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(7)
@@ -33,20 +35,14 @@ def graph(tmp_path_factory):
     proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2', 'max_input_rate:=50.0'],
                           log_path=str(log), params_file='config/streamer.yaml')
     h = Harness(DOMAIN)
-    try:
+    # holding the measured position (the fake robot's Q_START) before any primitive
+    with running(proc, h, log, lambda: h.n_refs() > 10, STARTUP, 'streamer'):
         from std_msgs.msg import String
-        # holding the measured position (the fake robot's Q_START) before any primitive
-        ok = h.wait(lambda: h.n_refs() > 10 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
         assert np.abs(h.last_ref()[2] - Q_START).max() == 0.0
         h.publish('primitive', String(data=dumps_primitive(reach_cdmp(duration=1.5))))
         ok = h.wait(lambda: h.n_refs() > 50 or proc.poll() is not None, STARTUP)
         assert ok and proc.poll() is None, log.read_text()
         yield h, proc, log
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
     assert not h.violations, h.violations[:5]
 
 
@@ -71,14 +67,6 @@ def not_rejected(h, topic, action):
         send = joint_state_rejected(h, lambda msg: h.publish(topic, msg), PANDA_JOINTS,
                                     lambda: stamp().nanoseconds)
     return assert_not_rejected(h, topic, send, action, resend_after=5.0)
-
-
-def publish_until(h, topic, make, reported):
-    """Publish ``make()`` on ``topic`` (every 20 ms) until ``reported()``; returns it."""
-    def step():
-        h.publish(topic, make())
-        return reported()
-    return h.wait(step, TIMEOUT)
 
 
 # -- normal operation --------------------------------------------------------------------------
@@ -187,56 +175,23 @@ def _js(h, **kw):
 
 def _bad_joint_state(h, case):
     q = h.last_ref()[2]
-    names = list(PANDA_JOINTS)
-    msg = h.joint_state(q)
-    if case == 'nan':
-        msg.position[2] = float('nan')
-    elif case == 'inf':
-        msg.position[4] = float('-inf')
-    elif case == 'wrong_length':
-        msg.position = msg.position[:5]
-    elif case == 'velocity_length':
-        msg.velocity = [0.0, 0.0]
-    elif case == 'unknown_name':
-        msg.name = names[:6] + ['elbow_joint']
-    elif case == 'missing_name':
-        msg.name = names[:6]
-        msg.position = msg.position[:6]
-    elif case == 'duplicate_name':
-        msg.name = names[:6] + [names[0]]
-    elif case == 'future_stamp':
-        msg = h.joint_state(q, stamp_offset=60.0)
-    elif case == 'past_stamp':
-        msg = h.joint_state(q, stamp_offset=-3600.0)
-    return msg
+    return bad_joint_state(lambda dt: h.joint_state(q, stamp_offset=dt), case)
 
 
-JS_CASES = {  # case -> expected text in the diagnostics reason
-    'nan': 'expected a finite value, got nan', 'inf': 'expected a finite value, got -inf',
-    'wrong_length': 'position: expected 7 values', 'velocity_length': 'velocity: expected 0 or',
-    'missing_name': "missing joints ['panda_joint7']", 'duplicate_name': 'duplicate joint name',
-    'future_stamp': 'in the future', 'past_stamp': 'in the past'}
-GOAL_CASES = dict(JS_CASES, unknown_name="unknown joints ['elbow_joint']")
-
-
-@pytest.mark.parametrize('case', sorted(JS_CASES))
+@pytest.mark.parametrize('case', sorted(JOINT_STATE_CASES))
 def test_bad_joint_states_are_rejected(graph, case):
     h, proc, _ = graph
-    t0 = time.monotonic()
     # joint_states is best effort (sensor QoS): a sample may be lost, so the bad sample is
     # published until its rejection is reported
-    assert publish_until(h, 'joint_states', lambda: _bad_joint_state(h, case),
-                         lambda: h.wait_diag(JS_CASES[case], t0, timeout=0.0,
-                                             name='input joint_states')), h.diag_messages[-3:]
+    h.reject('joint_states', lambda: _bad_joint_state(h, case), JOINT_STATE_CASES[case],
+             resend=True)
     stream_continues(h, proc)
 
 
 @pytest.mark.parametrize('case', sorted(GOAL_CASES))
 def test_bad_goals_are_rejected(graph, case):
     h, proc, _ = graph
-    t0 = time.monotonic()
-    h.publish('goal', _bad_joint_state(h, case))
-    assert h.wait_diag(GOAL_CASES[case], t0, name='input goal'), h.diag_messages[-3:]
+    h.reject('goal', lambda: _bad_joint_state(h, case), GOAL_CASES[case])
     stream_continues(h, proc)
 
 
@@ -259,9 +214,7 @@ def test_bad_markers_are_rejected(graph, case):
     from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     m, text = bad_marker(case)
-    t0 = time.monotonic()
-    h.publish('obstacles', MarkerArray(markers=[m]))
-    assert h.wait_diag(text, t0, name='input obstacles'), h.diag_messages[-3:]
+    h.reject('obstacles', lambda: MarkerArray(markers=[m]), text)
     assert h.last_state()[1].get('obstacles') == '0'
     stream_continues(h, proc)
 
@@ -286,9 +239,7 @@ def test_bad_primitives_are_rejected(graph, case):
     h, proc, _ = graph
     make, text = PRIMITIVE_CASES[case]
     d = json.loads(dumps_primitive(reach_cdmp(duration=1.5)))
-    t0 = time.monotonic()
-    h.publish('primitive', String(data=make(d)))
-    assert h.wait_diag(text, t0, name='input primitive'), h.diag_messages[-3:]
+    h.reject('primitive', lambda: String(data=make(d)), text)
     _, kv = h.last_state()
     assert 'adapted_primitive' in kv.get('primitive', '')  # the active one is kept
     stream_continues(h, proc)
@@ -332,32 +283,14 @@ def test_stale_joint_states_stop_smoothly_and_resume(graph):
 
 
 def test_runtime_parameter_changes_are_validated(graph):
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import Parameter
     h, proc, _ = graph
-    client = h.node.create_client(SetParameters, '/streamer/set_parameters')
-    try:
-        assert client.wait_for_service(timeout_sec=10.0)
-
-        def set_(name, value):
-            req = SetParameters.Request(
-                parameters=[Parameter(name, value=value).to_parameter_msg()])
-            fut = client.call_async(req)
-            assert h.wait(fut.done, TIMEOUT)
-            return fut.result().results[0]
-
-        r = set_('stop_time', -2.0)
-        assert not r.successful and 'stop_time' in r.reason
-        r = set_('repeller.gain', -1.0)
-        assert not r.successful and 'RepellerField.gain' in r.reason
-        r = set_('rate', 100.0)
-        assert not r.successful and 'read-only' in r.reason.lower()
-        r = set_('stop_time', 1)  # an integer for a float parameter is accepted
-        assert r.successful, r.reason
-        r = set_('repeller.gain', 0.02)
-        assert r.successful, r.reason
-    finally:
-        h.node.destroy_client(client)
+    assert 'stop_time' in h.refusal('stop_time', -2.0)
+    assert 'RepellerField.gain' in h.refusal('repeller.gain', -1.0)
+    assert 'read-only' in h.refusal('rate', 100.0).lower()
+    r = h.set_parameter('stop_time', 1)  # an integer for a float parameter is accepted
+    assert r.successful, r.reason
+    r = h.set_parameter('repeller.gain', 0.02)
+    assert r.successful, r.reason
     stream_continues(h, proc)
 
 
@@ -368,13 +301,6 @@ STARTUP_CASES = [('stop_time:=-1.0', 'stop_time'), ('joint_names:=[a,b]', 'joint
 
 
 def test_bad_startup_parameters_exit_nonzero_with_a_reason(tmp_path):
-    procs = [(start_streamer(163 + i, [param], log_path=str(tmp_path / f'{i}.log')), text, i)
-             for i, (param, text) in enumerate(STARTUP_CASES)]  # in parallel: start-up is slow
-    try:
-        for proc, text, i in procs:
-            code = proc.wait(STARTUP)
-            log = (tmp_path / f'{i}.log').read_text()
-            assert code == 2 and text in log, log
-    finally:
-        for proc, _, _ in procs:
-            stop_process(proc)
+    logs = [str(tmp_path / f'{i}.log') for i in range(len(STARTUP_CASES))]
+    expect_startup_failures([(start_streamer(163 + i, [param], log_path=logs[i]), text, logs[i])
+                             for i, (param, text) in enumerate(STARTUP_CASES)], STARTUP)

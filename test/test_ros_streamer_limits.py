@@ -9,8 +9,9 @@ import pytest
 
 from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
+from node_harness import running
 from streamer_harness import (Q_START, TIGHT_LOWER, TIGHT_UPPER, UPPER, Harness, start_streamer,
-                              stop_process, wide_narrow_cdmp)
+                              wide_narrow_cdmp)
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(31)
@@ -24,9 +25,7 @@ def test_primitive_limits_are_merged_reported_and_held(tmp_path):
     proc = start_streamer(DOMAIN, ['rate:=100.0', 'diagnostics_period:=0.2'],
                           log_path=str(log), params_file='config/streamer.yaml')
     h = Harness(DOMAIN)
-    try:
-        ok = h.wait(lambda: h.n_refs() > 10 or proc.poll() is not None, STARTUP)
-        assert ok and proc.poll() is None, log.read_text()
+    with running(proc, h, log, lambda: h.n_refs() > 10, STARTUP, 'streamer'):
         assert np.abs(h.last_ref()[2] - Q_START).max() == 0.0
         n0 = h.n_refs()
         h.publish('primitive', String(data=dumps_primitive(wide_narrow_cdmp())))
@@ -50,8 +49,4 @@ def test_primitive_limits_are_merged_reported_and_held(tmp_path):
             Q.min(axis=0), Q.max(axis=0))
         assert h.wait(lambda: h.last_state()[1].get('clamped') is not None, 10.0)
         assert h.last_state()[1]['clamped'] == '0'
-    finally:
-        h.close()
-        code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
     assert not h.violations, h.violations[:5]
