@@ -64,19 +64,19 @@ class _In:
     def align(self, n: int) -> None:
         self.pos += (-(self.pos - 4)) % n
 
-    def u32(self) -> int:
+    def _int32(self, fmt: str) -> int:
+        """The aligned 4-byte integer at the position (``fmt``: '<I' unsigned, '<i' signed)."""
         self.align(4)
         self.need(4)
-        v = struct.unpack_from('<I', self.data, self.pos)[0]
+        v = struct.unpack_from(fmt, self.data, self.pos)[0]
         self.pos += 4
         return v
 
+    def u32(self) -> int:
+        return self._int32('<I')
+
     def i32(self) -> int:
-        self.align(4)
-        self.need(4)
-        v = struct.unpack_from('<i', self.data, self.pos)[0]
-        self.pos += 4
-        return v
+        return self._int32('<i')
 
     def string(self) -> str:
         n = self.u32()

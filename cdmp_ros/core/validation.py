@@ -1,5 +1,5 @@
 """Input validation helpers: every failure names the variable, the expectation and what came."""
-from typing import Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -55,6 +55,32 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
         kind = 'non-negative' if allow_zero else 'positive'
         raise ValidationError(f'{name}: expected a finite {kind} number, got {value!r}')
     return v
+
+
+def name_permutation(expected: Sequence[str], got: Sequence[str], what: str,
+                     error: type = ValidationError) -> List[int]:
+    """Index into ``got`` of each of ``expected``, when ``got`` holds the names of ``expected``
+    in any order; else raises ``error`` ``'<what> <expected>, got <got> (missing [...],
+    unknown [...])'``, naming the names of ``expected`` not in ``got`` and those of ``got``
+    not in ``expected``."""
+    missing = [n for n in expected if n not in got]
+    unknown = [n for n in got if n not in expected]
+    if missing or unknown or len(got) != len(expected):
+        raise error(f'{what} {list(expected)}, got {list(got)} (missing {missing}, unknown '
+                    f'{unknown})')
+    return [list(got).index(n) for n in expected]
+
+
+def lookup(what: str, table, key, choices=None, sort: bool = False):
+    """``table[key]``; a missing key raises ValidationError ``'<what>: expected one of
+    <names>, got <key!r>'``, the names being the keys of ``table`` (or ``choices``) in their
+    order, or sorted with ``sort``."""
+    try:
+        return table[key]
+    except KeyError:
+        names = table if choices is None else choices
+        raise ValidationError(f'{what}: expected one of '
+                              f'{sorted(names) if sort else list(names)}, got {key!r}') from None
 
 
 def check_limits(y_min: ArrayLike, y_max: ArrayLike, n_dims: Optional[int] = None

@@ -152,7 +152,7 @@ def summarise(table, K, records):
         row(f'{name}.solve_s_median', float(np.median(t)), None, 's'),
         row(f'{name}.solve_s_p90', float(np.percentile(t, 90)), None, 's'),
         row(f'{name}.unconverged_pct', float(unconv), None, '%'),
-        # the reports' own sampled verification (issue 12), over every problem
+        # the reports' own sampled verification, over every problem
         row(f'{name}.verified_per_step_max_pct_median',
             float(np.median([r['ver_step'] for r in records]) * 100.0), None, '%'),
         row(f'{name}.verified_per_step_max_pct_max',
@@ -185,8 +185,8 @@ def compare_line(table, K, rows):
     paper = PAPER[table][K - 1]
     off = OFFICIAL.get(table)
     off = ' / '.join(f'{v:g}' for v in off[K - 1]) if off else '—'
-    # "trajectory guarantee": the column for AdaptationConfig's trajectory-level mode
-    # (issue 12 item 4), filled in when that mode exists
+    # "trajectory guarantee": the column for AdaptationConfig's trajectory-level mode,
+    # filled in when that mode exists
     return (f'| {name} | {f("failed_pct", ".1f")} / {f("violation_pct", ".2f")} '
             f'({f("violation_max_pct", ".2f")}) / {f("kl", ".2f")} | '
             f'{f("per_step_violation_median_pct", ".3f")} / '

@@ -146,24 +146,25 @@ def run(args):
         s = Setup(world, args)
         lo, hi = s.robot.lower, s.robot.upper
         sim_time = s.n_steps * s.dt
+
+        def execute(coupling, picture):
+            """The CDMP executed with the coupling made by ``coupling`` (None: without):
+            reference, measured path, wall time, board distances (min, final), end-effector
+            error; the final pose snapshot in ``picture``."""
+            t0 = time.perf_counter()
+            Y, Q = s.run(s.cdmp, coupling() if coupling is not None else None)
+            wall = time.perf_counter() - t0
+            d_min, d_final = s.distances(Q)
+            ee = s.scene.ee_error(Q[-1])
+            if not args.no_figures:
+                s.robot.reset(Q[-1])
+                snap(world, s, os.path.join(args.out, picture))
+            return Y, Q, wall, d_min, d_final, ee
+
         # 1. unmodified CDMP, executed
-        t0 = time.perf_counter()
-        Y0, Q0 = s.run(s.cdmp)
-        wall_free = time.perf_counter() - t0
-        d0_min, d0_final = s.distances(Q0)
-        ee0 = s.scene.ee_error(Q0[-1])
-        if not args.no_figures:
-            s.robot.reset(Q0[-1])
-            snap(world, s, os.path.join(args.out, 'before.png'))
+        Y0, Q0, wall_free, d0_min, d0_final, ee0 = execute(None, 'before.png')
         # 2. with the coupling, executed
-        t0 = time.perf_counter()
-        Y1, Q1 = s.run(s.cdmp, s.coupling())
-        wall_coupled = time.perf_counter() - t0
-        d1_min, d1_final = s.distances(Q1)
-        ee1 = s.scene.ee_error(Q1[-1])
-        if not args.no_figures:
-            s.robot.reset(Q1[-1])
-            snap(world, s, os.path.join(args.out, 'after.png'))
+        Y1, Q1, wall_coupled, d1_min, d1_final, ee1 = execute(s.coupling, 'after.png')
         # 3. the same field without the end-effector hold (Eq. 12 only), reference only
         Y2, _ = s.run(s.cdmp, s.coupling(hold=False), physics=False)
         d2_min, _ = s.distances(Y2)

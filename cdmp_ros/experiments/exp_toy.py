@@ -44,48 +44,41 @@ def _rms_deg(prim, T, Y_rad):
     return float(np.rad2deg(np.sqrt(np.mean((tr.Y[:, 0] - Y_rad) ** 2))))
 
 
+def _case(key, prefix, T, y_deg, limit_deg, cfg, lo, **rollout):
+    """Fit a DMP and a CDMP (limits ``[lo, limit_deg]``) to the demonstration ``y_deg``
+    [deg] and roll both out over 1.5 s with ``rollout`` (e.g. a new goal); returns the rows
+    named ``prefix.*`` (paper values ``PAPER[key_dmp]``, ``PAPER[key_cdmp]``) and the
+    curves to plot."""
+    Y = np.deg2rad(y_deg)[:, None]
+    dmp = DMP(1, cfg).fit(T, Y)
+    cdmp = CDMP([lo], [np.deg2rad(limit_deg)], cfg).fit(T, Y)
+    a = dmp.rollout(dt=0.002, duration=1.5, **rollout)
+    b = cdmp.rollout(dt=0.002, duration=1.5, **rollout)
+    curve = (T, y_deg, a.T, np.rad2deg(a.Y[:, 0]), np.rad2deg(b.Y[:, 0]), limit_deg)
+    rows = [
+        row(f'{prefix}.limit_deg', limit_deg, limit_deg, 'deg'),
+        row(f'{prefix}.dmp_max_deg', float(np.rad2deg(a.Y.max())), PAPER[f'{key}_dmp'],
+            'deg'),
+        row(f'{prefix}.cdmp_max_deg', float(np.rad2deg(b.Y.max())), PAPER[f'{key}_cdmp'],
+            'deg'),
+        row(f'{prefix}.rms_error_deg', _rms_deg(cdmp, T, Y[:, 0]), None, 'deg'),
+        row(f'{prefix}.dmp_rms_error_deg', _rms_deg(dmp, T, Y[:, 0]), None, 'deg'),
+    ]
+    return rows, curve
+
+
 def compute():
     """Run both cases; returns (rows, curves for plotting)."""
     T, y_goal, y_steep = demonstrations()
     cfg = DmpConfig(n_weights_per_dim=10)
     lo = np.deg2rad(-10.0)
-    rows, curves = [], {}
     # goal adaptation
-    Y = np.deg2rad(y_goal)[:, None]
-    dmp = DMP(1, cfg).fit(T, Y)
-    cdmp = CDMP([lo], [np.deg2rad(GOAL_LIMIT_DEG)], cfg).fit(T, Y)
-    new_goal = [np.deg2rad(33.0)]
-    a = dmp.rollout(dt=0.002, goal_y=new_goal, duration=1.5)
-    b = cdmp.rollout(dt=0.002, goal_y=new_goal, duration=1.5)
-    curves['goal'] = (T, y_goal, a.T, np.rad2deg(a.Y[:, 0]), np.rad2deg(b.Y[:, 0]),
-                      GOAL_LIMIT_DEG)
-    rows += [
-        row('goal_adaptation.limit_deg', GOAL_LIMIT_DEG, GOAL_LIMIT_DEG, 'deg'),
-        row('goal_adaptation.dmp_max_deg', float(np.rad2deg(a.Y.max())), PAPER['goal_dmp'],
-            'deg'),
-        row('goal_adaptation.cdmp_max_deg', float(np.rad2deg(b.Y.max())), PAPER['goal_cdmp'],
-            'deg'),
-        row('goal_adaptation.rms_error_deg', _rms_deg(cdmp, T, Y[:, 0]), None, 'deg'),
-        row('goal_adaptation.dmp_rms_error_deg', _rms_deg(dmp, T, Y[:, 0]), None, 'deg'),
-    ]
+    goal_rows, goal_curve = _case('goal', 'goal_adaptation', T, y_goal, GOAL_LIMIT_DEG, cfg,
+                                  lo, goal_y=[np.deg2rad(33.0)])
     # steep change
-    Y = np.deg2rad(y_steep)[:, None]
-    dmp = DMP(1, cfg).fit(T, Y)
-    cdmp = CDMP([lo], [np.deg2rad(STEEP_LIMIT_DEG)], cfg).fit(T, Y)
-    a = dmp.rollout(dt=0.002, duration=1.5)
-    b = cdmp.rollout(dt=0.002, duration=1.5)
-    curves['steep'] = (T, y_steep, a.T, np.rad2deg(a.Y[:, 0]), np.rad2deg(b.Y[:, 0]),
-                       STEEP_LIMIT_DEG)
-    rows += [
-        row('steep_change.limit_deg', STEEP_LIMIT_DEG, STEEP_LIMIT_DEG, 'deg'),
-        row('steep_change.dmp_max_deg', float(np.rad2deg(a.Y.max())), PAPER['steep_dmp'],
-            'deg'),
-        row('steep_change.cdmp_max_deg', float(np.rad2deg(b.Y.max())), PAPER['steep_cdmp'],
-            'deg'),
-        row('steep_change.rms_error_deg', _rms_deg(cdmp, T, Y[:, 0]), None, 'deg'),
-        row('steep_change.dmp_rms_error_deg', _rms_deg(dmp, T, Y[:, 0]), None, 'deg'),
-    ]
-    return rows, curves
+    steep_rows, steep_curve = _case('steep', 'steep_change', T, y_steep, STEEP_LIMIT_DEG, cfg,
+                                    lo)
+    return goal_rows + steep_rows, {'goal': goal_curve, 'steep': steep_curve}
 
 
 def plot(curves, path):

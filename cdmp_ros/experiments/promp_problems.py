@@ -142,7 +142,7 @@ def sampled_violations(promp: ProMP, problem: TableProblem, rng: np.random.Gener
 
 def panda_problem(chain, rng: np.random.Generator, n_basis: int = 10, n_steps: int = 100,
                   n_spheres: int = 3, n_demos: int = 8):
-    """The 7-DoF benchmark of issue 3: a joint-space Panda ProMP (``n_basis`` per joint) learned
+    """The 7-DoF benchmark problem: a joint-space Panda ProMP (``n_basis`` per joint) learned
     by EM from noisy minimum-jerk demonstrations, adapted to two-sided joint limits (the URDF's)
     and ``n_spheres`` sphere repellers on the end effector and the elbow (panda_link4 origin),
     placed near the original mean path.

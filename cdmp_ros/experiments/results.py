@@ -15,7 +15,7 @@ def row(name: str, ours, paper=None, unit: str = '') -> dict:
 
 
 def verification_rows(prefix: str, report) -> List[dict]:
-    """Rows of an adaptation report's sampled verification (issue 12): the largest per-step
+    """Rows of an adaptation report's sampled verification: the largest per-step
     violation over the constraints, the trajectory-level violation (any constraint) with its
     95 % upper bound, and whether the claimed level holds by the check."""
     ver = report.verification

@@ -6,8 +6,7 @@ Run: ``ros2 run cdmp_ros adapter --ros-args --params-file config/adapter.yaml`` 
 
 BLAS is limited to one thread (``OPENBLAS_NUM_THREADS=1`` unless set by the caller) before
 numpy is imported: the adaptation is a sequence of small matrix products, for which a
-multi-threaded BLAS is several times slower on this 2-core machine (measured 2.2 s instead of
-0.3 s for one 7-DoF solve) and would steal the streamer's core.
+multi-threaded BLAS is several times slower and would steal the streamer's core.
 """
 import os
 import sys

@@ -9,8 +9,7 @@ Run: ``ros2 run cdmp_ros learner --ros-args --params-file config/learner.yaml`` 
 
 OpenBLAS runs single-threaded in this process unless ``OPENBLAS_NUM_THREADS`` is set: the fits
 work on small matrices (ProMP EM: 140 x 140), where a second BLAS thread only contends with the
-other nodes for the cores (measured on the 2-core machine under load: ProMP fit of the five
-sample demonstrations 8.0 s with the default threads, 0.44 s single-threaded).
+other nodes for the cores and makes the fit many times slower.
 """
 import os
 import sys

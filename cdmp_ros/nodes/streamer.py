@@ -7,17 +7,17 @@ Run: ``ros2 run cdmp_ros streamer --ros-args --params-file config/streamer.yaml`
 The references are published by the node's own tick thread (sleeping to absolute deadlines,
 optionally under SCHED_FIFO: ``-p realtime_priority:=50``, see
 :mod:`cdmp_ros.ros.streamer_node`). The subscriptions, the diagnostics timer and the parameter
-services are spun by rclpy's EventsExecutor (measured on this machine: a 1 kHz timer costs
-about 9 % of a core instead of about 45 % with the SingleThreadedExecutor, whose wait-set
-rebuild per callback dominates; it also runs the tick with ``tick_thread:=false``), in the
+services are spun by rclpy's EventsExecutor (far less CPU per timer callback than the
+SingleThreadedExecutor, which rebuilds its wait set per callback; it also runs the tick with
+``tick_thread:=false``), in the
 graceful loop of :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag;
 ``EventsExecutor.spin()`` does not return on SIGINT in this rclpy); the node's ``close()``
 stops the tick thread before the node is destroyed.
 
 BLAS is limited to one thread (``OPENBLAS_NUM_THREADS=1``, ``OMP_NUM_THREADS=1`` unless set by
 the caller) before numpy is imported, as in :mod:`cdmp_ros.nodes.adapter`: the streamer's
-numerical work is small, and a second BLAS thread would compete with the adapter's solve on this
-2-core machine.
+numerical work is small, and a second BLAS thread would compete with the adapter's solve for
+the cores.
 """
 import os
 import sys

@@ -2,93 +2,35 @@
 :class:`~cdmp_ros.core.adaptation.session.AdaptationSession` (the request policy) and
 :class:`~cdmp_ros.core.adaptation.jobs.SolveWorker` (the solver thread).
 
-Subscribes ``primitive`` (JSON, latched: the primitive to adapt), ``obstacles``
-(MarkerArray), ``goal`` (JointState), ``goal_point`` (PointStamped, base frame),
-``constraints`` (JSON constraint set), ``joint_states`` and ``robot_description`` (URDF,
-latched; the robot model, below); publishes ``adapted_primitive``
-(JSON, latched), ``visualization`` (MarkerArray, latched) and ``/diagnostics``.
+Subscribes ``primitive``, ``obstacles``, ``goal``, ``goal_point``, ``constraints``,
+``joint_states`` and ``robot_description``; publishes ``adapted_primitive``,
+``visualization`` and ``/diagnostics`` (types and QoS: docs/nodes.md; diagnostics keys:
+docs/nodes.md).
 
-- DMP / CDMP primitives: a goal (``goal``, or ``goal_point`` through the IK) gives an adapted
-  primitive with the new goal and the same weights, published at once
-  (``retarget_dmp_on_goal`` false: only for ``goal_point``). Obstacles are handled by the
-  streamer's coupling terms; the adapter only shows them on ``visualization``.
+- DMP / CDMP primitives: a goal (``goal``, or ``goal_point`` through the IK) gives at once an
+  adapted primitive with the new goal and the same weights (``retarget_dmp_on_goal`` false:
+  only ``goal_point``); obstacles are left to the streamer's coupling terms and only shown on
+  ``visualization``.
 - ProMPs: every change of the primitive, the obstacles, the goal or the constraint set submits
-  an adaptation request (:mod:`cdmp_ros.core.adaptation.requests`) to the solver thread
-  (:mod:`cdmp_ros.core.adaptation.jobs`: latest request wins, stale converged results are still
-  published; results for a primitive replaced meanwhile are dropped). Only converged
-  adaptations are published; an infeasible (ERROR) or unconverged (WARN) solve is reported on
-  ``/diagnostics`` with the satisfaction probabilities and the last good primitive stays
-  latched. Diagnostics keys: outcome, solve_time_ms, solve_cpu_ms, kl, iterations,
-  outer_iterations, backtracks (multiplier steps halved, :mod:`cdmp_ros.core.adaptation.solver`),
-  evaluations, start (cold / warm; start_note says why a warm solve was replaced, exceeded
-  the KL guard or was refined),
-  ``p.<constraint>``, requests_received / dropped / stale / outdated, latency_ms,
-  starts_warm / starts_predicted / starts_cold / starts_warm_then_cold / starts_cold_then_warm
-  / starts_over_guard,
-  refinements_started / published / kept_warm / cancelled / failed (not counted among the
-  requests) / resumed (started from where a cancelled one was); and
-  robot_state (none / fresh / stale: whether a ProMP request would be conditioned on the
-  current joint_states); limits_source (``robot_description`` for the parameter,
-  ``robot_description topic`` or the URDF file the robot model came from; see below),
-  robot_description_topic (what the last ``robot_description`` message was) and
-  limit_mismatch (every bound on which the primitive's
-  limits differ from the robot's, with both values and the one used, or ``none``); ready /
-  waiting_for / ready_after_s (:mod:`cdmp_ros.ros.readiness_probe`: ready when a primitive
-  was received, ``adapted_primitive`` has a subscriber and ``joint_states`` a publisher; one
-  ``ready ... s after start`` log line).
-- Joint limits: a primitive is adapted within the tighter of its own limits and the robot's,
-  per joint and bound, never wider (:func:`cdmp_ros.ros.adapter_inputs.primitive_limits`);
-  they bound the joint-limit constraints of a ProMP adaptation and are written as the
-  adapted ProMP's ``limits``. A difference is logged as a warning and reported.
-- The robot model (limits, kinematics of the points of interest and of the IK): the
-  ``robot_description`` parameter when set, else the latched ``robot_description`` topic
-  (robot_state_publisher) when ``robot_description_timeout`` > 0 and a message arrives within
-  that time at start-up, else ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.
-  RobotModelSelector`, :mod:`cdmp_ros.ros.robot_description`). It is fixed for the node's
-  life: a later message is compared with it, a different model is a standing WARN on the
-  state status until a restart applies it (none with the parameter set), one that is not a
-  URDF of ``joint_names`` is rejected like any input.
-- A new ``primitive`` clears the goal (a new task); obstacles and constraints are kept.
-- Warm starts (``adaptation.warm_start``, :mod:`cdmp_ros.core.adaptation.warm`): a request
-  whose problem differs from the last converged one only by obstacles that moved at most
-  ``adaptation.warm_start_distance`` starts from that solution and its multipliers (from
-  the secant prediction of the last two when every obstacle moved as in the last request,
-  ``adaptation.warm_start_predict``); a warm solve that does not converge within
-  ``adaptation.warm_start_max_evaluations`` is followed by a cold solve of the same
-  request. After a published warm solve, with no request waiting, the same request is solved
-  cold as a refinement (``adaptation.warm_start_refine``), published only if its KL is at
-  least 5 % lower, and cancelled by any newer request within one evaluation (a refinement
-  runs its sampled verification only when its KL is that much lower, so a newer request
-  rarely waits for one); the next refinement resumes from where the cancelled one was, on
-  the newer request, within ``adaptation.warm_start_check_max_evaluations`` over all its
-  resumptions. The refinement is also the cold check of a warm solve whose KL exceeds the
-  guard (``adaptation.warm_start_kl_ratio``); without refinements, the next request starts
-  cold instead.
-- Every published primitive carries in ``metadata.adapter`` its provenance
-  (:class:`cdmp_ros.core.streaming.selection.Provenance`): ``source_id`` (SHA-1 of the
-  ``primitive`` message it adapts), ``generation`` (ROS time [ns] at the request, strictly
-  increasing), ``trigger``, ``trigger_stamp_ns`` and ``continues``; the streamer uses it to
-  stream only the newest adaptation of its current primitive. An adaptation to ``obstacles``
-  or ``constraints`` ``continues`` the running motion: it is not conditioned on the current
-  joint_states at phase 0, and the streamer switches it in at its current phase; one to a new
-  ``primitive`` or goal restarts the motion from the current state (conditioned at phase 0),
-  and so does any request until such a motion-starting adaptation of the current primitive
-  has been published (a continuing request may supersede a waiting motion-starting one).
+  an adaptation request to the solver thread (latest request wins). Only converged
+  adaptations are published; otherwise the last good primitive stays latched. Warm starts
+  and their cold refinements: :mod:`cdmp_ros.core.adaptation.warm`. A new ``primitive``
+  clears the goal (a new task); obstacles and constraints are kept.
+- A primitive is adapted within the tighter of its own limits and the robot's, per joint and
+  bound (:func:`cdmp_ros.ros.adapter_inputs.primitive_limits`). The robot model is chosen once
+  at start-up (:class:`cdmp_ros.ros.robot_model.RobotModelSelector`); a later
+  ``robot_description`` is only compared with it.
+- Every published primitive carries its provenance in ``metadata.adapter``
+  (:class:`cdmp_ros.core.streaming.selection.Provenance`), so the streamer streams only the
+  newest adaptation of its current primitive; an adaptation to ``obstacles`` or
+  ``constraints`` continues the running motion, one to a new ``primitive`` or goal restarts it
+  from the current state.
 
-Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
-size checks before deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the
-joint count), then the per-element validation (:mod:`cdmp_ros.ros.convert`,
-:mod:`cdmp_ros.ros.adapter_inputs`); each rejection is logged and counted on ``/diagnostics``.
-``joint_states`` is polled (:meth:`~cdmp_ros.ros.input_gate.InputGate.subscribe_polled`): the
-newest message is taken and checked when a request is formed and at every diagnostics period,
-so a robot publishing at 1 kHz costs the adapter nothing between requests (served by the
-executor, each message cost about 1 ms of Python, taken from the solver thread).
-
-QoS (:mod:`cdmp_ros.ros.qos`): ``primitive`` subscribed and ``adapted_primitive``
-published transient-local (a restarted adapter gets the latched primitive; a restarted
-streamer gets the latest adapted one); ``visualization`` transient-local (a late RViz sees
-the current plan); ``obstacles``, ``goal``, ``goal_point``, ``constraints`` and
-``/diagnostics`` reliable volatile depth 10; ``joint_states`` best effort (sensor data).
+Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` and the per-element validation.
+``joint_states`` is polled, not subscribed with a callback: served by the executor, each
+message of a 1 kHz robot would cost Python time taken from the solver thread. QoS: the
+primitives and ``visualization`` are latched, so a restarted node or a late RViz gets the
+current one.
 """
 import json
 import math
@@ -131,9 +73,8 @@ from cdmp_ros.ros.robot_model import RobotModelSelector
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: [s] Python's GIL switch interval in the adapter process (default 5 ms): the executor takes a
 #: new request, and the solver thread sees it, within about 1 ms while the other thread runs
-#: Python code (a refinement, a callback). With the default, the wait between an obstacle
-#: callback and the start of its solve reached 13-36 ms in 3 of 4 runs of the tracked latency
-#: benchmark, against at most 6-8 ms in 6 runs with 1 ms (benchmarks/RESULTS.md, 2026-11-27).
+#: Python code (a refinement, a callback); with the default, that wait adds tens of ms to
+#: the latency from an obstacle to its solve.
 SWITCH_INTERVAL = 0.001
 #: The session's state levels (:mod:`cdmp_ros.core.adaptation.session`) as diagnostics levels.
 LEVELS = {policy.OK: OK, policy.WARN: WARN, policy.ERROR: ERROR}
@@ -248,18 +189,13 @@ class AdapterNode(Node):
 
     # -- subscriptions -----------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState, received: float) -> None:
-        try:
-            q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
-        except ValidationError as exc:
-            self.gate.reject('joint_states', str(exc))
+        arrays = self.gate.joint_arrays(self.js_mapper, msg, 'joint_states')
+        if arrays is None:
             return
-        lo, hi, tol = self.chain.lower, self.chain.upper, self.config.joint_states_tolerance
-        out = np.flatnonzero((q < lo - tol) | (q > hi + tol))
-        if out.size:
-            j = int(out[0])
-            self.gate.reject('joint_states', f'joint_states.position of '
-                                             f'{self.joint_names[j]!r}: {q[j]:.4g} is outside '
-                                             f'the limits [{lo[j]}, {hi[j]}]')
+        q = arrays[0]
+        lo, hi = self.chain.lower, self.chain.upper
+        if not self.gate.within_limits('joint_states', q, lo, hi,
+                                       self.config.joint_states_tolerance, self.joint_names):
             return
         self.q = np.clip(q, lo, hi)
         self.q_time = received
@@ -301,12 +237,10 @@ class AdapterNode(Node):
         self._trigger('constraints', 0)
 
     def _on_goal(self, msg: JointState) -> None:
-        try:
-            g, _ = self.goal_mapper.to_arrays(msg, 'goal')
-        except ValidationError as exc:
-            self.gate.reject('goal', str(exc))
+        arrays = self.gate.joint_arrays(self.goal_mapper, msg, 'goal')
+        if arrays is None:
             return
-        self._set_goal('goal', g, None, stamp_to_ns(msg.header.stamp))
+        self._set_goal('goal', arrays[0], None, stamp_to_ns(msg.header.stamp))
 
     def _on_goal_point(self, msg: PointStamped) -> None:
         cfg = self.config

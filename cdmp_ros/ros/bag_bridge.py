@@ -309,8 +309,8 @@ class PlayerNode(Node):
     start_delay : float
         Seconds to wait before the first message, after the subscriber wait.
 
-    ``wait_for_subscribers`` and ``wait_timeout`` (before issue 31) are no longer used: set,
-    they give a warning that names their replacement.
+    The former parameters ``wait_for_subscribers`` and ``wait_timeout`` are no longer used:
+    set, they give a warning that names their replacement.
     """
 
     def __init__(self, **kwargs):

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
+from cdmp_ros.core.validation import name_permutation
 
 # visualization_msgs/Marker constants (kept here so that the core needs no message package).
 MARKER_TYPES = {0: 'ARROW', 1: 'CUBE', 2: 'SPHERE', 3: 'CYLINDER', 4: 'LINE_STRIP',
@@ -179,12 +180,8 @@ def controller_order(joint_names: Sequence[str], controller_joints: Sequence[str
         ``controller_joints`` is not a permutation of ``joint_names`` (names the missing and
         unknown joints).
     """
-    missing = [n for n in joint_names if n not in controller_joints]
-    unknown = [n for n in controller_joints if n not in joint_names]
-    if missing or unknown or len(controller_joints) != len(joint_names):
-        raise ValidationError(f'controller_joints: expected a permutation of '
-                              f'{list(joint_names)}, got {list(controller_joints)} (missing '
-                              f'{missing}, unknown {unknown})')
+    name_permutation(joint_names, controller_joints, 'controller_joints: expected a '
+                     'permutation of')
     return [list(joint_names).index(n) for n in controller_joints]
 
 

@@ -28,6 +28,7 @@ import threading
 import time
 from typing import Callable, Dict, Optional
 
+import numpy as np
 from rclpy.serialization import deserialize_message
 
 from cdmp_ros.core.errors import ValidationError
@@ -325,6 +326,28 @@ class InputGate:
     def reject_all(self, topic: str, errors) -> None:
         for exc in errors:
             self.reject(topic, str(exc))
+
+    def joint_arrays(self, mapper, msg, topic: str):
+        """``mapper.to_arrays(msg, topic)`` (the positions and velocities of a JointState in
+        the node's joint order), or None after rejecting ``msg`` on ``topic`` with the
+        mapper's error."""
+        try:
+            return mapper.to_arrays(msg, topic)
+        except ValidationError as exc:
+            self.reject(topic, str(exc))
+            return None
+
+    def within_limits(self, topic: str, q, lower, upper, tolerance: float, names) -> bool:
+        """Whether the measured positions ``q`` lie within ``[lower - tolerance, upper +
+        tolerance]``; if not, rejects the message on ``topic`` naming the first joint
+        outside."""
+        out = np.flatnonzero((q < lower - tolerance) | (q > upper + tolerance))
+        if out.size:
+            j = int(out[0])
+            self.reject(topic, f'{topic}.position of {names[j]!r}: {q[j]:.4g} is outside the '
+                               f'limits [{lower[j]}, {upper[j]}]')
+            return False
+        return True
 
     def values(self) -> Dict[str, int]:
         """``rejected_total`` and ``rejected_<category>`` over every topic, and

@@ -15,8 +15,7 @@
   thread, :mod:`cdmp_ros.ros.learner_improve`; progress on ``/diagnostics``; a second call
   while one runs is refused).
 - Readiness (:mod:`cdmp_ros.ros.readiness_probe`): ready when ``primitive`` has a subscriber
-  and, with ``fit_on_start``, the primitive was published; one ``ready ... s after start`` log
-  line, ``ready`` / ``waiting_for`` / ``ready_after_s`` on diagnostics.
+  and, with ``fit_on_start``, the primitive was published.
 
 Parameters mirror :class:`~cdmp_ros.core.learning.LearnerConfig` (top level),
 :class:`~cdmp_ros.core.dmp.dmp.DmpConfig` (``dmp.*``), :class:`~cdmp_ros.core.learning.
@@ -28,9 +27,7 @@ Joint limits: the robot's come from ``robot_description`` (when non-empty) or ``
 (:mod:`cdmp_ros.ros.robot_model`); explicit ``limits.lower`` / ``limits.upper`` are merged with
 them, the tighter per joint and bound, never wider (:func:`cdmp_ros.core.joint_limits.
 merge_limits`): the demonstrations are checked against, and the primitives fitted within, the
-merged limits. Diagnostics: ``limits_source`` (the robot model's source; ``limits.lower/upper``
-only when the robot model cannot be loaded) and ``limit_mismatch`` (every bound on which the
-parameters differ from the robot, with both values and the one used; also a log warning).
+merged limits. Diagnostics keys: docs/nodes.md.
 """
 import collections
 import os

@@ -61,8 +61,8 @@ STOP = threading.Event()
 #: [s] The stop watchdog's bound (:func:`_watch_stop`) on each of the two parts of a stop
 #: that have no bound of their own: from the stop signal (or the end of the start-up, if later)
 #: to the start of ``close()``, and from the end of ``close()`` to the exit. Twice the 2 s
-#: shutdown target; measured whole stops take 0.16-1.21 s (benchmarks/RESULTS.md,
-#: ``bench_shutdown.py``). ``close()`` itself bounds its own waits (the recorder's final drain,
+#: shutdown target, well above what a whole stop takes (``benchmarks/bench_shutdown.py``).
+#: ``close()`` itself bounds its own waits (the recorder's final drain,
 #: the adapter's solver thread).
 STOP_LIMIT = 4.0
 #: Exit code of a node that the stop watchdog ended before its ``close()`` had started.
@@ -129,8 +129,8 @@ def _arm_backstop(seconds: float) -> None:
     :data:`BACKSTOP_MARGIN` from now unless :func:`_disarm_backstop` comes first.
 
     The Python watchdog needs the GIL to act; a main thread blocked in C while holding it (an
-    rclpy teardown call waiting for a DDS mutex: the sim's hung stop, benchmarks/RESULTS.md)
-    starves it, the backstop not."""
+    rclpy teardown call waiting for a DDS mutex, as seen in the sim's stop) starves it, the
+    backstop not."""
     faulthandler.dump_traceback_later(max(0.0, seconds) + BACKSTOP_MARGIN, exit=True,
                                       file=sys.stderr)
 
@@ -180,9 +180,8 @@ def make_executor():
     """rclpy's EventsExecutor when this rclpy has it, else None (:func:`run_node` then uses a
     ``SingleThreadedExecutor``).
 
-    The streamer and the sim spin with it: measured on this machine, a 1 kHz timer costs
-    about 9 % of a core with it instead of about 45 % with the SingleThreadedExecutor, whose
-    wait-set rebuild per callback dominates.
+    The streamer and the sim spin with it: a timer callback costs far less CPU than with the
+    SingleThreadedExecutor, whose wait-set rebuild per callback dominates.
     """
     try:
         from rclpy.experimental import EventsExecutor

@@ -3,8 +3,7 @@
 Why not executor callbacks: with the rclpy executors every wake-up of the executor costs tens
 of microseconds of Python (wait-set rebuild, callback dispatch), and an event-driven executor
 wakes up as often as messages arrive, so at 20,000 messages/s the per-wake-up overhead, not
-the take or the write, dominates the recorder's CPU (measured in benchmarks/RESULTS.md, "bag
-(recording throughput, after optimisation)").  Here a dedicated thread wakes up every
+the take or the write, dominates the recorder's CPU.  Here a dedicated thread wakes up every
 ``period`` seconds (default 5 ms, i.e. 200 wake-ups/s whatever the message rate) and takes
 everything queued in the DDS readers with ``take_message(raw=True)``, writing each serialized
 message straight into the :class:`~cdmp_ros.bag.BagWriter`.  Messages wait at most ``period``

@@ -1,93 +1,31 @@
 """The sim node: ROS glue around :class:`cdmp_ros.sim.live.LiveSim` (pybullet, DIRECT mode).
 
-Topics (relative names, remappable):
+Subscribes ``joint_reference``, ``obstacles`` and, with ``robot`` panda,
+``robot_description``; publishes ``joint_states`` and ``ee_pose`` at ``publish_rate`` of
+simulated time, ``/diagnostics`` and, with ``publish_clock``, ``/clock``; services
+``~/snapshot`` and ``~/reset`` (topics, types and QoS: docs/nodes.md; diagnostics keys:
+docs/nodes.md). ``joint_states`` is kept 50 deep (:data:`~cdmp_ros.ros.qos.SIM_STATE`) so the
+burst of one late tick reaches a reliable subscriber whole.
 
-- subscribes ``joint_reference`` (sensor_msgs/JointState; QoS reliable, volatile, keep last
-  10 = :data:`~cdmp_ros.ros.qos.REFERENCE`, lossless from the streamer),
-  ``obstacles`` (visualization_msgs/MarkerArray; :data:`~cdmp_ros.ros.qos.COMMAND`) and,
-  with ``robot`` panda, ``robot_description`` (std_msgs/String, the URDF;
-  :data:`~cdmp_ros.ros.qos.LATCHED`; see *Joint limits* below);
-- publishes ``joint_states`` (names, position, velocity, effort) and ``ee_pose``
-  (geometry_msgs/PoseStamped of the tool centre point, in ``base_frame``) at
-  ``publish_rate`` of simulated time (QoS :data:`~cdmp_ros.ros.qos.SIM_STATE`:
-  reliable, volatile, keep last 50, so the burst of one late tick, up to
-  ``max_catch_up * publish_rate`` messages, reaches a reliable subscriber whole; matches
-  reliable and best-effort subscribers), ``/diagnostics`` (COMMAND) and, with
-  ``publish_clock``, ``/clock`` (rosgraph_msgs/Clock, absolute name as use_sim_time expects;
-  reliable, keep last 1).
-- services ``~/snapshot`` (std_srvs/Trigger: TinyRenderer PNG, the path in the message) and
-  ``~/reset`` (std_srvs/Trigger: back to ``initial_positions`` at rest; clears a reflex stop).
-- readiness (:mod:`cdmp_ros.ros.readiness_probe`): ready when ``joint_reference`` has a
-  publisher; one ``ready ... s after start`` log line, ``ready`` / ``waiting_for`` /
-  ``ready_after_s`` on diagnostics.
+Stepping: one steady-clock timer. With ``real_time`` it steps the physics up to the wall clock
+(at most ``max_catch_up`` s; beyond that the simulation slips); without it, each tick steps
+for a short slice of CPU, so subscriptions and services are served between slices. Each
+publish period of simulated time gets its own message.
 
-Stepping: one steady-clock timer. With ``real_time`` it fires every publish period and steps
-the physics up to the wall clock (catch-up of at most ``max_catch_up`` s, beyond which the
-simulation slips and the slip is counted); without it, each tick steps for a slice of about
-1.5 ms of CPU, so subscriptions and services are served between slices. Each publish period
-of simulated time gets its own joint_states / ee_pose message, stamped with the wall time of
-its slot (simulated time with ``publish_clock``).
+Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` and the per-element validation.
+A reference outside the joint limits, or faster than the URDF velocity limit, is clipped;
+whatever it receives, the simulated joints never pass their limits (the end stops of
+:class:`~cdmp_ros.sim.live.LiveSim`). Every accepted reference also passes a
+:class:`cdmp_ros.core.reflex.ReflexMonitor`, as a Franka Panda's reflex: ``reflex: count``
+counts an error and applies the reference, ``reflex: stop`` halts the robot at its measured
+position and refuses every reference until ``~/reset``.
 
-Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time
-size checks: a MarkerArray of more than ``max_obstacles + 1`` markers, a joint_reference of more
-names than the robot has joints, is rejected before it is deserialised), then the per-element
-validation (:mod:`cdmp_ros.ros.convert`); each rejection or sanitisation is logged and counted
-per topic and per reason on ``/diagnostics``; the node keeps running. A reference outside the
-joint limits is clipped into them, a velocity above the URDF velocity limit is clipped (both
-reported). Whatever it receives, the simulated joints never pass their limits (the end stops of
-:class:`~cdmp_ros.sim.live.LiveSim`).
-
-Reflex (as a Franka Panda): every accepted ``joint_reference`` first passes a
-:class:`cdmp_ros.core.reflex.ReflexMonitor` with the limits in force: position and velocity
-of the simulated robot's URDF(s) merged tighter-of-two with the ``joint_limits.<joint>.*``
-parameters (:func:`cdmp_ros.ros.limits_params.robot_limits`, the streamer's limits; defaults:
-the Panda datasheet, ``left_``/``right_`` prefixed for ``dual_panda``, the planar arm's for
-``planar4``). The references are differenced on their header stamps (an unstamped one on its
-arrival time); a position outside the limits, or a velocity, acceleration or jerk above its
-limit by more than ``reflex_tolerance``, is a reflex error. ``reflex: count`` counts it and
-applies the reference; ``reflex: stop`` halts the robot at its measured position (state
-``reflex``, level ERROR with the reason) and refuses every further reference (counted) until
-``~/reset``, after which the monitor re-seeds from the next reference.
-
-Diagnostics: status ``sim: state`` (level WARN while holding a stale reference or in contact)
-with the key/values of :class:`cdmp_ros.sim.live.SimStats` (``min_obstacle_distance_m``,
-``min_obstacle_distance_since_start_m``, ``closest_pair_since_start`` (its link/obstacle),
-``contacts``, ``contacts_since_start``,
-``limit_violations``, ``max_limit_usage_since_start``, ``tracking_error_rad``,
-``tracking_error_max_rad``, ``min_robot_distance_m``,
-``min_robot_distance_since_start_m``; with ``dual_panda`` the contacts include the two
-robots' links against each other) plus ``state`` (waiting / tracking / holding), ``robot``,
-``control``, ``obstacles``, ``sim_time``, ``real_time_factor`` (over the last period),
-``scheduling`` (``realtime_priority``: normal, or SCHED_FIFO and on how many threads),
-``references_received``, ``joint_states_published``, ``slipped_steps``, ``snapshots``,
-``resets``, ``limits_source`` and ``limit_mismatch`` (below), ``limits`` and
-``limits_sources`` (the limits the reflex checks, as the streamer reports them), ``reflex``,
-``reflex_errors``, ``reflex_errors_<order>`` and ``reflex_worst_ratio_<order>`` (position,
-velocity, acceleration, jerk), ``reflex_last_error``, ``reflex_stopped``,
-``references_refused_reflex`` (:meth:`~cdmp_ros.core.reflex.ReflexMonitor.as_values`),
-``limit_stops`` and ``limit_stop_depth_max_rad``, ``rejected_total`` and
-``rejected_<reason>`` per category of
-:data:`cdmp_ros.ros.input_gate.REASONS`; ``sim: input <topic>`` per topic with rejections
-(``rejected_total``, ``last_reason``); ``sim: timing`` (tick durations).
-
-Joint limits (``robot`` panda): the simulated robot holds the tighter of its pybullet model's
-limits and those of the robot that runs, read as in the streamer and the adapter from the
-``robot_description`` parameter when set, else from the latched ``robot_description`` topic
-(robot_state_publisher) when ``robot_description_timeout`` > 0 and a message arrives within
-that time at start-up, else from ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.
-RobotModelSelector`, :mod:`cdmp_ros.ros.robot_description`); ``limits_source`` names that
-source (``robot_description``, ``robot_description topic`` or the file), ``limit_mismatch``
-lists every bound on which it differs from the pybullet model (also logged as a warning).
-A ``robot_description`` message arriving later is compared with the limits in use, never
-swapped in: ``robot_description_topic`` says what the last one was, a different model is a
-standing WARN on the state status until a restart applies it (none with the parameter set),
-one that is not a URDF of the Panda joints is rejected like any input. The pybullet body
-itself stays the model of ``robot``: pybullet loads a URDF file with its meshes and inertias,
-and a robot_description (parameter or topic alike) refers to its meshes by ``package://``
-URIs that only a ROS installation resolves (the Panda's model is also a generated copy with
-fixed fingers); so the limits, not the geometry, come from ``robot_description``. For
-``dual_panda`` and ``planar4`` the limits are those of the URDF files pybullet loads
-(``limits_source``: those files); the ``robot_description`` topic is not read.
+Joint limits (``robot`` panda): the tighter of the pybullet model's and those of the robot
+model chosen once at start-up (:class:`cdmp_ros.ros.robot_model.RobotModelSelector`, as in the
+streamer and the adapter). The pybullet body itself stays the model of ``robot``: a
+robot_description refers to its meshes by ``package://`` URIs that only a ROS installation
+resolves, so only the limits come from it. For ``dual_panda`` and ``planar4`` the limits are
+those of the URDF files pybullet loads.
 """
 import math
 import time
@@ -333,11 +271,10 @@ class SimNode(Node):
 
     def _on_reference(self, msg: JointState) -> None:
         topic = 'joint_reference'
-        try:
-            q, qd = self.mapper.to_arrays(msg, topic)
-        except ValidationError as exc:
-            self.gate.reject(topic, str(exc))
+        arrays = self.gate.joint_arrays(self.mapper, msg, topic)
+        if arrays is None:
             return
+        q, qd = arrays
         if not self._reflex_check(msg, q):
             return
         sim = self.sim

@@ -1,59 +1,30 @@
 """The streamer node: ROS glue around :class:`cdmp_ros.core.streaming.streamer.ReferenceStreamer`.
 
-Publishes ``joint_reference`` (sensor_msgs/JointState) from a steady-clock timer at ``rate``,
-and with ``controller_output`` the same references for a ros2_control controller in its joint
-order (std_msgs/Float64MultiArray on ``forward_position_controller/commands`` or
-trajectory_msgs/JointTrajectory, one point per tick, on
-``joint_trajectory_controller/joint_trajectory``; ``controller_topic``, ``controller_joints``);
-subscribes ``primitive`` / ``adapted_primitive`` (JSON, latched), ``goal``, ``joint_states``,
-``obstacles`` and ``robot_description`` (URDF, latched; the robot model, below); reports on
-``/diagnostics``. Primitive messages are parsed and prepared in a worker thread (the latest
-one wins), so a large primitive never delays a tick; the tick only switches the prepared
-stepper in. Every input passes
-:class:`cdmp_ros.ros.input_gate.InputGate` (rate limit, then constant-time size checks before
-deserialisation: ``max_obstacles + 1`` markers, ``max_json_bytes``, the joint count), then the
-per-element validation (:mod:`cdmp_ros.ros.convert`); each rejection is logged and counted on
-``/diagnostics``. Which prepared primitive is switched in is decided by
-:class:`cdmp_ros.core.streaming.selection.AdaptationSelector` (issue 13: only the newest
-adaptation of the current ``primitive``, in any arrival order; counters
-``adapted_ignored_*``, ``adapted_held``, ``primitive_awaiting_adaptation`` with
-``stream_unadapted`` false); per switched-in adaptation the node reports the latency from its
-trigger stamp to the stamp of the first reference computed from it
-(``adaptation_latency_ms_*``, ``adapted_reference_stamp_ns``). The node is *ready*
-(:mod:`cdmp_ros.ros.readiness_probe`: one ``ready ... s after start`` log line, ``ready`` and
-``waiting_for`` on diagnostics) when a primitive is in force, the references have a subscriber
-(``joint_reference`` or the controller topic) and, closed loop, ``joint_states`` a publisher.
+Publishes ``joint_reference`` at ``rate`` and, with ``controller_output``, the same references
+for a ros2_control controller in its joint order; subscribes ``primitive`` /
+``adapted_primitive``, ``goal``, ``joint_states``, ``obstacles`` and ``robot_description``;
+reports on ``/diagnostics`` (topics, types and QoS: docs/nodes.md; diagnostics keys:
+docs/nodes.md). Every input passes :class:`cdmp_ros.ros.input_gate.InputGate` and the
+per-element validation.
+
+Primitive messages are parsed and prepared in a worker thread (the latest one wins), so a
+large primitive never delays a tick; the tick only switches the prepared stepper in, as
+:class:`cdmp_ros.core.streaming.selection.AdaptationSelector` decides (only the newest
+adaptation of the current ``primitive``, in any arrival order).
 
 The tick runs in a dedicated thread (``tick_thread``, default) that sleeps to the absolute
-deadlines ``t0 + k / rate`` of the steady clock
-(:class:`cdmp_ros.common.realtime.DeadlineSleeper`), optionally under SCHED_FIFO
-(``realtime_priority``) and pinned (``tick_cpu``); rclpy allows publishing from any thread.
-The executor thread only runs the subscriptions, the diagnostics timer and the parameter
-services, so a slow callback delays a tick by the GIL and one short
-lock at most, not by a whole callback queue. One lock (``_lock``) serialises the tick and the
-callbacks that change the streamer's state (diagnostics are built and published outside it).
-Everything allocated at start-up is frozen out of the garbage collector (``gc.freeze``), so a
-full collection does not stall the tick. With ``obstacle_wakeup`` an obstacle message wakes
-the tick thread: the next slot is integrated with the new obstacle set and published at once
-with its own scheduled stamp (at most one period early); the schedule and the stamps are those
-of the fixed grid, each slot is published exactly once. The deadlines, the catch-up of a late
-tick (``max_catch_up``), the late/early/missed counts and the stamps are
-:class:`cdmp_ros.core.streaming.schedule.TickSchedule` (ROS-free, unit-tested with a fake
-clock). ``tick_thread: false`` falls back to a steady-clock executor timer.
+deadlines of the steady clock (:class:`cdmp_ros.core.streaming.schedule.TickSchedule`,
+:class:`cdmp_ros.common.realtime.DeadlineSleeper`), optionally under SCHED_FIFO
+(``realtime_priority``) and pinned (``tick_cpu``), so a slow callback of the executor delays
+a tick by the GIL and one short lock at most, not by a whole callback queue. One lock
+(``_lock``) serialises the tick and the callbacks that change the streamer's state.
+Start-up objects are frozen out of the garbage collector so a full collection does not stall
+the tick. With ``obstacle_wakeup`` an obstacle message wakes the tick thread to publish the
+next slot of the fixed grid at once. ``tick_thread: false`` falls back to an executor timer.
 
-The robot model (position and velocity limits, kinematics of the coupling terms, the capsules
-of ``coupling_capsule_links``) comes from the ``robot_description`` parameter when it is set,
-else from the latched ``robot_description`` topic (robot_state_publisher) when
-``robot_description_timeout`` > 0 and a message arrives within that time at start-up, else
-from ``urdf_path`` (:class:`cdmp_ros.ros.robot_model.RobotModelSelector`,
-:mod:`cdmp_ros.ros.robot_description`); ``limits_source`` says which (``robot_description``,
-``robot_description topic`` or the file). It is fixed for the node's life: a
-``robot_description`` message arriving later is bounded in size, parsed and compared with it,
-never swapped in under a running stream; ``robot_description_topic`` on diagnostics says what
-the last one was, a different model is a standing WARN on the state status until a restart
-applies it (no warning when the parameter is set: it takes precedence), and one that is not a
-URDF or describes other joints is rejected like any input (``streamer: input
-robot_description``, ``rejected_malformed`` / ``rejected_joint_names``).
+The robot model (limits, kinematics of the coupling terms) is chosen once at start-up
+(:class:`cdmp_ros.ros.robot_model.RobotModelSelector`) and never swapped under a running
+stream: a later ``robot_description`` is only compared with it.
 """
 import gc
 import sys
@@ -71,7 +42,7 @@ from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.braking import influence_warning, primitive_braking_distance
 from cdmp_ros.core.coupling.terms import DampingConfig
-from cdmp_ros.core.errors import CdmpError, ValidationError
+from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
@@ -179,7 +150,7 @@ class StreamerNode(Node):
         self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
                        'coupled': 0, 'coupling_bounded': 0, 'output_limited': 0}
         self.active_text = None
-        # which primitive is streamed (issue 13: deterministic restart) and the latency from
+        # which primitive is streamed (the deterministic-restart rule) and the latency from
         # an adaptation's trigger stamp to the first reference computed from it
         self.selection = AdaptationSelector(cfg.stream_unadapted)
         self._adapt_latency = LatencyRing('adaptation_latency')
@@ -203,8 +174,8 @@ class StreamerNode(Node):
         self._stopping = threading.Event()
         self._sleeper = DeadlineSleeper(spin=cfg.tick_spin)
         # Everything built so far lives as long as the node: moved out of the collector's
-        # generations, a full collection no longer walks it (measured here: ~100 ms -> ~1 us
-        # for a gen-2 pass over the ~85 000 objects of rclpy + numpy + scipy + the node).
+        # generations, a full collection no longer walks the objects of rclpy, numpy, scipy and
+        # the node, which would stall the tick.
         gc.collect()
         gc.freeze()
         if cfg.tick_thread:
@@ -297,27 +268,22 @@ class StreamerNode(Node):
 
     # -- inputs ------------------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
-        try:
-            q, _ = self.js_mapper.to_arrays(msg, 'joint_states')
-        except ValidationError as exc:
-            self.gate.reject('joint_states', str(exc))
+        arrays = self.gate.joint_arrays(self.js_mapper, msg, 'joint_states')
+        if arrays is None:
             return
-        lo, hi = self.streamer.lower, self.streamer.upper
-        if np.any(q < lo - 0.05) or np.any(q > hi + 0.05):  # measured noise tolerance
-            j = int(np.flatnonzero((q < lo - 0.05) | (q > hi + 0.05))[0])
-            self.gate.reject('joint_states', f'joint_states.position of '
-                                             f'{self.streamer.joint_names[j]!r}: {q[j]:.4g} is '
-                                             f'outside the limits [{lo[j]}, {hi[j]}]')
+        q = arrays[0]
+        if not self.gate.within_limits('joint_states', q, self.streamer.lower,
+                                       self.streamer.upper, 0.05,  # measured noise tolerance
+                                       self.streamer.joint_names):
             return
         with self._lock:
             self.streamer.note_joint_states(q, time.monotonic())
 
     def _on_goal(self, msg: JointState) -> None:
-        try:
-            g, _ = self.goal_mapper.to_arrays(msg, 'goal')
-        except ValidationError as exc:
-            self.gate.reject('goal', str(exc))
+        arrays = self.gate.joint_arrays(self.goal_mapper, msg, 'goal')
+        if arrays is None:
             return
+        g = arrays[0]
         with self._lock:
             clipped = self.streamer.set_goal(g)
         if clipped:
@@ -441,7 +407,7 @@ class StreamerNode(Node):
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
     def _switch_in(self, topic: str, prepared, now: float) -> None:
-        """Tick thread: switch in what :class:`AdaptationSelector` selects (issue 13)."""
+        """Tick thread: switch in what :class:`AdaptationSelector` selects."""
         dec = self.selection.offer(topic, prepared)
         # one call site per severity: rclpy refuses a call site whose severity changes
         for counter, message in dec.ignored:

@@ -17,7 +17,7 @@ from cdmp_ros.core.kinematics import PANDA_EE_OFFSET
 from cdmp_ros.core.validation import as_array
 from cdmp_ros.sim.control import ComputedTorqueController
 from cdmp_ros.sim.robot_specs import panda_spec
-from cdmp_ros.sim.world import World, WorldConfig
+from cdmp_ros.sim.world import World, WorldConfig, WorldOwner
 
 BALL_RADIUS = 0.012
 
@@ -53,7 +53,7 @@ class DropResult:
     release_position: NDArray[np.float64]  # (3,) TCP at release [m]
 
 
-class BallDropScene:
+class BallDropScene(WorldOwner):
     """Panda, cup, board and ball in a private pybullet world (close it after use).
 
     Parameters
@@ -113,15 +113,6 @@ class BallDropScene:
                                              physicsClientId=self._cid)
             self.cup_ids.append(pybullet.createMultiBody(0.0, col, vis, center,
                                                          physicsClientId=self._cid))
-
-    def close(self) -> None:
-        self.world.close()
-
-    def __enter__(self) -> 'BallDropScene':
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def tcp(self) -> NDArray[np.float64]:
         """Tool centre point (between the fingertips) in the world frame."""

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.dmp.transform import TanhTransform
-from cdmp_ros.core.validation import as_array, check_positive
+from cdmp_ros.core.validation import as_array, check_positive, lookup
 
 Gain = Union[float, Sequence[float]]
 #: Margin of :func:`joint_to_exogenous` with ``margin = 0`` (fraction of the half-range).
@@ -280,9 +280,5 @@ def make_controller(mode: str, **gains):
 
     ``**gains`` are the fields of the matching gains dataclass (e.g. ``kp=100.0``).
     """
-    try:
-        cls, gains_cls = CONTROLLERS[mode]
-    except KeyError:
-        raise ValidationError(f'mode: expected one of {sorted(CONTROLLERS)}, got {mode!r}') \
-            from None
+    cls, gains_cls = lookup('mode', CONTROLLERS, mode, sort=True)
     return cls(gains_cls(**gains))

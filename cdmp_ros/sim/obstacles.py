@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 import pybullet
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.validation import as_array, check_positive
+from cdmp_ros.core.validation import as_array, check_positive, lookup
 
 
 @dataclass(frozen=True)
@@ -113,11 +113,7 @@ class Obstacles:
 
     def get(self, name: str) -> ObstacleInfo:
         """The obstacle called ``name``."""
-        try:
-            return self._items[name]
-        except KeyError:
-            raise ValidationError(f'name: expected one of {list(self._items)}, '
-                                  f'got {name!r}') from None
+        return lookup('name', self._items, name)
 
     # -- add / move / remove --------------------------------------------------------------
     def add_sphere(self, name: str, position: Sequence[float], radius: float,

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 import pybullet
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.validation import as_array
+from cdmp_ros.core.validation import as_array, lookup
 
 # Half-width [rad or m] of the joint stops when a robot is loaded with joint_stops=False.
 _WIDE_STOPS = 1e3
@@ -187,11 +187,7 @@ class Robot:
     # -- links ----------------------------------------------------------------------------
     def link_index(self, link: str) -> int:
         """pybullet link index of ``link`` (-1 for the base)."""
-        try:
-            return self._link_index[link]
-        except KeyError:
-            raise ValidationError(f'link: expected one of {list(self.link_names)}, '
-                                  f'got {link!r}') from None
+        return lookup('link', self._link_index, link, self.link_names)
 
     def link_pose(self, link: str) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
         """World position ``(3,)`` and quaternion ``(4,)`` (x, y, z, w) of a link frame (URDF)."""

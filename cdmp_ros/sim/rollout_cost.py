@@ -20,10 +20,10 @@ from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.dmp.improve import ScriptedCost
 from cdmp_ros.sim.control import ComputedTorqueController
 from cdmp_ros.sim.robot_specs import panda_spec
-from cdmp_ros.sim.world import World, WorldConfig
+from cdmp_ros.sim.world import World, WorldConfig, WorldOwner
 
 
-class SimRolloutCost:
+class SimRolloutCost(WorldOwner):
     """Per-step rollout costs measured in pybullet (see the module docstring).
 
     Parameters
@@ -73,12 +73,3 @@ class SimRolloutCost:
         self.last_q, self.last_torques = q, tau
         r = self.scripted.per_step(q)
         return r + self.torque_weight * np.einsum('ij,ij->i', tau, tau) * self.dt
-
-    def close(self) -> None:
-        self.world.close()
-
-    def __enter__(self) -> 'SimRolloutCost':
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

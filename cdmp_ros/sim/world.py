@@ -23,7 +23,7 @@ from typing import Dict, Optional, Sequence
 import pybullet
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.core.validation import as_array, check_positive
+from cdmp_ros.core.validation import as_array, check_positive, lookup
 from cdmp_ros.sim.obstacles import Obstacles
 from cdmp_ros.sim.robot import Robot
 from cdmp_ros.sim.robot_specs import RobotSpec
@@ -171,11 +171,7 @@ class World:
 
     def robot(self, name: str) -> Robot:
         """The robot called ``name``."""
-        try:
-            return self.robots[name]
-        except KeyError:
-            raise ValidationError(f'name: expected one of {sorted(self.robots)}, '
-                                  f'got {name!r}') from None
+        return lookup('name', self.robots, name, sort=True)
 
     # -- stepping ----------------------------------------------------------------------------
     def step(self, n_steps: int = 1) -> float:
@@ -232,3 +228,17 @@ class World:
             time.sleep(ahead)
         elif ahead < -0.1:  # more than 100 ms behind: do not try to catch up in a burst
             self._pace_anchor = (now, self.t)
+
+
+class WorldOwner:
+    """Base of the objects that own a private :class:`World` (``self.world``): :meth:`close`
+    closes it, and the object is a context manager that closes it on exit."""
+
+    def close(self) -> None:
+        self.world.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,5 +1,5 @@
 """Batched evaluation of the Lagrangian of :class:`~cdmp_ros.core.adaptation.problem.Problem`
-(paper 003, Eq. 23) and its analytic gradient (issue 29).
+(paper 003, Eq. 23) and its analytic gradient.
 
 The reference evaluation (:meth:`Problem.lagrangian_reference`) walks the problem's structure
 object by object: one call per constraint, per member of a batch, per joint of the forward
@@ -30,12 +30,11 @@ problem, so every problem the reference handles is handled. The reference stays 
 oracle: test/test_core_lagrangian_batched.py compares both on the Panda problem, a Table II
 problem and random problems of every constraint kind.
 
-Measured (benchmarks/bench_lagrangian.py, benchmarks/RESULTS.md "Lagrangian evaluation
-batched"): 1.3-1.5x cheaper on the Panda problem (1.7 -> 1.16 ms), no cheaper on Table II, whose
-cost is the saddle-point tail, already vectorised. The reference was batched by constraint kind
-already; what remains is vectorised numerical work (BLAS products of the 70 x 70 factors and
-of the group marginals, LAPACK on 50 small matrices, the kinematics of 700 sigma points, the
-incomplete gamma function), not Python overhead. So this evaluation is opt-in
+The gain is modest (``benchmarks/bench_lagrangian.py``): the reference was batched by
+constraint kind already, and what remains is vectorised numerical work (BLAS products of the
+70 x 70 factors and of the group marginals, LAPACK on 50 small matrices, the kinematics of 700
+sigma points, the incomplete gamma function; on Table II the saddle-point tail), not Python
+overhead. So this evaluation is opt-in
 (``Problem(..., evaluator='batched')``; :data:`~cdmp_ros.core.adaptation.problem.
 DEFAULT_EVALUATOR`).
 """
@@ -466,7 +465,6 @@ class BatchedLagrangian:
         self.n = n
         self.nt = prob.tril[0].size
         self.T = np.zeros((n, n))
-        self.L0 = prob.L0
         self.L0T = np.ascontiguousarray(prob.L0.T)
         self.whiten = bool(prob.config.whiten)
         self.groups = []
@@ -566,25 +564,8 @@ class BatchedLagrangian:
         T = self.T
         T.flat[prob._tril_flat] = tv
         T.flat[prob._diag_flat] = eg
-        if self.whiten:
-            mu, L = prob.mu0 + self.L0 @ first, self.L0 @ T
-        else:
-            mu, L = first, T
-        value = 0.0
-        g_mu = np.zeros(n)
-        g_L = np.zeros((n, n))
+        mu, L, value, g_mu, g_L, g_Sigma = prob.prior_terms(first, T)
         fast_kl = self.whiten and prob.blocks is None
-        if not fast_kl:
-            value, g_mu_kl, g_L_kl = prob.kl(mu, L, grads=True)
-            g_mu += g_mu_kl
-            g_L += g_L_kl
-        g_Sigma = None
-        if prob.Phi_R is not None:
-            kappa = prob.config.kappa
-            Pm = prob.Phi_R @ mu
-            value += kappa * (mu @ Pm + np.sum(prob.Phi_R * (L @ L.T)))
-            g_mu += 2.0 * kappa * Pm
-            g_Sigma = kappa * prob.Phi_R
         F_true = None
         if prob.n_values:
             F = np.empty(prob.n_values)
@@ -623,12 +604,7 @@ class BatchedLagrangian:
             for b, gr in zip(self.batches, grads):
                 b.scatter(gr)
             for (pm, xs), wt, dm, dS in parts:
-                if xs is None:
-                    pm.g_mx += wt[:, None] * dm
-                    pm.g_Sx += wt[:, None, None] * dS
-                else:
-                    pm.g_mx[:, xs] += wt[:, None] * dm
-                    pm.g_Sx[:, xs, xs] += wt[:, None, None] * dS
+                pm.add_gradient(xs, wt[:, None] * dm, wt[:, None, None] * dS)
             self._points_backward()
             self._group_backward(g_mu, g_L)
         if g_Sigma is not None:

@@ -115,31 +115,27 @@ class AdaptationConfig:
         often moves to a neighbour; with a symmetric clip (the former behaviour,
         max_log_decrease = max_log_step = 3) that neighbour's multiplier has meanwhile
         shrunk by up to e^-1 per iteration (its constraint held with slack), and the
-        violation returns there. A slow decrease (default 0.3, a factor 0.74) keeps them
-        (7-DoF Panda, 3 spheres, 4 sets of 40 obstacle events: 95th percentile of the
-        Lagrangian evaluations per solve 806 / 90 / 118 / 154 -> 416 / 90 / 109 / 122,
-        median +0-2, same converged count and median KL: benchmarks/bench_adaptation_solve.py,
-        figures in benchmarks/RESULTS.md "adaptation solve").
+        violation returns there. A slow decrease (default 0.3, a factor 0.74) keeps them,
+        which cuts the slowest solves without changing the median, the converged count or
+        the KL (``benchmarks/bench_adaptation_solve.py``).
     tail : {'auto', 'saddlepoint', 'gamma', 'conservative'}
         Probability law of the quadratic forms |x_t - c|^2 (repellers, waypoints, unbound
         waypoints, mutual avoidance) and w^T Phi_R w (smoothness constraint): 'saddlepoint'
         evaluates the generalised chi-square law by the Lugannani-Rice saddle-point
         approximation, accurate in the tails a confidence alpha asks about (a few per cent
         relative error for violation probabilities 1e-4 ... 1e-2); 'gamma' is paper 003's
-        moment match (Eq. 15), whose lighter tail lets the sampled per-step violations reach
-        1.4-2.5 times 1 - alpha. 'auto' (default): the saddle point where the Gaussian of the
+        moment match (Eq. 15), whose lighter tail lets the sampled per-step violations
+        exceed 1 - alpha. 'auto' (default): the saddle point where the Gaussian of the
         point of interest is exact (linear points: coordinates of a Cartesian ProMP, joints;
         and smoothness), the Gamma match for points through the unscented transform. There
         the Gaussian itself is the larger error, and with the accurate tail the optimiser can
         lower the approximate collision probability by inflating the joint variance until the
-        unscented Gaussian no longer describes the arm (planar 4-link repeller of
-        test_core_promp_planar: 4 of 6 seeds end with 11-17 % sampled per-step violations
-        with 'saddlepoint', none with 'gamma', whose small-shape lower tail penalises a wide
-        distribution). 'conservative': per row the larger violation of the two laws; on the
-        planar seeds it behaves as 'gamma' (5 of 6 converged within the level, the sixth
-        reported unconverged), on the ProMP demo's Panda problem it brings the end
-        effector's sampled per-step violation from 2.7 to 1.16 times 1 - alpha (benchmarks/
-        RESULTS.md, the ProMP demo's excess); not yet the default of link points.
+        unscented Gaussian no longer describes the arm (the planar 4-link repeller of
+        test_core_promp_planar fails that way with 'saddlepoint', not with 'gamma', whose
+        small-shape lower tail penalises a wide distribution). 'conservative': per row the
+        larger violation of the two laws; it behaves as 'gamma' on the planar arm and brings
+        the ProMP demo's end-effector violation close to 1 - alpha; not yet the default of
+        link points.
     whiten : bool
         Precondition the parameters with the prior's Cholesky factor L0: mu = mu0 + L0 nu,
         L = L0 L~, L~ = L~_tril + diag(exp(gamma~)). L stays lower triangular with

@@ -1,4 +1,4 @@
-"""What a constraint's confidence alpha guarantees, checked by sampling (issue 12), and
+"""What a constraint's confidence alpha guarantees, checked by sampling, and
 :func:`adapt`, the entry point of the constrained ProMP adaptation: the optimiser
 (:func:`~cdmp_ros.core.adaptation.solver.solve_levels`, paper 003) at the levels the guarantee
 asks for, then the sampled verification of the result.

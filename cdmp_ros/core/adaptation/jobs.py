@@ -47,7 +47,7 @@ class Job:
     primitive_id: int = 0         # which received primitive the request adapts
     source_sha1: str = ''         # SHA-1 of that primitive's JSON text (its primitive_id)
     id: int = 0
-    generation: int = 0           # adapter ROS time [ns] at the request (issue 13)
+    generation: int = 0           # adapter ROS time [ns] at the request
     refine_kl: Optional[float] = None  # a refinement of a warm solve of this KL (else None)
     refine_resume: Optional[Suspended] = None  # the suspended refinement it continues
 

@@ -93,6 +93,16 @@ class _PointMoments:
         self.g_mx = np.zeros_like(self.mx)
         self.g_Sx = np.zeros_like(self.Sx)
 
+    def add_gradient(self, xs, dm, dS):
+        """Add ``dm``, ``dS`` (gradients w.r.t. the mean and covariance of the coordinates
+        ``xs`` of the point, all of them when None) to ``g_mx``, ``g_Sx``."""
+        if xs is None:
+            self.g_mx += dm
+            self.g_Sx += dS
+        else:
+            self.g_mx[:, xs] += dm
+            self.g_Sx[:, xs, xs] += dS
+
     def backward(self):
         g = self.group
         g_mx, g_Sx = self.g_mx, self.g_Sx
@@ -114,8 +124,7 @@ class _PointMoments:
 #: (:mod:`cdmp_ros.core.adaptation.batched`) or the reference (its test oracle).
 EVALUATORS = ('batched', 'reference')
 #: The evaluation a Problem uses unless told otherwise. The reference: the batched one is
-#: 1.3-1.5x cheaper on the Panda problem and no cheaper on Table II (benchmarks/RESULTS.md,
-#: "Lagrangian evaluation batched"), and its different rounding changes the outcome of
+#: opt-in because it saves little and its different rounding changes the outcome of
 #: rounding-sensitive Panda solves (so do perturbations of 1e-15 of the prior with the
 #: reference itself), which test_core_adapt_requests.py pins.
 DEFAULT_EVALUATOR = 'reference'
@@ -263,7 +272,7 @@ class Problem:
             params['tail'] = self.config.resolved_tail(linear)
             params['state'] = {}
             cls = type(self.constraints[members[0]])
-            # the far-waypoint guide of the Lagrangian (spheres; issue 13's robust objective)
+            # the far-waypoint guide of the Lagrangian (spheres; a robust objective)
             self.batches.append((cls.probability_rows, members, offsets, params,
                                  getattr(cls, 'guide_rows', None)))
             # members with one multiplier per row: their rows' multipliers in batch order,
@@ -432,6 +441,34 @@ class Problem:
             F[sl] = Ft
             parts[i] = (None, dm, dS)
 
+    def prior_terms(self, first, T):
+        """The terms of L(theta, lambda) (Eq. 23) other than the constraints, shared by
+        :meth:`lagrangian_reference` and the batched evaluator: ``(mu, L, value, g_mu, g_L,
+        g_Sigma)``, the moments in the original coordinates from the factors of theta
+        (:meth:`_factors`), the KL and the smoothness regulariser kappa * E[R(w)] (Eq. 14-15)
+        with their gradients w.r.t. mu, L and Sigma (``g_Sigma`` None without the
+        regulariser). Whitened without blocks the KL is left out (value 0): the callers add
+        it in whitened coordinates."""
+        if self.config.whiten:
+            mu, L = self.mu0 + self.L0 @ first, self.L0 @ T
+        else:
+            mu, L = first, T
+        value = 0.0
+        g_mu = np.zeros(self.n)
+        g_L = np.zeros((self.n, self.n))
+        if not (self.config.whiten and self.blocks is None):
+            value, g_mu_kl, g_L_kl = self.kl(mu, L, grads=True)
+            g_mu += g_mu_kl
+            g_L += g_L_kl
+        g_Sigma = None
+        if self.Phi_R is not None:
+            kappa = self.config.kappa
+            Pm = self.Phi_R @ mu
+            value += kappa * (mu @ Pm + np.sum(self.Phi_R * (L @ L.T)))
+            g_mu += 2.0 * kappa * Pm
+            g_Sigma = kappa * self.Phi_R
+        return mu, L, value, g_mu, g_L, g_Sigma
+
     def lagrangian(self, theta, lam):
         """L(theta, lambda) of Eq. (23) and its gradient w.r.t. theta (batched:
         :class:`~cdmp_ros.core.adaptation.batched.BatchedLagrangian`; the reference
@@ -450,24 +487,7 @@ class Problem:
         self.n_evaluations += 1
         first, T, gamma = self._factors(theta)
         whiten = self.config.whiten
-        if whiten:
-            mu, L = self.mu0 + self.L0 @ first, self.L0 @ T
-        else:
-            mu, L = first, T
-        value = 0.0
-        g_mu = np.zeros(self.n)
-        g_L = np.zeros((self.n, self.n))
-        if not (whiten and self.blocks is None):
-            value, g_mu_kl, g_L_kl = self.kl(mu, L, grads=True)
-            g_mu += g_mu_kl
-            g_L += g_L_kl
-        g_Sigma = None
-        if self.Phi_R is not None:
-            kappa = self.config.kappa
-            Pm = self.Phi_R @ mu
-            value += kappa * (mu @ Pm + np.sum(self.Phi_R * (L @ L.T)))
-            g_mu += 2.0 * kappa * Pm
-            g_Sigma = kappa * self.Phi_R
+        mu, L, value, g_mu, g_L, g_Sigma = self.prior_terms(first, T)
         if self.n_values:
             F, (parts, batch_grads), F_true = self.constraint_values(mu, L, grads=True,
                                                                      guided=True)
@@ -479,12 +499,7 @@ class Problem:
                 wdS = w[:, None, None] * dS
                 for i, (a, b) in zip(members, offsets):
                     pm, xs = self.bound[i]
-                    if xs is None:
-                        pm.g_mx += wdm[a:b]
-                        pm.g_Sx += wdS[a:b]
-                    else:
-                        pm.g_mx[:, xs] += wdm[a:b]
-                        pm.g_Sx[:, xs, xs] += wdS[a:b]
+                    pm.add_gradient(xs, wdm[a:b], wdS[a:b])
             for c, b, sl, part in zip(self.constraints, self.bound, self.slices, parts):
                 if part is None:
                     continue
@@ -498,12 +513,7 @@ class Problem:
                 mask, dm, dS = part
                 wt = w[0] * mask if mask is not None else w
                 pm, xs = b
-                if xs is None:
-                    pm.g_mx += wt[:, None] * dm
-                    pm.g_Sx += wt[:, None, None] * dS
-                else:
-                    pm.g_mx[:, xs] += wt[:, None] * dm
-                    pm.g_Sx[:, xs, xs] += wt[:, None, None] * dS
+                pm.add_gradient(xs, wt[:, None] * dm, wt[:, None, None] * dS)
             for pm in self.points:
                 pm.backward()
             for g in self.groups:

@@ -33,7 +33,7 @@ from cdmp_ros.core.kinematics.ik import IkResult, solve_position_ik
 from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
 from cdmp_ros.core.kinematics.closest import box_signed_distance
 from cdmp_ros.core.promp.promp import ProMP
-from cdmp_ros.core.validation import as_array
+from cdmp_ros.core.validation import as_array, name_permutation
 
 Obstacle = Union[Sphere, Box, OrientedBox]
 EE = PointOfInterest('ee')
@@ -46,13 +46,8 @@ OUTCOMES = ('converged', 'infeasible', 'unconverged', 'rejected', 'retargeted')
 def permutation(received: Sequence[str], joint_names: Sequence[str], name: str = 'primitive'
                 ) -> List[int]:
     """Index into ``received`` of each of ``joint_names``; raises naming the differences."""
-    missing = [n for n in joint_names if n not in received]
-    unknown = [n for n in received if n not in joint_names]
-    if missing or unknown or len(received) != len(joint_names):
-        raise ValidationError(f'{name}.joint_names: expected the robot joints '
-                              f'{list(joint_names)}, got {list(received)} (missing {missing}, '
-                              f'unknown {unknown})')
-    return [list(received).index(n) for n in joint_names]
+    return name_permutation(joint_names, received,
+                            f'{name}.joint_names: expected the robot joints')
 
 
 def reorder_promp(promp: ProMP, joint_names: Sequence[str]) -> ProMP:

@@ -1,4 +1,4 @@
-"""Sampled verification of an adapted ProMP against its constraints (issue 12).
+"""Sampled verification of an adapted ProMP against its constraints.
 
 The optimiser (paper 003) enforces every constraint through an approximation of its
 satisfaction probability (Gaussian CDFs, a tail approximation of |x_t - c|^2, the unscented

@@ -1,4 +1,4 @@
-"""Warm starts of consecutive adaptation requests (issue 13: an obstacle that moves).
+"""Warm starts of consecutive adaptation requests: an obstacle that moves.
 
 A tracker publishes an obstacle's pose at 30 Hz. Between two requests it moves by millimetres
 to centimetres, so the next problem is nearly the last one, and its solution is nearly the
@@ -19,11 +19,10 @@ When the last solve was itself started warm from the one before, and every obsta
 displacement since the last request equals its previous displacement (within
 :data:`PREDICT_RTOL` of it, plus :data:`PREDICT_ATOL`), the solve starts from the secant
 prediction theta_k + (theta_k - theta_{k-1}) with the last multipliers (a predictor-corrector
-continuation). On the Panda problem with three spheres tracked at 0.2 m/s (30 Hz), over five
-headings, it cut the evaluations of all solves by 18 % (4,625 -> 3,784) and the median of the
-warm solves from 5-14 to 5-8 per heading (``benchmarks/bench_warm_track.py``;
-benchmarks/RESULTS.md, "predictor"). Like a plain warm solve, a predicted one that does not
-converge within its budget is followed by the cold solve (``adaptation.warm_start_predict``).
+continuation), which needs fewer evaluations than a plain warm start on a steadily tracked
+obstacle (``benchmarks/bench_warm_track.py``). Like a plain warm solve, a predicted one that
+does not converge within its budget is followed by the cold solve
+(``adaptation.warm_start_predict``).
 
 The warm solve is bounded (``warm_start_max_evaluations``) and goes through the same sampled
 verification as any other (only a solve that is kept is verified: an attempt that runs out of
@@ -32,30 +31,23 @@ it converged it is kept; if its KL exceeds ``warm_start_kl_ratio`` x the KL of t
 solve + :data:`KL_SLACK` (the KL guard: a chain of warm starts does not drift far from what a
 cold solve gives without one checking it; the result at hand, converged and verified, is not
 held back for it), a cold solve checks it. With refinements (``warm_start_refine``, below)
-that check is the refinement, off the request path: the next request still starts warm. (It
-used to be the next request's cold solve: on the tracked stream of
-``bench_adaptation_latency.py --seed 3 --motion track`` they were 22 of the 32 events over
-100 ms in 22 runs of 40 events, 135-1,991 ms; off the path, p95 79 ms and at most 135 ms over
-880 events; benchmarks/RESULTS.md, 2026-11-27, tenth session.) Without refinements the next
-request starts cold. That cold check is bounded (``warm_start_check_max_evaluations``, 600,
-over all the resumptions of a refinement); when a next request's check does not converge
-within the bound, the request is solved from the withheld warm start instead, and that
-solution's KL becomes the guard's reference: a failed check never loses the chain. (On the
-tracked Panda stream of
-``bench_adaptation_latency.py --seed 3 --motion track`` the cold solves of events 28-29 take
-826-951 evaluations with the solver's backtracking
-(:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`), and diverged without it, after
-2,300-2,700 evaluations and 4-5 s; the chain was then dropped and the next request failed
-cold as well: one or two events not adapted in 3 of about 32 runs.) The report says which
-start was kept (``start``) and why (``start_note``).
+that check is the refinement, off the request path: the next request still starts warm (a
+cold check on the request path was most of the latency tail of a tracked obstacle). Without
+refinements the next request starts cold. That cold check is bounded
+(``warm_start_check_max_evaluations``, over all the resumptions of a refinement); when a next
+request's check does not converge within the bound, the request is solved from the withheld
+warm start instead, and that solution's KL becomes the guard's reference: a failed check
+never loses the chain (an occasional cold solve takes many times the usual evaluations, or
+diverged before the solver's backtracking,
+:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`). The report says which start was
+kept (``start``) and why (``start_note``).
 
 A warm solution keeps the side of an obstacle the last solution chose, where a cold solve may
-pass on the other side (on the test's sphere on the mean path, moved 5 mm per request: warm KL
-5.0-5.5 and path changes of at most 6 mm per request; cold KL 2.2 or 5.1 by request, with path
-changes of 10-14 cm). So a warm chain can stay in a local optimum worse than the cold one
-within the guard. :meth:`WarmStarts.refine` is the remedy the adapter applies when its solver
-is idle after a warm solve: it solves the same request cold and keeps the result if its KL is
-at least :data:`REFINE_GAIN` lower (the adapter then publishes it).
+pass on the other side from one request to the next (a jump of the path by centimetres
+where the warm chain moves by millimetres). So a warm chain can stay in a local optimum worse
+than the cold one within the guard. :meth:`WarmStarts.refine` is the remedy the adapter
+applies when its solver is idle after a warm solve: it solves the same request cold and keeps
+the result if its KL is at least :data:`REFINE_GAIN` lower (the adapter then publishes it).
 
 **Resumed refinements.** A newer request cancels a running refinement within one evaluation,
 and the refinement says where it was (:func:`suspend`: the best point of its inner loop, with
@@ -63,13 +55,10 @@ its multipliers, and the evaluations so far). After the newer request's warm sol
 refinement continues from there on the newer problem instead of starting cold again (the
 obstacle moved by millimetres; the solve stays in the basin a cold start reached), so an
 obstacle tracked at 30 Hz, whose requests leave the solver idle for less than a cold solve,
-still gets its cold check: on that stream 16-23 of 39 refinements per run resumed and 14-21
-ended (394 over 22 runs, against 268 without resumption), and the KL guard, which fired in 20
-of 22 runs without resumption, did not fire at all.
+still gets its cold check.
 
-Measured on the Panda problem of bench_adaptation_solve (3 spheres, limits, 50 steps): a
-sphere moving a few millimetres per request costs 3-4 evaluations warm against 46-168 cold,
-at the same KL (benchmarks/RESULTS.md, "warm starts").
+Why warm starts: a sphere moving a few millimetres per request costs a few evaluations warm
+against tens to hundreds cold, at the same KL (``benchmarks/bench_adaptation_solve.py``).
 """
 import dataclasses
 import time
@@ -159,8 +148,8 @@ def _steady_motion(before, last, now) -> bool:
 def predict_state(before: SolverState, last: SolverState) -> SolverState:
     """The secant prediction of the next solution from the last two of a warm chain:
     theta = 2 theta_last - theta_before, with the multipliers of ``last`` (extrapolating them
-    as well, by their growth factor clipped to [1/2, 2], cost evaluations: 4,243 instead of
-    3,784 over the five streams of ``benchmarks/bench_warm_track.py --headings 1 2 3 4 5``)."""
+    as well, by their growth factor clipped to [1/2, 2], cost more evaluations on the tracked
+    streams of ``benchmarks/bench_warm_track.py``)."""
     return SolverState(2.0 * last.theta - before.theta, last.multipliers)
 
 

@@ -10,9 +10,9 @@ the cap near saturation). :class:`~cdmp_ros.core.coupling.obstacle.ObstacleCoupl
 
 :func:`bound_into` is the one bound of a coupling's magnitude (the streamer's
 ``coupling_max_acceleration``): potential fields grow without bound as an obstacle approaches
-(a FIRAS repeller like ``1/d^3``), and an obstacle that appears inside or next to a link asked
-for up to 6.7e6 rad/s^2 in the demo, enough to move the reference from mid-range onto the joint
-limits in one 2 ms tick (benchmarks/RESULTS.md, "The obstacle coupling is bounded").
+(a FIRAS repeller like ``1/d^3``), and an obstacle that appears inside or next to a link can
+ask for an acceleration that moves the reference from mid-range onto the joint limits in one
+tick.
 """
 import math
 from typing import List, Optional, Protocol, Sequence, runtime_checkable

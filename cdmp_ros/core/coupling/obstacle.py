@@ -355,25 +355,20 @@ class ClosestPointGate:
                         az += g * n2
                     continue
                 a = sphere_field.acceleration(ee, xd_e, obs, d, (n0, n1, n2))
-            elif type(obs) is Box:
-                d, _, normal = point_box(ee, obs.lower, obs.upper)
-                d -= ee_radius
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                a = box_field.acceleration(ee, xd_e, obs, d, normal)
-            elif type(obs) is OrientedBox:
-                d, normal = obs.point(ee)
-                d -= ee_radius
-                if d < dmin:
-                    dmin = d
-                if not use_ee:
-                    continue
-                a = box_field.acceleration(ee, xd_e, obs, d, normal)
             else:
-                raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, got '
-                                      f'{type(obs).__name__}')
+                if type(obs) is Box:
+                    d, _, normal = point_box(ee, obs.lower, obs.upper)
+                elif type(obs) is OrientedBox:
+                    d, normal = obs.point(ee)
+                else:
+                    raise ValidationError(f'obstacles: expected Sphere, Box or OrientedBox, '
+                                          f'got {type(obs).__name__}')
+                d -= ee_radius
+                if d < dmin:
+                    dmin = d
+                if not use_ee:
+                    continue
+                a = box_field.acceleration(ee, xd_e, obs, d, normal)
             ax += a[0]
             ay += a[1]
             az += a[2]

@@ -8,7 +8,7 @@ Link avoidance through the null space of the end-effector task, Eq. (11) and (12
 
     dq_dd_l = (I - J^+ J) (J_o (I - J^+ J))^+ dx_dd_l = (J_o (I - J^+ J))^+ dx_dd_l
 
-Joint-limit-aware null space (issue 10.4, beyond paper 000). Eq. (12) can push a redundant
+Joint-limit-aware null space (beyond paper 000). Eq. (12) can push a redundant
 joint into its limit: the CDMP keeps it strictly inside, but the exogenous map divides the
 joint acceleration by ``y_delta (1 - tanh(xi)^2)``, so a null-space push that keeps pointing at
 a limit grows as the joint approaches it and holds the joint saturated. The link term is

@@ -49,9 +49,9 @@ __all__ = ['OutputStage', 'brake_excursion', 'sqrt_controller', 'DEFAULT_BANDWID
 #: Poles of the tracking error's linear region [1/s] (time constant ~ 1 / bandwidth).
 DEFAULT_BANDWIDTH = 30.0
 #: Fraction of what the feed-forward leaves of the acceleration limit (and of the jerk limit)
-#: that the error loops plan with; the clamps of step 2 absorb the rest (measured with
-#: benchmarks/bench_output_stage.py: 0.9 overshoots a spiking target 58 mrad, 0.5 67 mrad;
-#: no overshoot on steps either way).
+#: that the error loops plan with; the clamps of step 2 absorb the rest (a lower authority
+#: overshoots a spiking target more, none overshoots on steps;
+#: ``benchmarks/bench_output_stage.py``).
 ERROR_AUTHORITY = 0.9
 #: Least fraction of the acceleration limit the position loop plans with (a target at its
 #: limit leaves nothing; the error must still close).
@@ -286,8 +286,8 @@ class OutputStage:
                       else J * dt - math.sqrt(J * J * dt * dt + 2.0 * J * room))
             jlo, jhi = _intersect(jlo, jhi, (amin_v - ad) * inv, (amax_v - ad) * inv)
             # braking-aware position guard (only evaluated where it can bind)
-            jhi2 = self._guard_high(d, pd, vd, ad, jlo, jhi)
-            jlo2 = self._guard_low(d, pd, vd, ad, jlo, jhi)
+            jhi2 = self._guard(_EXCESS_HIGH, d, pd, vd, ad, jhi, jlo)
+            jlo2 = self._guard(_EXCESS_LOW, d, pd, vd, ad, jlo, jhi)
             if jlo2 <= jhi2:
                 jlo, jhi = jlo2, jhi2
             else:  # cannot honour both: brake toward the nearer limit
@@ -349,37 +349,29 @@ class OutputStage:
         return self._glo[d] - (pd + vn * dt - brake_excursion(-vn, -an, self._A[d],
                                                               self._J[d]))
 
-    def _guard_high(self, d, pd, vd, ad, jlo, jhi) -> float:
-        """The largest jerk in ``[jlo, jhi]`` after which the brake stops below the upper
-        guard (``jlo`` if none does: the strongest brake available)."""
-        if self._next_excess_high(d, pd, vd, ad, jhi) <= 0.0:
-            return jhi
-        if self._next_excess_high(d, pd, vd, ad, jlo) > 0.0:
-            return jlo
-        lo_, hi_ = jlo, jhi   # excess(lo_) <= 0 < excess(hi_): increasing in j
+    def _guard(self, excess, d, pd, vd, ad, want, fallback) -> float:
+        """The jerk between ``fallback`` and ``want`` nearest ``want`` after which the brake
+        stops inside the guard, ``excess(self, d, pd, vd, ad, j) <= 0`` (``fallback`` if none
+        does: the strongest brake available). Upper guard: :meth:`_next_excess_high`, ``want``
+        ``jhi``, ``fallback`` ``jlo``; lower guard: :meth:`_next_excess_low`, ``jlo``, ``jhi``
+        (the excess is monotonic in the jerk: bisection)."""
+        if excess(self, d, pd, vd, ad, want) <= 0.0:
+            return want
+        if excess(self, d, pd, vd, ad, fallback) > 0.0:
+            return fallback
+        ok, bad = fallback, want   # excess(ok) <= 0 < excess(bad)
         for _ in range(GUARD_ITERATIONS):
-            mid = 0.5 * (lo_ + hi_)
-            if self._next_excess_high(d, pd, vd, ad, mid) <= 0.0:
-                lo_ = mid
+            mid = 0.5 * (ok + bad)
+            if excess(self, d, pd, vd, ad, mid) <= 0.0:
+                ok = mid
             else:
-                hi_ = mid
-        return lo_
+                bad = mid
+        return ok
 
-    def _guard_low(self, d, pd, vd, ad, jlo, jhi) -> float:
-        """The smallest jerk in ``[jlo, jhi]`` after which the brake stops above the lower
-        guard (``jhi`` if none does)."""
-        if self._next_excess_low(d, pd, vd, ad, jlo) <= 0.0:
-            return jlo
-        if self._next_excess_low(d, pd, vd, ad, jhi) > 0.0:
-            return jhi
-        lo_, hi_ = jlo, jhi   # excess(hi_) <= 0 < excess(lo_): decreasing in j
-        for _ in range(GUARD_ITERATIONS):
-            mid = 0.5 * (lo_ + hi_)
-            if self._next_excess_low(d, pd, vd, ad, mid) <= 0.0:
-                hi_ = mid
-            else:
-                lo_ = mid
-        return hi_
+
+#: The excess functions of the two position guards (plain functions: no bound method per call).
+_EXCESS_HIGH = OutputStage._next_excess_high
+_EXCESS_LOW = OutputStage._next_excess_low
 
 
 def _intersect(lo: float, hi: float, lo2: float, hi2: float):

@@ -21,7 +21,7 @@ from cdmp_ros.core.primitive_io import (primitive_from_dict, primitive_kinematic
                                         promp_from_dict, validate_primitive_dict)
 from cdmp_ros.core.dmp.stepper import DmpStepper
 from cdmp_ros.core.streaming.selection import primitive_id
-from cdmp_ros.core.validation import check_limits
+from cdmp_ros.core.validation import check_limits, name_permutation
 
 #: Samples per second of the ProMP mean used to fit the streaming CDMP (at least 100).
 PROMP_FIT_RATE = 200.0
@@ -78,17 +78,6 @@ class PreparedPrimitive:
     @property
     def goal_y(self) -> NDArray[np.float64]:
         return self.prim.goal_y_
-
-
-def _permutation(received: Sequence[str], joint_names: Sequence[str]) -> List[int]:
-    """Index into ``received`` of each of ``joint_names``; raises naming the differences."""
-    missing = [n for n in joint_names if n not in received]
-    unknown = [n for n in received if n not in joint_names]
-    if missing or unknown:
-        raise PrimitiveFileError(
-            f'primitive.joint_names: expected the streamer joints {list(joint_names)}, got '
-            f'{list(received)} (missing {missing}, unknown {unknown})')
-    return [list(received).index(n) for n in joint_names]
 
 
 def _reorder_dmp_dict(d: Dict[str, Any], perm: List[int]) -> Dict[str, Any]:
@@ -180,7 +169,9 @@ def prepare_primitive(payload: Union[str, bytes, Dict[str, Any]], joint_names: S
         except (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError) as exc:
             raise PrimitiveFileError(f'{source}: not valid JSON ({exc})') from None
     validate_primitive_dict(d)
-    perm = _permutation(d['joint_names'], joint_names)
+    perm = name_permutation(joint_names, d['joint_names'],
+                            'primitive.joint_names: expected the streamer joints',
+                            PrimitiveFileError)
     notes = []
     if perm != list(range(len(perm))):
         notes.append(f'joints reordered from {d["joint_names"]}')

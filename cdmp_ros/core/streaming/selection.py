@@ -1,4 +1,4 @@
-"""Which received primitive the streamer streams: the deterministic-restart rule (issue 13).
+"""Which received primitive the streamer streams: the deterministic-restart rule.
 
 The streamer receives two latched topics, ``primitive`` (from the learner) and
 ``adapted_primitive`` (from the adapter), in any order, for example both at once after a

@@ -91,7 +91,7 @@ class _Sphere(Constraint):
 
     @staticmethod
     def guide_rows(m, S, params):
-        """The far-waypoint guide (issue 13: a robust objective): an addition ``G <= 0`` to
+        """The far-waypoint guide (a robust objective): an addition ``G <= 0`` to
         the probability of each *inside* row, used only in the Lagrangian.
 
         Far from a waypoint the probability of being inside the ball and its gradient vanish
