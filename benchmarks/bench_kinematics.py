@@ -161,10 +161,12 @@ def main():
         ('joint coupling, 3 spheres, EE + 2 links, all active (us)',
          timed(lambda: coupling.joint_acceleration(qcl, qd, obstacles), args.reps), ''),
     ]
-    # issue 10.4: panda_joint4 at limit usage 0.94, the limit-aware Eq. 12 is evaluated
+    # panda_joint4 at limit usage 0.94: the limit-aware Eq. 12 is evaluated
     near, qn, obstacles_n = coupling_setup(chain, rng, (0.2, -0.4, 0.1, -3.0472, 0.1, 1.8, 0.7))
     qnl = qn.tolist()
-    assert near._limit(qnl) is not None and any(near.joint_acceleration(qnl, qd, obstacles_n))
+    usage = abs(qn[3] - 0.5 * (chain.lower[3] + chain.upper[3])) / (
+        0.5 * (chain.upper[3] - chain.lower[3]))
+    assert usage > near.config.limit_onset and any(near.joint_acceleration(qnl, qd, obstacles_n))
     rows.append(('joint coupling, same, panda_joint4 at limit usage 0.94 (limit-aware Eq. 12) '
                  '(us)', timed(lambda: near.joint_acceleration(qnl, qd, obstacles_n), args.reps),
                  ''))

@@ -37,38 +37,17 @@ sys.path.insert(0, ROOT)
 
 from cdmp_ros.bag.cdr import decode_joint_state, decode_string  # noqa: E402
 from cdmp_ros.bag.reader import BagReader  # noqa: E402
-from cdmp_ros.core.coupling.obstacle import CouplingConfig  # noqa: E402
-from cdmp_ros.core.coupling.potential_fields import RepellerField  # noqa: E402
 from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
-from cdmp_ros.core.streaming.config import StreamerConfig  # noqa: E402
 from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance  # noqa: E402
 from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
-from cdmp_ros.cli.cmd_bringup import load_graph  # noqa: E402
+from cdmp_ros.cli.cmd_bringup import streamer_configs  # noqa: E402
 from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules  # noqa: E402
-from cdmp_ros.core.coupling.terms import DampingConfig  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
 DT_NS = 2_000_000
 #: Ticks at the end over which the largest speed is reported (1 s): does the reference rest?
 REST_TICKS = 500
-
-
-SECTIONS = {'': StreamerConfig, 'coupling': CouplingConfig, 'damping': DampingConfig,
-            'repeller': RepellerField}
-
-
-def graph_configs(graph_file: str, overrides: dict) -> dict:
-    """The streamer's StreamerConfig / CouplingConfig / RepellerField from the inline
-    parameters of the graph's streamer node (the parameter file's values are the defaults)."""
-    spec = next(s for s in load_graph(graph_file).nodes if s.executable == 'streamer')
-    values = {k: {} for k in SECTIONS}
-    for key, v in {**spec.parameters, **overrides}.items():
-        section, _, name = key.rpartition('.')
-        if section not in SECTIONS:
-            raise SystemExit(f'{graph_file}: streamer parameter {key!r} is not replayed')
-        values[section][name] = tuple(v) if isinstance(v, list) else v
-    return {k: cls(**values[k]) for k, cls in SECTIONS.items()}
 
 
 def replay(msgs, chain, configs: dict, bound: float) -> dict:
@@ -139,7 +118,7 @@ def main(argv=None) -> int:
         with open(summary) as f:
             kind = json.load(f).get('kind', 'cdmp')
     unadapted = {'auto': kind != 'promp', 'true': True, 'false': False}[a.stream_unadapted]
-    configs = graph_configs(a.graph, {'stream_unadapted': unadapted})
+    configs = streamer_configs(a.graph, {'stream_unadapted': unadapted})
     bag = os.path.join(a.run, 'bag')
     msgs = sorted(BagReader(bag).messages(TOPICS), key=lambda m: m.log_time)
     chain = panda_chain(default_urdf_path())

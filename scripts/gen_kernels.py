@@ -1,13 +1,18 @@
 #!/usr/bin/env python3
-"""Write the checked-in generated kernels of the Panda (cdmp_ros/core/generated/).
+"""Write the checked-in generated coupling kernels of the Panda (cdmp_ros/core/generated/).
 
-The streamer's tick on the Panda of pybullet_data with the default parameters
-(:func:`cdmp_ros.core.streaming.streamer.streamer_coupling`) runs one generated kernel: the
-whole coupling (:func:`cdmp_ros.core.coupling.kernel.compile_coupling`: the forward kinematics
-and Jacobians of :mod:`cdmp_ros.core.kinematics.codegen`, then Eq. 7 and 12). This script
-builds that coupling, takes the generated source and writes it as a module, plus the index by
-which the generators find it (:mod:`cdmp_ros.core.generated`). Kernels of other chains or
-points (velocity-dependent fields, the experiments) are compiled at run time.
+The streamer's tick runs one generated kernel: the whole obstacle coupling
+(:func:`cdmp_ros.core.coupling.kernel.compile_coupling`: the forward kinematics and Jacobians of
+:mod:`cdmp_ros.core.kinematics.codegen`, then Eq. 7 and 12). For the configurations the product
+runs, this script builds the streamer's coupling, takes the generated source and writes it as a
+module, plus the index by which the generators find it (:mod:`cdmp_ros.core.generated`):
+
+- ``panda_coupling``: the streamer's defaults (config/streamer.yaml) on the Panda of
+  pybullet_data;
+- ``panda_demo_coupling``: the streamer of the demo graph (config/graphs/demo.yaml: capsules
+  fitted around links 3-7 and the hand, a capsule on link 7).
+
+Any other configuration is written into the kernel cache at run time by the same generator.
 
 Usage::
 
@@ -21,47 +26,43 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OUT = os.path.join(ROOT, 'cdmp_ros', 'core', 'generated')
+DEMO_GRAPH = os.path.join(ROOT, 'config', 'graphs', 'demo.yaml')
 
-COUPLING_DOC = '''\
-The obstacle coupling of the streamer's default configuration (paper 000, Eq. 7 and 12), as
-:func:`cdmp_ros.core.coupling.kernel.compile_coupling` generates it for: the Panda of
-pybullet_data (franka_panda/panda.urdf, base at the origin), the end-effector term on the tool
-centre point (panda_hand + (0, 0, 0.105): the fingertips), the link terms on the segments of
-panda_link3 and panda_link5 (``Chain.link_segments``), the limit-aware Eq. (12) with the
-``CouplingConfig`` defaults (``limit(q)`` is called only outside the bounds written inline).
 
-``coupled(q, gate, obstacles, eps2, lam2, limit)``: the frame recursion (``q0..q6``, cosines
-and sines, constant transforms folded), the world positions of the tool centre point and of
-the segment ends passed to ``gate`` (the closest points and fields,
-:class:`cdmp_ros.core.coupling.obstacle.ClosestPointGate`), then the Jacobians and the damped
-inverses of Eq. (7) and (12). The names follow :mod:`cdmp_ros.core.coupling.kernel`: ``a``
-and ``h`` the Gram matrix ``J J^T`` and its damped inverse, ``c`` Eq. (7), ``k``, ``w``, ``s``,
-``g``, ``u`` the link blocks, ``acc`` the ``J_o^T u`` sums, ``b`` and ``sw`` the weighted
-(limit-aware) branch; ``v<n>`` are intermediate values.'''
+def demo_coupling(chain):
+    """The obstacle coupling of the demo graph's streamer, as the node builds it."""
+    from cdmp_ros.cli.cmd_bringup import streamer_configs
+    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    from cdmp_ros.ros.robot_model import load_collision_capsules
+    c = streamer_configs(DEMO_GRAPH)
+    capsules = load_collision_capsules('', c[''].coupling_capsule_links, chain=chain)
+    return streamer_coupling(chain, c[''], c['coupling'], c['damping'], c['repeller'],
+                             c['box_field'], c['board_field'], capsules)
 
 
 def kernels():
-    """(module, function, source, title, description, imports) of every checked-in kernel."""
+    """(module, function, coupling, title) of every checked-in kernel."""
     import pybullet_data
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.core.streaming.streamer import StreamerConfig, streamer_coupling
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
-    coupling = streamer_coupling(chain, StreamerConfig())
-    trig = 'from math import cos, sin'
     return [
-        ('panda_coupling', 'coupled', coupling._coupled.source,
-         "Panda: the streamer's default obstacle coupling, one configuration on plain floats.",
-         COUPLING_DOC,
-         [trig, '', 'from cdmp_ros.core.coupling.terms import _inverse_h3 as inverse_h3']),
+        ('panda_coupling', 'coupled', streamer_coupling(chain, StreamerConfig()),
+         "Panda: the streamer's default obstacle coupling (config/streamer.yaml)."),
+        ('panda_demo_coupling', 'coupled', demo_coupling(chain),
+         "Panda: the obstacle coupling of the demo graph's streamer (config/graphs/demo.yaml)."),
     ]
 
 
 def render():
     """``{path: text}`` of every generated file."""
+    from cdmp_ros.core.coupling.kernel import GENERATOR, IMPORTS
     from cdmp_ros.core.generated import render_index, render_module, source_hash
     files, index = {}, {}
-    for module, name, source, title, doc, imports in kernels():
-        files[os.path.join(OUT, module + '.py')] = render_module(source, title, doc, imports)
+    for module, name, coupling, title in kernels():
+        source = coupling._coupled.source
+        files[os.path.join(OUT, module + '.py')] = render_module(
+            source, title, coupling.kernel_description, GENERATOR, IMPORTS, checked_in=True)
         index[source_hash(source)] = (module, name)
     files[os.path.join(OUT, 'index.py')] = render_index(index)
     return files

@@ -1,21 +1,22 @@
 """Obstacle coupling terms (paper 000, Eq. 7, 11, 12), damped pseudo-inverses, potential fields
-(Eq. 30-31, IV-B constant field, repellers) and their assembly with the kinematics."""
+(Eq. 30-31, IV-B constant field, repellers) and their assembly with the kinematics: the
+generated kernels against the numpy oracle (test/coupling_oracle.py)."""
 import math
 
 import numpy as np
 import pybullet_data
 import pytest
 
-from cdmp_ros.core.coupling.terms import (DampingConfig, LimitScale, coupling_3d, damped_pinv,
-                                          damped_pinv_apply, end_effector_term, limit_scale,
-                                          link_term, null_space_projector, scalar_coupling)
+from cdmp_ros.core.coupling.kernel import inverse_h3
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain, planar_chain
 from cdmp_ros.core.kinematics.closest import Box, OrientedBox, Sphere
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
 from cdmp_ros.core.dmp.transform import TanhTransform
 from closest_oracle import link_closest_point, segment_obstacle
+from coupling_oracle import (damped_pinv, end_effector_term, limit_scale, link_term,
+                             null_space_projector)
 
 PANDA_URDF = pybullet_data.getDataPath() + '/franka_panda/panda.urdf'
 DAMP = DampingConfig(epsilon=0.02, lambda_max=0.05)
@@ -24,6 +25,22 @@ DAMP = DampingConfig(epsilon=0.02, lambda_max=0.05)
 @pytest.fixture(scope='module')
 def panda():
     return panda_chain(PANDA_URDF)
+
+
+def kernel_pinv_apply(M, v, damping=DAMP):
+    """``M^+ v`` as the generated kernels compute it: ``M^T h(M M^T)^-1 v`` with the closed-form
+    ``inverse_h3``; M of 1 to 3 rows, padded to 3 with zero rows (as a kernel does with the
+    rows outside a chain's task axes)."""
+    M = np.asarray(M, dtype=float)
+    m = M.shape[0]
+    M3 = np.zeros((3, M.shape[1]))
+    M3[:m] = M
+    v3 = np.zeros(3)
+    v3[:m] = v
+    A = M3 @ M3.T
+    inv, _ = inverse_h3(A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2],
+                        damping.epsilon ** 2, damping.lambda_max ** 2)
+    return M3.T @ (np.array(inv).reshape(3, 3) @ v3)
 
 
 def _with_singular_values(rng, m, n, S):
@@ -47,8 +64,8 @@ def test_damped_pinv_is_pinv_far_from_singularities(rng):
         M = _with_singular_values(rng, m, 7, rng.uniform(0.05, 2.0, m))
         np.testing.assert_allclose(damped_pinv(M, DAMP), np.linalg.pinv(M), atol=1e-12)
         v = rng.normal(size=m)
-        np.testing.assert_allclose(damped_pinv_apply(M.tolist(), v.tolist(), DAMP),
-                                   np.linalg.pinv(M) @ v, atol=1e-10)
+        np.testing.assert_allclose(kernel_pinv_apply(M, v), np.linalg.pinv(M) @ v,
+                                   atol=1e-10)
     # exactly zero singular values are dropped, as by np.linalg.pinv
     M = _with_singular_values(rng, 3, 7, [1.0, 0.5, 0.0])
     np.testing.assert_allclose(damped_pinv(M, DAMP), np.linalg.pinv(M, rcond=1e-12), atol=1e-9)
@@ -62,7 +79,7 @@ def test_damped_pinv_finite_at_exact_singularity():
     P = damped_pinv(J2, DAMP)
     assert np.all(np.isfinite(P)) and np.abs(P).max() < 1.0 / DAMP.lambda_max
     v = [1.0, 1.0]
-    dq = damped_pinv_apply(J2.tolist(), v, DAMP)
+    dq = kernel_pinv_apply(J2, v)
     assert all(math.isfinite(x) for x in dq)
     np.testing.assert_allclose(dq, P @ v, atol=1e-9)
     # the gain on a vanishing singular value is sigma / (sigma^2 + lambda^2(sigma)) -> 0
@@ -73,14 +90,16 @@ def test_damped_pinv_finite_at_exact_singularity():
         assert damped_pinv(M, DAMP)[1, 1] == pytest.approx(expected, abs=1e-15)
 
 
-def test_scalar_pinv_matches_numpy_near_singularities(rng):
+def test_kernel_pinv_matches_numpy_near_singularities(rng):
+    """The closed-form damped inverse of the kernels against the SVD oracle, also with one or
+    two zero rows (planar chains) and singular values at, below and far below epsilon."""
     for _ in range(300):
         m = int(rng.integers(1, 4))
         S = rng.uniform(0.0, 2.0, m) * rng.choice([1.0, 1e-2, 1e-3, 0.0], m)
         M = _with_singular_values(rng, m, 7, S)
         v = rng.normal(size=m)
         ref = damped_pinv(M, DAMP) @ v
-        got = damped_pinv_apply(M.tolist(), v.tolist(), DAMP)
+        got = kernel_pinv_apply(M, v)
         np.testing.assert_allclose(got, ref, atol=1e-6 * max(1.0, np.abs(ref).max()))
 
 
@@ -125,29 +144,6 @@ def test_eq12_batched_over_leading_axes(panda, rng):
     for idx in np.ndindex(4, 5):
         np.testing.assert_allclose(batched[idx], link_term(J[idx][0], J[idx][1], dx[idx], DAMP),
                                    atol=1e-12)
-
-
-def test_scalar_coupling_matches_numpy_reference(panda, rng):
-    for trial in range(40):
-        if trial % 2:
-            q = rng.uniform(panda.lower, panda.upper)
-        else:
-            q = _well_conditioned_q(panda, rng)
-        points = [PointOfInterest('ee'), PointOfInterest('panda_link3', (0.0, 0.0, -0.1)),
-                  PointOfInterest('panda_link5', (0.0, 0.1, 0.0))]
-        _, J = panda.forward_and_jacobian(q, points)
-        dx = rng.normal(size=(3, 3))
-        ref = (end_effector_term(J[0], dx[0], DAMP) + link_term(J[0], J[1], dx[1], DAMP)
-               + link_term(J[0], J[2], dx[2], DAMP))
-        # J_o of link3 only has 3 non-zero columns: the scalar code accepts truncated rows
-        links = [(J[1][:, :3].tolist(), dx[1].tolist()), (J[2].tolist(), dx[2].tolist())]
-        fast = coupling_3d(J[0].tolist(), dx[0].tolist(), links, DAMP)
-        generic = scalar_coupling(J[0].tolist(), dx[0].tolist(),
-                                  [(J[1].tolist(), dx[1].tolist()),
-                                   (J[2].tolist(), dx[2].tolist())], DAMP)
-        tol = 1e-8 * max(1.0, np.abs(ref).max())
-        np.testing.assert_allclose(fast, ref, atol=tol)
-        np.testing.assert_allclose(generic, ref, atol=tol)
 
 
 # ------------------------------------------------------------------ fields
@@ -330,8 +326,8 @@ def _batched_reference(chain, q, obstacles, segments, sphere_field, box_field, l
 
 @pytest.mark.parametrize('epsilon', [0.02, 0.3])
 def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon):
-    """The generated single-configuration path (kinematics, gate, unrolled Eq. 7/12) against
-    the batched numpy reference and against the generic scalar path, with spheres and boxes,
+    """The generated single-configuration kernel (kinematics, gate, unrolled Eq. 7/12) against
+    the batched numpy reference, with spheres and boxes,
     oriented boxes, a non-degenerate explicit segment and, at epsilon = 0.3, damping active on
     the end effector and on the links."""
     damping = DampingConfig(epsilon=epsilon, lambda_max=0.05)
@@ -357,13 +353,10 @@ def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon
                 rng.normal(size=4)))
         got = coupling.joint_acceleration(q, None, obstacles)
         dists = list(coupling.last_distances)
-        generic = coupling.joint_acceleration_generic(q, None, obstacles)
-        assert coupling.last_distances == pytest.approx(dists, abs=1e-12)
         ref, ref_dists = _batched_reference(panda, q, obstacles, segments, sphere_field,
                                             box_field, 0.04, damping)
         scale = max(1.0, np.abs(ref).max())
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * scale)
-        np.testing.assert_allclose(generic, got, rtol=0, atol=1e-11 * scale)
         np.testing.assert_allclose(dists, ref_dists, rtol=0, atol=1e-12)
         n_active += np.abs(ref).max() > 0
         _, J = panda.forward_and_jacobian(q, [PointOfInterest('ee')])
@@ -377,20 +370,20 @@ def test_generated_coupling_matches_batched_reference_to_1e9(panda, rng, epsilon
     # Jacobian (the gate returns None)
     far = [Sphere((5.0, 5.0, 5.0), 0.1), Box((4.0, 4.0, 4.0), (4.5, 4.5, 4.5))]
     assert coupling.joint_acceleration(q, None, far) == [0.0] * 7
-    assert coupling._coupled(q.tolist(), coupling._gate, far, 1.0, 1.0) is None
+    assert coupling._coupled(q.tolist(), None, coupling._gate, far, 1.0, 1.0) is None
     assert len(coupling.last_distances) == 4 and min(coupling.last_distances) > 3.0
 
 
 def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda, rng):
-    """end_effector=False (links only) on the generated path, and a velocity-dependent
-    repeller, which takes the generic path."""
+    """end_effector=False (links only), and a velocity-dependent repeller: its kernel also
+    computes the point velocities; at rest it equals the kernel without them."""
     field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
     config = CouplingConfig(damping=DAMP, end_effector=False)
     coupling = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], field, config=config)
     damped_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01,
                                  damping=2.0)
     slow = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], damped_field)
-    assert coupling._coupled is not None and slow._coupled is None
+    assert 'qd0' in slow._coupled.source and 'qd0' not in coupling._coupled.source
     for _ in range(10):
         q = _well_conditioned_q(panda, rng)
         X = panda.forward(q, [PointOfInterest('ee'), PointOfInterest('panda_link5')])
@@ -399,7 +392,7 @@ def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda,
         ref, _ = _batched_reference(panda, q, obstacles, coupling.segments, field, None, 0.0,
                                     DAMP, end_effector=False)
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * max(1.0, np.abs(ref).max()))
-        # at rest the damping term vanishes: the generic path gives the same field
+        # at rest the damping term vanishes
         np.testing.assert_allclose(slow.joint_acceleration(q, np.zeros(7), obstacles),
                                    ObstacleCoupling(panda, ['panda_link3', 'panda_link5'],
                                                     field).joint_acceleration(q, None,
@@ -407,37 +400,39 @@ def test_generated_coupling_without_end_effector_term_and_velocity_fields(panda,
                                    rtol=0, atol=1e-9)
 
 
-def test_generic_path_gives_damped_fields_the_point_velocities(panda, rng):
-    """Velocity-dependent fields run the generic path: the one closest-point routine
-    (ClosestPointGate) gets the end-effector velocity J qd and the link point's J_o qd."""
+def test_damped_fields_get_the_point_velocities(panda, rng):
+    """Velocity-dependent fields: the one closest-point routine (ClosestPointGate) gets the
+    end-effector velocity J qd and the link point's J_o qd (interpolated between the segment
+    ends' velocities by the kernel), against the numpy oracle; limit-aware and not."""
     field = RepellerField(gain=0.02, influence_distance=0.4, min_distance=0.01, damping=2.0)
-    coupling = ObstacleCoupling(panda, ['panda_link3'], field,
-                                config=CouplingConfig(damping=DAMP, limit_aware=False))
-    assert coupling._coupled is None
-    q = np.array([0.1, -0.4, 0.2, -2.0, 0.1, 1.7, 0.6])
-    qd = rng.normal(size=7)
-    ee = PointOfInterest('ee')
-    X = panda.forward(q, [ee, PointOfInterest('panda_link3')])
-    obstacles = [Sphere(tuple(X[0] + [0.1, 0.05, 0.0]), 0.05),
-                 Sphere(tuple(X[1] + [0.08, 0.0, 0.05]), 0.05)]
-    got = np.array(coupling.joint_acceleration(q, qd, obstacles))
-    x, J = panda.forward_and_jacobian(q[None], [ee])
-    x, J_e = x[0, 0], J[0, 0]
-    dx_e = np.zeros(3)
-    for obs in obstacles:
-        v = x - np.array(obs.center)
-        d = np.linalg.norm(v)
-        dx_e += field.acceleration(x, J_e @ qd, obs, d - obs.radius, v / d)
-    ref = end_effector_term(J_e, dx_e, DAMP)
-    cps = [link_closest_point(panda, q, coupling.segments[0], obs) for obs in obstacles]
-    i = int(np.argmin([cp.distance for cp in cps]))
-    _, J_o = panda.forward_and_jacobian(q[None], [cps[i].poi])
-    dx = field.acceleration(cps[i].point, J_o[0, 0] @ qd, obstacles[i], cps[i].distance,
-                            cps[i].normal)
-    ref += link_term(J_e, J_o[0, 0], np.array(dx), DAMP)
-    np.testing.assert_allclose(got, ref, rtol=1e-7, atol=1e-9)
-    at_rest = np.array(coupling.joint_acceleration(q, None, obstacles))
-    assert np.abs(got - at_rest).max() > 0.1                 # the damping acted
+    for aware in (False, True):
+        coupling = ObstacleCoupling(panda, ['panda_link3'], field,
+                                    config=CouplingConfig(damping=DAMP, limit_aware=aware))
+        q = np.array([0.1, -0.4, 0.2, -2.0, 0.1, 1.7, 0.6])
+        qd = rng.normal(size=7)
+        ee = PointOfInterest('ee')
+        X = panda.forward(q, [ee, PointOfInterest('panda_link3')])
+        obstacles = [Sphere(tuple(X[0] + [0.1, 0.05, 0.0]), 0.05),
+                     Sphere(tuple(X[1] + [0.08, 0.0, 0.05]), 0.05)]
+        got = np.array(coupling.joint_acceleration(q, qd, obstacles))
+        x, J = panda.forward_and_jacobian(q[None], [ee])
+        x, J_e = x[0, 0], J[0, 0]
+        dx_e = np.zeros(3)
+        for obs in obstacles:
+            v = x - np.array(obs.center)
+            d = np.linalg.norm(v)
+            dx_e += field.acceleration(x, J_e @ qd, obs, d - obs.radius, v / d)
+        ref = end_effector_term(J_e, dx_e, DAMP)
+        cps = [link_closest_point(panda, q, coupling.segments[0], obs) for obs in obstacles]
+        i = int(np.argmin([cp.distance for cp in cps]))
+        _, J_o = panda.forward_and_jacobian(q[None], [cps[i].poi])
+        dx = field.acceleration(cps[i].point, J_o[0, 0] @ qd, obstacles[i], cps[i].distance,
+                                cps[i].normal)
+        scale = limit_scale(q, panda.lower, panda.upper, 0.9, 0.95) if aware else None
+        ref += link_term(J_e, J_o[0, 0], np.array(dx), DAMP, scale=scale)
+        np.testing.assert_allclose(got, ref, rtol=1e-7, atol=1e-9)
+        at_rest = np.array(coupling.joint_acceleration(q, None, obstacles))
+        assert np.abs(got - at_rest).max() > 0.1                 # the damping acted
 
 
 def test_obstacle_coupling_planar_chain(rng):
@@ -647,15 +642,30 @@ def _near_limits_q(panda, rng, joints=(3, 4), low=0.85, high=0.995):
     return q
 
 
+def _inline_weights(lower, upper, onset, lock):
+    """``weights(q)``: the limit weights as a generated kernel computes them
+    (``kernel._limit_weights``), None while no joint is beyond the onset."""
+    from cdmp_ros.core.coupling.kernel import _limit_weights
+    outside, lines, sn = _limit_weights(lower, upper, onset, lock)
+    n = len(sn)
+    src = (f'def weights({", ".join(f"q{k}" for k in range(n))}):\n'
+           + (f'    if {" or ".join(outside)}:\n' if outside else '    if False:\n')
+           + ''.join(f'        {line}\n' for line in lines)
+           + f'        return [{", ".join(map(str, sn))}]\n    return None\n')
+    scope = {}
+    exec(compile(src, '<weights>', 'exec'), scope)  # noqa: S102
+    return lambda q: scope['weights'](*q)
+
+
 def test_limit_scale_is_one_below_the_onset_c1_and_zero_from_the_lock(panda, rng):
     """s = 1 up to the onset, (1 - rho)^2 (1 + 2 rho) in the band, 0 from the lock on; its
     derivative (-6 rho (1 - rho) / (lock - onset) / y_delta) matches central differences and
-    vanishes at both ends of the band (C^1); the scalar LimitScale equals the numpy one and
-    is None (Eq. 12 untouched) while every joint is below the onset."""
+    vanishes at both ends of the band (C^1); the weights the kernels compute inline equal the
+    numpy ones and are not computed (Eq. 12 untouched) while every joint is below the onset."""
     onset, lock = 0.9, 0.95
     lo, hi = panda.lower, panda.upper
     centre, delta = (lo + hi) / 2, (hi - lo) / 2
-    scale = LimitScale(lo, hi, onset, lock)
+    scale = _inline_weights(lo, hi, onset, lock)
     U = np.linspace(-1.0, 1.0, 2001)
     Q = centre + np.outer(U, delta)
     S = limit_scale(Q, lo, hi, onset, lock)
@@ -681,8 +691,8 @@ def test_limit_scale_is_one_below_the_onset_c1_and_zero_from_the_lock(panda, rng
     # a joint without finite limits is never weighted
     inf = np.array([-np.inf, -1.0]), np.array([np.inf, 1.0])
     np.testing.assert_array_equal(limit_scale([1e6, 0.99], *inf, onset, lock), [1.0, 0.0])
-    assert LimitScale(*inf, onset, lock)([1e6, 0.99]) == [1.0, 0.0]
-    assert LimitScale(*inf, onset, lock)([1e6, 0.5]) is None
+    assert _inline_weights(*inf, onset, lock)([1e6, 0.99]) == [1.0, 0.0]
+    assert _inline_weights(*inf, onset, lock)([1e6, 0.5]) is None
 
 
 def test_limit_aware_link_term_is_the_weighted_least_norm_null_space_motion(panda, rng):
@@ -715,8 +725,8 @@ def test_limit_aware_link_term_is_the_weighted_least_norm_null_space_motion(pand
 
 @pytest.mark.parametrize('epsilon', [0.02, 0.3])
 def test_generated_limit_aware_coupling_matches_batched_reference(panda, rng, epsilon):
-    """Near the limits of joints 4 and 5 (and of random others) the generated path, the
-    generic path and the numpy reference agree on the limit-aware Eq. 12; without the
+    """Near the limits of joints 4 and 5 (and of random others) the generated kernel and the
+    numpy reference agree on the limit-aware Eq. 12; without the
     weighting they agree on Eq. 12, and the two differ (the weighting is active)."""
     damping = DampingConfig(epsilon=epsilon, lambda_max=0.05)
     sphere_field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
@@ -738,12 +748,10 @@ def test_generated_limit_aware_coupling_matches_batched_reference(panda, rng, ep
             obstacles.append(Box.from_center(X[int(rng.integers(4))] + rng.normal(size=3) * 0.15,
                                              (0.05, 0.4, 0.3)))
         got = aware.joint_acceleration(q, None, obstacles)
-        generic = aware.joint_acceleration_generic(q, None, obstacles)
         ref, _ = _batched_reference(panda, q, obstacles, aware.segments, sphere_field,
                                     box_field, 0.04, damping, limits=(0.9, 0.95))
         scale = max(1.0, np.abs(ref).max())
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * scale)
-        np.testing.assert_allclose(generic, got, rtol=0, atol=1e-11 * scale)
         unweighted = plain.joint_acceleration(q, None, obstacles)
         ref0, _ = _batched_reference(panda, q, obstacles, aware.segments, sphere_field,
                                      box_field, 0.04, damping, limits=None)
@@ -757,7 +765,7 @@ def test_generated_limit_aware_coupling_matches_batched_reference(panda, rng, ep
 
 def test_limit_aware_coupling_is_eq12_below_the_onset(panda, rng):
     """Every joint below the onset (usage < 0.9): the limit-aware coupling is the plain one,
-    bit for bit, on the generated and the generic path; just above the onset it differs from
+    bit for bit; just above the onset it differs from
     it by O(h^2) (s is C^1), so the coupling is continuous across the onset."""
     field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
     links = ['panda_link3', 'panda_link5']
@@ -773,8 +781,6 @@ def test_limit_aware_coupling_is_eq12_below_the_onset(panda, rng):
         obstacles = [Sphere(tuple(p + rng.normal(size=3) * 0.1), 0.05) for p in X]
         a = aware.joint_acceleration(q, None, obstacles)
         assert a == plain.joint_acceleration(q, None, obstacles)
-        assert (aware.joint_acceleration_generic(q, None, obstacles)
-                == plain.joint_acceleration_generic(q, None, obstacles))
         n_active += any(a)
     assert n_active >= 25
     q = _well_conditioned_q(panda, rng)

@@ -357,7 +357,7 @@ def test_plain_dmp_is_clamped_to_the_limits():
 
 
 def test_bound_into_scales_the_largest_joint_to_the_limit_keeping_the_direction():
-    from cdmp_ros.core.coupling.contract import bound_into
+    from cdmp_ros.core.streaming.streamer import bound_into
     a = [3.0, -400.0, 0.0, 100.0, 0.0, 0.0, -1.0]
     out = [0.0] * 7
     assert bound_into(a, 50.0, out) == 400.0
@@ -626,7 +626,7 @@ def test_streamer_coupling_uses_the_board_field_when_selected():
     at the fingertips mapped by Eq. 7); 'constant' (default): the constant field of IV-B."""
     import pybullet_data
     from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField
-    from cdmp_ros.core.coupling.terms import end_effector_term
+    from coupling_oracle import end_effector_term
     from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
     from cdmp_ros.core.kinematics.closest import Box, box_signed_distance
     from cdmp_ros.core.streaming.streamer import streamer_coupling
@@ -821,19 +821,15 @@ def _settle(epsilon, seconds=15.0):
     limit_cycle.json) with the demo graph's coupling and ``damping.epsilon``; returns the
     largest joint speed of the last 2 s."""
     import dataclasses
-    import importlib.util
+    from cdmp_ros.cli.cmd_bringup import streamer_configs
     here = os.path.dirname(__file__)
-    spec = importlib.util.spec_from_file_location(
-        'replay_coupling', os.path.join(here, '..', 'benchmarks', 'replay_coupling.py'))
-    replay = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(replay)
     from cdmp_ros.core.kinematics import panda_chain
     from cdmp_ros.core.kinematics.closest import Sphere
     from cdmp_ros.core.streaming.streamer import streamer_coupling
     from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules
     with open(os.path.join(here, 'data', 'limit_cycle.json')) as f:
         fix = json.load(f)
-    configs = replay.graph_configs(os.path.join(here, '..', 'config', 'graphs', 'demo.yaml'), {})
+    configs = streamer_configs(os.path.join(here, '..', 'config', 'graphs', 'demo.yaml'))
     chain = panda_chain(default_urdf_path())
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0)
     damping = dataclasses.replace(configs['damping'], epsilon=epsilon)

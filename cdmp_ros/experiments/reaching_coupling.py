@@ -17,8 +17,8 @@ the link terms are those of the common coupling,
   towards the end-effector path of the unmodified motion (its forward kinematics, the "virtual
   trajectory" of paper 000, Fig. 4), mapped by ``J^+``. It keeps the end effector on its goal
   while the null-space motion, exact only to first order, would let it drift. Eq. (7) and the
-  link terms add up (the link terms do not depend on ``dx_dd_e``), so the hold is computed
-  beside the obstacle coupling.
+  link terms add up (the link terms do not depend on ``dx_dd_e``): the hold is the coupling's
+  end-effector task (``ee_task``), evaluated in the same generated kernel.
 
 :class:`ReachingCoupling` implements :class:`~cdmp_ros.core.coupling.contract.Coupling`; the
 stepper maps its result into the exogenous space.
@@ -29,11 +29,10 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import ConstantField
-from cdmp_ros.core.coupling.terms import DampingConfig, coupling_3d
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics import Chain, PointOfInterest
+from cdmp_ros.core.kinematics import Chain
 from cdmp_ros.core.kinematics.closest import OrientedBox
 from cdmp_ros.core.validation import as_array, check_positive
 
@@ -118,12 +117,10 @@ class ReachingCoupling:
         config = CouplingConfig(damping=damping, link_radius=float(link_radius),
                                 end_effector=False, limit_aware=config.limit_aware,
                                 limit_onset=config.limit_onset, limit_lock=config.limit_lock)
-        self.links = ObstacleCoupling(chain, segments, box_field=field, config=config)
         self.chain = chain
         self.hold = hold
         self.damping = damping
         self.tick = 0
-        self._ee = chain.fast_kernel((PointOfInterest('ee'),))
         self._hold_on = hold.kp > 0.0 or hold.kd > 0.0
         if self._hold_on:
             if ee_ref is None:
@@ -134,24 +131,24 @@ class ReachingCoupling:
                    else as_array('ee_ref_velocity', ee_ref_velocity, ref.shape))
             self._ref = ref.tolist()
             self._ref_vel = vel.tolist()
+        self.links = ObstacleCoupling(chain, segments, box_field=field, config=config,
+                                      ee_task=self._hold if self._hold_on else None)
         self.last_distances: List[float] = []
+
+    def _hold(self, x: Sequence[float], xd: Sequence[float]) -> Tuple[float, float, float]:
+        """The end-effector acceleration of the hold (the input of Eq. 7) at tick
+        ``self.tick``."""
+        i = min(self.tick, len(self._ref) - 1)
+        r, rv = self._ref[i], self._ref_vel[i]
+        kp, kd = self.hold.kp, self.hold.kd
+        return (kp * (r[0] - x[0]) + kd * (rv[0] - xd[0]),
+                kp * (r[1] - x[1]) + kd * (rv[1] - xd[1]),
+                kp * (r[2] - x[2]) + kd * (rv[2] - xd[2]))
 
     def joint_acceleration(self, q: Sequence[float], qd: Optional[Sequence[float]],
                            obstacles: Sequence) -> List[float]:
         """Joint acceleration change [rad/s^2] for the state ``(q, qd)`` (n,) at tick
-        ``self.tick``."""
+        ``self.tick``: Eq. (12) of the links and Eq. (7) of the hold, one generated kernel."""
         dq = self.links.joint_acceleration(q, qd, obstacles)
         self.last_distances = self.links.last_distances[1:]
-        if not self._hold_on:
-            return dq
-        n = self.chain.n_dofs
-        x, jac = self._ee(list(q))
-        rows_e = [jac[0:n], jac[n:2 * n], jac[2 * n:3 * n]]
-        i = min(self.tick, len(self._ref) - 1)
-        r, rv = self._ref[i], self._ref_vel[i]
-        kp, kd = self.hold.kp, self.hold.kd
-        qd = [0.0] * n if qd is None else qd
-        dx_e = [kp * (r[c] - x[c]) + kd * (rv[c] - sum(a * b for a, b in zip(rows_e[c], qd)))
-                for c in range(3)]                                      # Eq. (7) input
-        hold = coupling_3d(rows_e, dx_e, (), self.damping)              # Eq. (7)
-        return [a + b for a, b in zip(dq, hold)]
+        return dq

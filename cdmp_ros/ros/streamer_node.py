@@ -41,11 +41,10 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.braking import influence_warning, primitive_braking_distance
-from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
 from cdmp_ros.core.streaming.latency import LatencyRing
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance
@@ -264,7 +263,8 @@ class StreamerNode(Node):
 
     @property
     def config(self) -> StreamerConfig:
-        return self.params['']
+        """The configuration in force (the streamer's: applied under the tick's lock)."""
+        return self.streamer.config
 
     # -- inputs ------------------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:

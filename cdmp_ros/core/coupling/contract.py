@@ -14,7 +14,6 @@ the cap near saturation). :class:`~cdmp_ros.core.coupling.obstacle.ObstacleCoupl
 ask for an acceleration that moves the reference from mid-range onto the joint limits in one
 tick.
 """
-import math
 from typing import List, Optional, Protocol, Sequence, runtime_checkable
 
 
@@ -35,41 +34,3 @@ class Coupling(Protocol):
                            obstacles: Sequence) -> Optional[Sequence[float]]:
         """Joint acceleration change [rad/s^2] (n_dofs) at positions ``q`` and velocities
         ``qd`` (None: at rest) for the obstacle set; None means no coupling (zero)."""
-
-
-def bound_into(dq_dd, limit: float, out: List[float]) -> float:
-    """Copy a joint acceleration ``dq_dd`` into ``out`` as floats, scaled so that
-    ``max_d |out_d| <= limit``; returns the peak ``max_d |dq_dd_d|`` before scaling.
-
-    One factor for all joints, so the direction of the coupling (the avoidance direction, the
-    null-space structure of Eq. 12) is kept and only its magnitude is bounded. ``limit <= 0``
-    copies without a bound. Returns -1.0, with ``out`` unspecified, when ``dq_dd`` is not
-    ``len(out)`` finite numbers (the caller rejects it, as
-    :meth:`~cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling` would). Never raises;
-    allocation-free (the streaming tick).
-    """
-    n = len(out)
-    peak = 0.0
-    i = 0
-    try:
-        for v in dq_dd:
-            if i == n:
-                return -1.0
-            f = float(v)
-            if not -math.inf < f < math.inf:
-                return -1.0
-            out[i] = f
-            i += 1
-            if f > peak:
-                peak = f
-            elif -f > peak:
-                peak = -f
-    except (TypeError, ValueError, OverflowError):
-        return -1.0
-    if i != n:
-        return -1.0
-    if 0.0 < limit < peak:
-        factor = limit / peak
-        for d in range(n):
-            out[d] *= factor
-    return peak

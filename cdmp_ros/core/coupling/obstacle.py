@@ -1,43 +1,44 @@
-"""Joint-space obstacle coupling of a chain: kinematics + closest points + fields + Eq. 7/12.
+"""Joint-space obstacle coupling of a chain (paper 000, Eq. 7 and 12): configuration, the
+closest points and fields, and the generated kernel that evaluates it every tick.
 
-:class:`ObstacleCoupling` is built once per chain (it compiles the single-configuration
-kinematics kernel of the end effector and of the chosen link segments) and evaluated every
-tick on plain floats::
+:class:`ObstacleCoupling` is built once per chain and configuration (it generates the
+single-configuration kernel, :func:`cdmp_ros.core.coupling.kernel.compile_coupling`) and is
+evaluated every tick on plain floats::
 
     coupling = ObstacleCoupling(chain, links=['panda_link3', 'panda_link5'])
     dq_dd = coupling.joint_acceleration(q, qd, [Sphere((0.4, 0.1, 0.5), 0.05)])
     stepper.set_joint_coupling(dq_dd)          # the exogenous map, capped near saturation
 
-End effector (paper 000, Eq. 7): the field of every obstacle at the tool centre point (the
-chain's end-effector point, or ``tcp_offset`` from the tip link: the Panda's fingertips by
-default, so the hand itself avoids obstacles), summed.
-Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed distance
-over the obstacles, :mod:`cdmp_ros.core.kinematics.closest`) with that obstacle's field, and
-the Jacobian ``J_o`` of that point. Spheres use ``sphere_field``, boxes ``box_field``. Near a
-joint limit (usage above ``CouplingConfig.limit_onset``) the link terms are the joint-limit
-weighted form of Eq. (12) (:mod:`cdmp_ros.core.coupling.terms`)::
+End effector (Eq. 7): the field of every obstacle at the tool centre point (the chain's
+end-effector point, or ``tcp_offset`` from the tip link: the Panda's fingertips by default, so
+the hand itself avoids obstacles), summed, plus an optional end-effector task (``ee_task``).
+Links (Eq. 12): for each chosen link segment, the most dangerous point (smallest signed
+distance over the obstacles) with that obstacle's field, and the Jacobian ``J_o`` of that
+point, in the null space of the end-effector task; near a joint limit (usage above
+``CouplingConfig.limit_onset``) in the joint-limit weighted form::
 
-    dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l,   D = diag(sqrt(s_i)),
-    s_i = (1 - rho_i)^2 (1 + 2 rho_i),   rho_i = clip((|u_i| - u_on) / (u_lock - u_on), 0, 1)
+    dq_dd_l = D (J_o D (I - (J D)^+ J D))^+ dx_dd_l,   D = diag(sqrt(s_i))
 
-with ``u_i`` the limit usage of joint i, ``u_on``/``u_lock`` = ``limit_onset``/``limit_lock``
-(``D = I`` below the onset: Eq. 12 unchanged).
+(``D = I`` below the onset: Eq. 12 unchanged; the weights and the damped pseudo-inverses are
+in the docstring of :mod:`cdmp_ros.core.coupling.kernel`). Spheres use ``sphere_field``, boxes
+``box_field`` (:mod:`cdmp_ros.core.coupling.potential_fields`, the one implementation of each
+field). The result implements :class:`cdmp_ros.core.coupling.contract.Coupling`; the stepper
+(:meth:`cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling`) maps it into its exogenous
+coupling term, capped near saturation.
 
-With three task rows and velocity-independent fields the whole evaluation runs in one
-generated function (:mod:`cdmp_ros.core.coupling.kernel`; no Jacobian at all when no field is
-active); otherwise :meth:`ObstacleCoupling.joint_acceleration_generic` (kernel of both segment
-ends, ``J_o = (1 - t) J_a + t J_b``, exact because point Jacobians of one rigid link are affine
-in the point). It implements :class:`cdmp_ros.core.coupling.contract.Coupling`; the stepper
-(:meth:`cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling`) maps the result into its
-exogenous coupling term, capped near saturation.
+Why the link terms are weighted: Eq. (12) can push a redundant joint into its limit; the CDMP
+keeps it strictly inside, but the exogenous map divides the joint acceleration by
+``y_delta (1 - tanh(xi)^2)``, so a push that keeps pointing at a limit grows as the joint
+approaches it and holds the joint saturated. The weighted least-norm solution (Chan and Dubey,
+IEEE T-RA 11(2), 1995) still leaves the end effector alone (``J D z = 0`` implies
+``J (D z) = 0``) and no longer moves a joint from ``limit_lock`` on.
 """
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Union
+from typing import Callable, List, Optional, Sequence, Union
 
 import numpy as np
 
-from cdmp_ros.core.coupling.terms import DampingConfig, LimitScale, coupling_3d, scalar_coupling
 from cdmp_ros.core.config_fields import param
 from cdmp_ros.core.coupling.kernel import compile_coupling
 from cdmp_ros.core.errors import ValidationError
@@ -50,6 +51,33 @@ from cdmp_ros.core.kinematics.closest import (Box, OrientedBox, Sphere, point_bo
 from cdmp_ros.core.validation import as_array, check_positive
 
 Field = Union[RepellerField, ConstantField, BoardField]
+#: ``ee_task(x, xd) -> (ax, ay, az)``: an end-effector acceleration besides the obstacles'.
+EndEffectorTask = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
+
+
+@dataclass(frozen=True)
+class DampingConfig:
+    """Damping of the pseudo-inverses (the damped pseudo-inverse of
+    :mod:`cdmp_ros.core.coupling.kernel`).
+
+    Attributes
+    ----------
+    epsilon : float
+        Singular value [m/rad for position Jacobians] below which damping starts.
+    lambda_max : float
+        Damping at an exact singularity (same unit as ``epsilon``).
+    """
+
+    epsilon: float = param(
+        0.02, 'Singular value [m/rad for position Jacobians] below which the damping of the '
+        'pseudo-inverses starts.')
+    lambda_max: float = param(
+        0.05, 'Damping of the pseudo-inverses at an exact singularity (same unit as '
+        'epsilon).')
+
+    def __post_init__(self):
+        check_positive('DampingConfig.epsilon', self.epsilon)
+        check_positive('DampingConfig.lambda_max', self.lambda_max)
 
 
 @dataclass(frozen=True)
@@ -59,7 +87,7 @@ class CouplingConfig:
     Attributes
     ----------
     damping : DampingConfig
-        Pseudo-inverse damping (:mod:`cdmp_ros.core.coupling.terms`).
+        Pseudo-inverse damping.
     link_radius : float
         Radius [m] of the capsules modelling the links (distances are to the capsule surface).
     end_effector : bool
@@ -67,7 +95,7 @@ class CouplingConfig:
         null space of the end-effector task.
     limit_aware : bool
         Weight the link terms (Eq. 12) away from joints near their limits (weighted least
-        norm, module docstring of :mod:`cdmp_ros.core.coupling.terms`); False: Eq. (12) as is.
+        norm, module docstring); False: Eq. (12) as is.
     limit_onset : float
         Joint limit usage ``|q - q_o| / y_delta`` above which that weighting starts.
     limit_lock : float
@@ -135,12 +163,23 @@ class ObstacleCoupling:
         None: the chain's own end-effector point (``PointOfInterest('ee')``; for
         :func:`~cdmp_ros.core.kinematics.builders.panda_chain` the fingertips,
         ``PANDA_EE_OFFSET``).
+    ee_task : callable, optional
+        ``ee_task(x, xd) -> (ax, ay, az)``: a Cartesian acceleration of the tool centre point
+        (at position ``x`` and velocity ``xd``) added to the obstacles' in Eq. (7), e.g. a hold
+        on a reference path. Evaluated every call, with the velocities (as velocity-dependent
+        fields are).
+
+    Attributes
+    ----------
+    kernel_description : str
+        The configuration the generated kernel was written for (its module's header).
     """
 
     def __init__(self, chain: Chain, links: Sequence = (),
                  sphere_field: Field = RepellerField(), box_field: Field = ConstantField(),
                  config: CouplingConfig = CouplingConfig(),
-                 tcp_offset: Optional[Sequence[float]] = None):
+                 tcp_offset: Optional[Sequence[float]] = None,
+                 ee_task: Optional[EndEffectorTask] = None):
         self.chain = chain
         self.config = config
         self.sphere_field = sphere_field
@@ -177,37 +216,43 @@ class ObstacleCoupling:
         for name, start, end in self.segments:
             points += [PointOfInterest(name, start), PointOfInterest(name, end)]
         self.points = tuple(points)
-        self._kernel = chain.fast_kernel(self.points)
         frames, coords = chain.resolve(self.points)
-        # joints that move each segment: J_o columns beyond are zero and are cut off
-        self._n_moving = [int(frames[1 + 2 * i]) for i in range(len(self.segments))]
-        self._axes = chain.task_axes
-        fields = (sphere_field, box_field)
-        self._needs_velocity = any(getattr(f, 'damping', 0.0) for f in fields)
+        self._velocity = ee_task is not None or any(
+            getattr(f, 'damping', 0.0) for f in (sphere_field, box_field))
         self.last_distances: List[float] = []
         self._eps2 = config.damping.epsilon ** 2
         self._lam2 = config.damping.lambda_max ** 2
-        # Generated path (coupling_kernel): 3 task rows and velocity-independent fields; the
-        # generic path below handles the rest and serves as its reference in the tests.
-        # limit-aware Eq. (12): None when off (or no link)
-        self._limit = (LimitScale(chain.lower, chain.upper, config.limit_onset,
-                                  config.limit_lock)
-                       if self.segments and config.limit_aware else None)
-        self._gate = ClosestPointGate(self.radii, sphere_field, box_field, config)
-        self._coupled = None
-        if self._axes == (0, 1, 2) and not self._needs_velocity:
-            self._coupled = compile_coupling(
-                chain.B, chain.base_transform, chain.prismatic,
-                (int(frames[0]), coords[0]),
-                [(int(frames[1 + 2 * i]), coords[1 + 2 * i], coords[2 + 2 * i])
-                 for i in range(len(self.segments))],
-                self._limit.bounds if self._limit is not None else None)
+        self._zeros = [0.0] * chain.n_dofs
+        self._gate = ClosestPointGate(self.radii, sphere_field, box_field, config, ee_task)
+        limits = ((chain.lower.tolist(), chain.upper.tolist(), config.limit_onset,
+                   config.limit_lock) if self.segments and config.limit_aware else None)
+        self.kernel_description = self._describe(tcp, limits)
+        self._coupled = compile_coupling(
+            chain.B, chain.base_transform, chain.prismatic,
+            (int(frames[0]), coords[0].tolist()),
+            [(int(frames[1 + 2 * i]), coords[1 + 2 * i].tolist(), coords[2 + 2 * i].tolist())
+             for i in range(len(self.segments))],
+            axes=chain.task_axes, limits=limits, velocity=self._velocity,
+            title=f'Obstacle coupling of {chain!r}.', description=self.kernel_description)
 
-    @staticmethod
-    def _velocity(rows, qd):
-        if qd is None:
-            return (0.0, 0.0, 0.0)
-        return tuple(sum(a * b for a, b in zip(row, qd)) for row in rows)
+    def _describe(self, tcp: PointOfInterest, limits) -> str:
+        """The configuration of the generated kernel, for its module's header."""
+        chain = self.chain
+        lines = [f'Configuration: the chain of joints {", ".join(chain.joint_names)} '
+                 f'(links {chain.link_names[0]} -> {chain.ee_link}, task axes '
+                 f'{chain.task_axes});',
+                 f'Eq. (7) on the tool centre point {tcp.link} + {tuple(tcp.offset)};',
+                 'Eq. (12) on the segments (link: start, end in the link frame [m]): '
+                 + ('; '.join(f'{n}: {a}, {b}' for n, a, b in self.segments) or 'none') + ';']
+        if limits is None:
+            lines.append('the link terms not limit-aware;')
+        else:
+            lo, hi = (', '.join(f'{v:.6g}' for v in side) for side in limits[:2])
+            lines.append(f'the limit-aware Eq. (12) from limit usage {limits[2]!r} to '
+                         f'{limits[3]!r} of the limits [{lo}] .. [{hi}];')
+        lines.append('the fields depend on the velocity: the gate gets xd = J qd.'
+                     if self._velocity else 'fields independent of the velocity.')
+        return '\n'.join(lines)
 
     def joint_acceleration(self, q: Sequence[float], qd: Optional[Sequence[float]],
                            obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
@@ -217,9 +262,9 @@ class ObstacleCoupling:
         Parameters
         ----------
         q, qd : sequence of float (n_dofs)
-            Joint positions and velocities (``qd`` feeds velocity-dependent fields; None
-            means at rest).
-        obstacles : sequence of Sphere or Box
+            Joint positions and velocities (``qd`` feeds velocity-dependent fields and the
+            ``ee_task``; None means at rest).
+        obstacles : sequence of Sphere, Box or OrientedBox
 
         Returns
         -------
@@ -228,107 +273,54 @@ class ObstacleCoupling:
             signed distance of the end effector and of every chosen link to its nearest
             obstacle.
         """
-        coupled = self._coupled
-        if coupled is not None:
-            gate = self._gate
-            dq = coupled(q.tolist() if isinstance(q, np.ndarray) else q, gate, obstacles,
-                         self._eps2, self._lam2, self._limit)
-            self.last_distances = gate.distances
-            return [0.0] * self.chain.n_dofs if dq is None else dq
-        return self.joint_acceleration_generic(q, qd, obstacles)
-
-    def joint_acceleration_generic(self, q: Sequence[float], qd: Optional[Sequence[float]],
-                                   obstacles: Sequence[Union[Sphere, Box]]) -> List[float]:
-        """:meth:`joint_acceleration` without the generated kernel (any task axes, fields
-        that depend on the velocity): kernel of both segment ends, the same closest points and
-        fields (:class:`ClosestPointGate`), ``J_o`` interpolated, and
-        :func:`~cdmp_ros.core.coupling.terms.coupling_3d` / ``scalar_coupling``."""
-        n = self.chain.n_dofs
-        ql = q.tolist() if isinstance(q, np.ndarray) else list(q)
-        qdl = (qd.tolist() if isinstance(qd, np.ndarray) else list(qd)) if qd is not None \
-            else None
-        x, jac = self._kernel(ql)
-        rows_e = [jac[0:n], jac[n:2 * n], jac[2 * n:3 * n]]
-        stride = 3 * n
-
-        def link_jacobian(i, t):
-            """``J_o`` of the point at ``t`` on segment i (the columns that move it)."""
-            k = self._n_moving[i]
-            base_a = (1 + 2 * i) * stride
-            s = 1.0 - t
-            lerp = [s * u + t * v for u, v in zip(jac[base_a:base_a + stride],
-                                                  jac[base_a + stride:base_a + 2 * stride])]
-            return [lerp[0:k], lerp[n:n + k], lerp[2 * n:2 * n + k]]
-
-        def velocity(i, t):
-            """Velocity of the end effector (i = -1) or of the point at t on segment i."""
-            return self._velocity(rows_e if i < 0 else link_jacobian(i, t), qdl)
-
+        if isinstance(q, np.ndarray):
+            q = q.tolist()
+        if self._velocity:
+            qd = self._zeros if qd is None else (qd.tolist() if isinstance(qd, np.ndarray)
+                                                 else qd)
         gate = self._gate
-        r = gate(x, obstacles, velocity if self._needs_velocity and qdl is not None else None)
+        dq = self._coupled(q, qd, gate, obstacles, self._eps2, self._lam2)
         self.last_distances = gate.distances
-        if r is None:
-            return [0.0] * n
-        dx_e = list(r[0:3])
-        links = []
-        for i in range(len(self.segments)):
-            j = 3 + 7 * i
-            if r[j]:
-                links.append((link_jacobian(i, gate.link_t[i]), r[j + 4:j + 7]))
-        scale = self._limit(ql) if self._limit is not None and links else None
-        if self._axes == (0, 1, 2):
-            return coupling_3d(rows_e, dx_e, links, self.config.damping, scale)
-        ax = self._axes
-        rows = [rows_e[a] for a in ax]
-        links = [([list(J_o[a]) + [0.0] * (n - len(J_o[a])) for a in ax], [dx[a] for a in ax])
-                 for J_o, dx in links]
-        return scalar_coupling(rows, [dx_e[a] for a in ax], links, self.config.damping, scale)
+        return [0.0] * self.chain.n_dofs if dq is None else dq
 
 
 class ClosestPointGate:
     """The closest points and potential fields of :class:`ObstacleCoupling` (the ``gate`` of
-    :func:`~cdmp_ros.core.coupling.kernel.compile_coupling`, and the geometry of
-    :meth:`ObstacleCoupling.joint_acceleration_generic`): the one closest-point routine of the
-    coupling. Spheres inline, boxes by :func:`~cdmp_ros.core.kinematics.boxes.point_box` /
-    :func:`~cdmp_ros.core.kinematics.boxes.segment_box_scalar`, oriented boxes by
-    :meth:`~cdmp_ros.core.kinematics.closest.OrientedBox.point` / ``segment``.
+    :func:`~cdmp_ros.core.coupling.kernel.compile_coupling`): the one closest-point routine of
+    the coupling. Spheres inline, boxes by :func:`~cdmp_ros.core.kinematics.boxes.point_box`
+    / :func:`~cdmp_ros.core.kinematics.boxes.segment_box_scalar`, oriented boxes by
+    :meth:`~cdmp_ros.core.kinematics.closest.OrientedBox.point` / ``segment``; every field by
+    its own ``acceleration``.
 
-    ``gate(x, obstacles, velocity=None)`` returns None when no field is active, else
+    ``gate(x, obstacles, xd=None)`` returns None when no field is active, else
     ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``; ``distances`` then holds the signed
-    distance of the end effector and of every link to its nearest obstacle, ``link_t`` the
-    segment parameter of every link's closest point. ``velocity(i, t)``, if given, returns the
-    velocity of the end effector (``i = -1``) or of the point at ``t`` on segment ``i`` for
-    velocity-dependent fields (zero otherwise). A
-    :class:`~cdmp_ros.core.coupling.potential_fields.RepellerField` without damping on spheres
-    is inlined (the arithmetic of its ``acceleration``); other fields are called.
+    distance of the end effector and of every link to its nearest obstacle. ``x`` (and the
+    velocities ``xd``, for velocity-dependent fields) list the end effector, then the start
+    and end of every segment (world); the velocity of a link's closest point is interpolated
+    between its segment's ends (exact: point velocities of one rigid link are affine in the
+    point).
     """
 
-    def __init__(self, radii: Sequence[float], sphere_field, box_field, config):
-        n_links = len(radii)
-        self.n_links = n_links
+    def __init__(self, radii: Sequence[float], sphere_field, box_field, config,
+                 ee_task: Optional[EndEffectorTask] = None):
+        self.n_links = len(radii)
         self.sphere_field = sphere_field
         self.box_field = box_field
         self.radii = tuple(float(r) for r in radii)
         self.end_effector = config.end_effector
         self.ee_radius = config.end_effector_radius
+        self.ee_task = ee_task
         self.distances: List[float] = []
-        self.link_t: List[float] = [0.0] * n_links
-        self.repeller = None
-        if type(sphere_field) is RepellerField and not sphere_field.damping:
-            self.repeller = (sphere_field.gain, sphere_field.influence_distance,
-                             sphere_field.min_distance, 1.0 / sphere_field.influence_distance)
 
-    def __call__(self, x: List[float], obstacles, velocity=None) -> Optional[list]:
-        """``x``: end effector, then start and end of every segment (world)."""
+    def __call__(self, x: List[float], obstacles, xd: Optional[List[float]] = None
+                 ) -> Optional[list]:
         radii = self.radii
-        sphere_field, box_field = self.sphere_field, self.box_field
-        rep = self.repeller
-        if rep is not None:
-            gain, d0, d_floor, inv_d0 = rep
+        sphere_acc = self.sphere_field.acceleration
+        box_acc = self.box_field.acceleration
         use_ee = self.end_effector
         ee_radius = self.ee_radius
         e0, e1, e2 = ee = x[0], x[1], x[2]
-        xd_e = ZERO if velocity is None or not use_ee else velocity(-1, 0.0)
+        xd_e = ZERO if xd is None else (xd[0], xd[1], xd[2])
         ax = ay = az = 0.0
         dmin = math.inf
         sqrt = math.sqrt
@@ -339,22 +331,14 @@ class ClosestPointGate:
                 r = sqrt(v0 * v0 + v1 * v1 + v2 * v2)
                 if r > 1e-12:
                     d = r - obs.radius - ee_radius
-                    n0, n1, n2 = v0 / r, v1 / r, v2 / r
+                    normal = (v0 / r, v1 / r, v2 / r)
                 else:
-                    d, n0, n1, n2 = -obs.radius - ee_radius, 0.0, 0.0, 1.0
+                    d, normal = -obs.radius - ee_radius, (0.0, 0.0, 1.0)
                 if d < dmin:
                     dmin = d
                 if not use_ee:
                     continue
-                if rep is not None:                 # RepellerField.acceleration, inlined
-                    if d < d0:
-                        dd = d if d > d_floor else d_floor
-                        g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                        ax += g * n0
-                        ay += g * n1
-                        az += g * n2
-                    continue
-                a = sphere_field.acceleration(ee, xd_e, obs, d, (n0, n1, n2))
+                a = sphere_acc(ee, xd_e, obs, d, normal)
             else:
                 if type(obs) is Box:
                     d, _, normal = point_box(ee, obs.lower, obs.upper)
@@ -368,7 +352,12 @@ class ClosestPointGate:
                     dmin = d
                 if not use_ee:
                     continue
-                a = box_field.acceleration(ee, xd_e, obs, d, normal)
+                a = box_acc(ee, xd_e, obs, d, normal)
+            ax += a[0]
+            ay += a[1]
+            az += a[2]
+        if self.ee_task is not None:
+            a = self.ee_task(ee, xd_e)
             ax += a[0]
             ay += a[1]
             az += a[2]
@@ -411,29 +400,22 @@ class ClosestPointGate:
                         best_d, best, bt, bv, br = d, obs, t, normal, None
             dists.append(best_d)
             if best is not None:
-                t = self.link_t[i] = bt
-                p0, p1, p2 = a0 + t * u0, a1 + t * u1, a2 + t * u2
-                xd = ZERO if velocity is None else velocity(i, t)
-                if br is None:                                  # box: bv is the normal
-                    a = box_field.acceleration((p0, p1, p2), xd, best, best_d, bv)
+                t = bt
+                p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
+                if xd is None:
+                    v = ZERO
                 else:
-                    r = br
-                    if r > 1e-12:
-                        n0, n1, n2 = bv[0] / r, bv[1] / r, bv[2] / r
-                    else:
-                        n0, n1, n2 = 0.0, 0.0, 1.0
-                    if rep is not None:                 # RepellerField.acceleration, inlined
-                        if best_d < d0:
-                            dd = best_d if best_d > d_floor else d_floor
-                            g = gain * (1.0 / dd - inv_d0) / (dd * dd)
-                            a = (g * n0, g * n1, g * n2)
-                        else:
-                            a = ZERO
-                    else:
-                        a = sphere_field.acceleration((p0, p1, p2), xd, best, best_d,
-                                                      (n0, n1, n2))
+                    s = 1.0 - t
+                    v = (s * xd[j] + t * xd[j + 3], s * xd[j + 1] + t * xd[j + 4],
+                         s * xd[j + 2] + t * xd[j + 5])
+                if br is None:                                  # box: bv is the normal
+                    a = box_acc(p, v, best, best_d, bv)
+                else:
+                    normal = ((bv[0] / br, bv[1] / br, bv[2] / br) if br > 1e-12
+                              else (0.0, 0.0, 1.0))
+                    a = sphere_acc(p, v, best, best_d, normal)
                 if a[0] or a[1] or a[2]:
-                    out += (True, p0, p1, p2, a[0], a[1], a[2])
+                    out += (True, p[0], p[1], p[2], a[0], a[1], a[2])
                     active = True
                     continue
             out += (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -3,6 +3,8 @@ checked-in kernel's generated source -> (module, function); see the package
 docstring."""
 
 INDEX = {
-    'fff3967de0e11e02354186dbcb029e802471e807b334de3aea484357ddc6f15e':
+    '409ab1243917111c6ccdae5c236153c4f055046782bc663006d5f00d4aa38516':
         ('panda_coupling', 'coupled'),
+    'fabf4c28382335b2a7325fa6e4281d715103df24f4a9c1fd2f7bd42aadbb33b5':
+        ('panda_demo_coupling', 'coupled'),
 }

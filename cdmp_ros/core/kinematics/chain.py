@@ -403,8 +403,11 @@ class Chain:
         kernel = self._kernels.get(key)
         if kernel is None:
             frames, coords = self.resolve(key)
+            desc = (f'Chain {self!r}; points (internal frame: coordinates [m]): '
+                    + '; '.join(f'{k}: {tuple(c)}' for k, c in zip(frames.tolist(),
+                                                                   coords.tolist())))
             kernel = codegen.compile_kernel(self.B, self.base_transform, self.prismatic,
-                                            frames.tolist(), coords)
+                                            frames.tolist(), coords, desc)
             if len(self._kernels) > 64:
                 self._kernels.clear()
             self._kernels[key] = kernel

@@ -39,10 +39,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.coupling.contract import Coupling, bound_into
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.contract import Coupling
+from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
-from cdmp_ros.core.coupling.terms import DampingConfig
 from cdmp_ros.core.kinematics import Chain
 from cdmp_ros.core.kinematics.capsules import Capsule
 from cdmp_ros.core.dmp.stepper import CouplingResult
@@ -88,6 +87,49 @@ def streamer_coupling(chain: Chain, config: StreamerConfig,
                             sphere_field=repeller, box_field=boxes,
                             config=dataclasses.replace(coupling, damping=damping),
                             tcp_offset=config.tcp_offset)
+
+
+def bound_into(dq_dd, limit: float, out: List[float]) -> float:
+    """Copy a joint acceleration ``dq_dd`` into ``out`` as floats, scaled so that
+    ``max_d |out_d| <= limit``; returns the peak ``max_d |dq_dd_d|`` before scaling.
+
+    The one bound of a coupling's magnitude (``coupling_max_acceleration``): potential fields
+    grow without bound as an obstacle approaches (a FIRAS repeller like ``1/d^3``), and an
+    obstacle that appears inside or next to a link can ask for an acceleration that moves the
+    reference from mid-range onto the joint limits in one tick.
+
+    One factor for all joints, so the direction of the coupling (the avoidance direction, the
+    null-space structure of Eq. 12) is kept and only its magnitude is bounded. ``limit <= 0``
+    copies without a bound. Returns -1.0, with ``out`` unspecified, when ``dq_dd`` is not
+    ``len(out)`` finite numbers (the caller rejects it, as
+    :meth:`~cdmp_ros.core.dmp.stepper.DmpStepper.set_joint_coupling` would). Never raises;
+    allocation-free (the streaming tick).
+    """
+    n = len(out)
+    peak = 0.0
+    i = 0
+    try:
+        for v in dq_dd:
+            if i == n:
+                return -1.0
+            f = float(v)
+            if not -math.inf < f < math.inf:
+                return -1.0
+            out[i] = f
+            i += 1
+            if f > peak:
+                peak = f
+            elif -f > peak:
+                peak = -f
+    except (TypeError, ValueError, OverflowError):
+        return -1.0
+    if i != n:
+        return -1.0
+    if 0.0 < limit < peak:
+        factor = limit / peak
+        for d in range(n):
+            out[d] *= factor
+    return peak
 
 
 class StreamState(enum.Enum):
@@ -228,6 +270,7 @@ class ReferenceStreamer:
                  coupling: Optional[Coupling] = None,
                  limits: Optional[KinematicLimits] = None):
         self.config = config
+        self._dt = config.dt
         self.joint_names = list(config.joint_names)
         n = self.n_dims = len(self.joint_names)
         lo, hi = check_limits(lower, upper, n)
@@ -275,6 +318,7 @@ class ReferenceStreamer:
         if tuple(config.joint_names) != tuple(self.joint_names):
             raise ValidationError('joint_names: cannot change while streaming')
         self.config = config
+        self._dt = config.dt
         self._goal_transform = TanhTransform(self.lower, self.upper,
                                              margin=config.limit_margin)
         self.stage.bandwidth = config.output_bandwidth
@@ -294,7 +338,7 @@ class ReferenceStreamer:
 
     @property
     def dt(self) -> float:
-        return self.config.dt
+        return self._dt
 
     # -- inputs (outside the tick) ------------------------------------------------------------
     def note_joint_states(self, q: ArrayLike, now: float) -> None:
@@ -407,7 +451,7 @@ class ReferenceStreamer:
         elif state is StreamState.HOLDING and not fresh:
             self.reason = self._stale_reason(now)
         flags = 0
-        dt = self.config.dt
+        dt = self._dt
         stage_on = self.config.output_stage
         if stage_on and skipped > 0:
             target = self.y
@@ -540,7 +584,7 @@ class ReferenceStreamer:
 
     def _coupling_into(self, stepper) -> int:
         """The coupling at the reference for the current obstacles, bounded to
-        ``coupling_max_acceleration`` (:func:`~cdmp_ros.core.coupling.contract.bound_into`;
+        ``coupling_max_acceleration`` (:func:`bound_into`;
         finite values beyond the stepper's ``MAX_JOINT_COUPLING`` are then scaled down too,
         not dropped) and handed to the stepper (which maps it into its exogenous space, capped
         near saturation); never raises."""
