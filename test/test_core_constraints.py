@@ -355,3 +355,75 @@ def test_tail_option_is_validated_and_parsed():
     doc['optimizer'] = {'confidence_margin': 0.0}
     with pytest.raises(ConstraintSetError, match='confidence_margin'):
         parse_constraint_set(doc, prior)
+
+
+# ------------------------------------------------------------------ mutual avoidance, stacked
+def _dual_cell():
+    import pybullet_data
+    from cdmp_ros.core.adaptation.constraints import ChainPoint
+    from cdmp_ros.core.kinematics import PointOfInterest, dual_panda_chains
+    chains = dual_panda_chains(pybullet_data.getDataPath() + '/franka_panda/panda.urdf')
+    pts = [[ChainPoint(c, PointOfInterest(link), range(7 * a, 7 * a + 7))
+            for link in ('ee', 'panda_hand', 'panda_link4')] for a, c in enumerate(chains)]
+    return chains, pts
+
+
+def test_stacked_differences_equal_each_difference_and_finite_differences(rng):
+    """StackedDifferencePoints: one forward-kinematics call per arm for all pairs; every
+    member's block equals its DifferencePoint, and the stacked Jacobian matches central
+    differences."""
+    from cdmp_ros.core.adaptation.constraints.points import (DifferencePoint,
+                                                             StackedDifferencePoints)
+    chains, pts = _dual_cell()
+    pairs = [DifferencePoint(pts[0][i], pts[1][j]) for i, j in ((0, 1), (1, 0), (1, 1), (2, 1))]
+    stacked = StackedDifferencePoints(pairs)
+    assert stacked.dofs == tuple(range(14)) and stacked.n_out == 12
+    Z = rng.uniform(np.r_[chains[0].lower, chains[1].lower],
+                    np.r_[chains[0].upper, chains[1].upper], (4, 5, 14))
+    X, J = stacked.forward_and_jacobian(Z)
+    for i, p in enumerate(pairs):
+        Xi, Ji = p.forward_and_jacobian(Z)
+        np.testing.assert_allclose(X[..., 3 * i:3 * i + 3], Xi, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(J[..., 3 * i:3 * i + 3, :], Ji, rtol=0, atol=1e-14)
+    h = 1e-6
+    z = Z[0, 0]
+    fd = np.stack([(stacked.forward(z + h * e) - stacked.forward(z - h * e)) / (2 * h)
+                   for e in np.eye(14)], axis=-1)
+    np.testing.assert_allclose(J[0, 0], fd, atol=1e-8)
+    # two points of one arm (its own dofs only)
+    own = [DifferencePoint(pts[0][0], pts[0][2]), DifferencePoint(pts[0][1], pts[0][2])]
+    Z7 = Z[..., :7]
+    X, J = StackedDifferencePoints(own).forward_and_jacobian(Z7)
+    for i, p in enumerate(own):
+        Xi, Ji = p.forward_and_jacobian(Z7)
+        np.testing.assert_allclose(X[..., 3 * i:3 * i + 3], Xi, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(J[..., 3 * i:3 * i + 3, :], Ji, rtol=0, atol=1e-14)
+
+
+def test_mutual_avoidance_pairs_are_evaluated_together_with_the_same_lagrangian(rng, monkeypatch):
+    """Several mutual-avoidance pairs of the two arms share one unscented transform (one
+    point of the Problem instead of one per pair); value and gradient of the Lagrangian are
+    those of the pairs evaluated one by one, to rounding."""
+    from cdmp_ros.core.adaptation import problem as P
+    from cdmp_ros.core.adaptation.constraints import Hyperplane
+    chains, pts = _dual_cell()
+    M = 4
+    A = rng.standard_normal((14 * M, 14 * M))
+    mean = np.r_[np.tile(np.r_[0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8], 2)].repeat(M)
+    prior = ProMP(14, RbfBasis.uniform(M), mean, A @ A.T / (14 * M) * 0.01 + 0.01 * np.eye(14 * M))
+    cons = [MutualAvoidance(pts[0][i], pts[1][j], 0.3) for i, j in ((0, 1), (1, 0), (2, 2))]
+    cons.append(Hyperplane(pts[0][0], (0.0, 0.0, 1.0), (0.0, 0.0, 0.05)))
+    cfg = AdaptationConfig(n_steps=10)
+    together = P.Problem(prior, cons, cfg)
+    stock = P._stack_key
+    monkeypatch.setattr(P, '_stack_key',
+                        lambda p, k: stock(p, k) if type(p) is P.ChainPoint else None)
+    apart = P.Problem(prior, cons, cfg)
+    assert len(together.points) == 2 and len(apart.points) == 4
+    for _ in range(3):
+        theta = together.initial_theta() + rng.normal(0, 0.05, together.initial_theta().size)
+        lam = rng.uniform(1.0, 50.0, together.n_values)
+        v1, g1 = together.lagrangian(theta, lam)
+        v2, g2 = apart.lagrangian(theta, lam)
+        assert v1 == pytest.approx(v2, rel=1e-10)
+        np.testing.assert_allclose(g1, g2, rtol=0, atol=1e-10 * np.abs(g2).max())

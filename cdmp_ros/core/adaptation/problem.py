@@ -11,7 +11,9 @@ from numpy.typing import NDArray
 from cdmp_ros.core.adaptation.batched import BatchedLagrangian
 from cdmp_ros.core.adaptation.config import AdaptationConfig
 from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
-from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint, StackedChainPoints
+from cdmp_ros.core.adaptation.constraints.points import (ChainPoint, DifferencePoint, DofPoint,
+                                                         StackedChainPoints,
+                                                         StackedDifferencePoints)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.gaussian import UnscentedTransform
 from cdmp_ros.core.promp.promp import ProMP
@@ -25,6 +27,20 @@ def _contiguous_dofs(point):
     if d != list(range(d[0], d[0] + len(d))):
         return None
     return slice(d[0], d[0] + len(d))
+
+
+def _stack_key(point, times_key):
+    """The key of the points evaluated together with ``point`` (one forward-kinematics call
+    per chain and one unscented transform): chain points of one chain, dofs and axes
+    (StackedChainPoints), or differences of chain points over the same dofs and axes
+    (StackedDifferencePoints); None for any other point. Exact classes only: subclasses may
+    override the kinematics."""
+    if type(point) is ChainPoint:
+        return ('chain', id(point.chain), point.dofs, point.axes, times_key)
+    if (type(point) is DifferencePoint and type(point.a) is ChainPoint
+            and type(point.b) is ChainPoint and point.a.axes == point.b.axes):
+        return ('difference', point.dofs, point.a.axes, times_key)
+    return None
 
 
 class _Group:
@@ -177,8 +193,8 @@ class Problem:
                 if key not in groups:
                     groups[key] = _Group(prior, times)
                 keys.append(key)
-                if type(c.point) is ChainPoint:      # subclasses may override the FK
-                    skey = (id(c.point.chain), c.point.dofs, c.point.axes, key)
+                skey = _stack_key(c.point, key)
+                if skey is not None:
                     members = stacks.setdefault(skey, [])
                     if all(m is not c.point for m in members):
                         members.append(c.point)
@@ -188,11 +204,12 @@ class Problem:
         where = {}        # (id(point), times key) -> (_PointMoments, slice or None)
         for skey, members in stacks.items():
             if len(members) > 1:
-                stacked = StackedChainPoints(members)
-                pm = _PointMoments(stacked, groups[skey[3]], prior.n_dims, config.ut_alpha)
+                stacked = (StackedChainPoints(members) if skey[0] == 'chain'
+                           else StackedDifferencePoints(members))
+                pm = _PointMoments(stacked, groups[skey[-1]], prior.n_dims, config.ut_alpha)
                 points[('stack',) + skey] = pm
                 for i, m in enumerate(members):
-                    where[(id(m), skey[3])] = (pm, slice(i * stacked.q, (i + 1) * stacked.q))
+                    where[(id(m), skey[-1])] = (pm, slice(i * stacked.q, (i + 1) * stacked.q))
         self.bound: List = []
         self.weight_constraints: List[WeightConstraint] = []
         self.slices = []

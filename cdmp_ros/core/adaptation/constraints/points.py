@@ -148,3 +148,70 @@ class StackedChainPoints(Point):
         lead = Z.shape[:-1]
         return (X.reshape(lead + (self.n_out,)),
                 J.reshape(lead + (self.n_out, Z.shape[-1])))
+
+
+class StackedDifferencePoints(Point):
+    """Several DifferencePoints of ChainPoints over the same ProMP dimensions (mutual
+    avoidance of two arms, Eq. 22) evaluated together: one forward-kinematics call per chain
+    for all the chain points the differences use, and one unscented transform for all of
+    them. Output: the differences concatenated, member i at ``[i * q, (i + 1) * q)``."""
+
+    def __init__(self, points: Sequence[DifferencePoint]):
+        first = points[0]
+        self.q = first.n_out
+        for p in points:
+            if (type(p.a) is not ChainPoint or type(p.b) is not ChainPoint
+                    or p.dofs != first.dofs or p.n_out != self.q
+                    or p.a.axes != first.a.axes or p.b.axes != first.a.axes):
+                raise ValidationError('points: expected differences of chain points with the '
+                                      'same dofs and axes')
+        self.points = list(points)
+        self.dofs = first.dofs
+        self.axes = first.a.axes
+        self.n_out = self.q * len(self.points)
+        # per chain (and its dofs): the distinct points of interest, in order of appearance,
+        # and where the chain's dofs sit among self.dofs (a slice when contiguous)
+        self._chains = {}
+        self._where = []            # per member: (chain key, point index) of a and of b
+        for p in self.points:
+            ends = []
+            for cp in (p.a, p.b):
+                key = (id(cp.chain), cp.dofs)
+                if key not in self._chains:
+                    idx = tuple(int(i) for i in np.searchsorted(self.dofs, cp.dofs))
+                    self._chains[key] = (cp.chain, _axes_index(idx), [])
+                pois = self._chains[key][2]
+                if cp.point not in pois:
+                    pois.append(cp.point)
+                ends.append((key, pois.index(cp.point)))
+            self._where.append(tuple(ends))
+        self._disjoint = {(ka, kb) for (ka, _), (kb, _) in self._where
+                          if not set(ka[1]) & set(kb[1])}
+
+    def forward_and_jacobian(self, Z):
+        ax = _axes_index(self.axes)
+        fk = {}
+        for key, (chain, idx, pois) in self._chains.items():
+            X, J = chain.forward_and_jacobian(Z[..., idx], pois)
+            if self.axes != (0, 1, 2):
+                X, J = X[..., ax], J[..., ax, :]
+            fk[key] = (X, J)
+        lead = Z.shape[:-1]
+        q = self.q
+        X = np.empty(lead + (self.n_out,))
+        J = np.zeros(lead + (self.n_out, len(self.dofs)))
+        for i, ((ka, ia), (kb, ib)) in enumerate(self._where):
+            Xa, Ja = fk[ka][0][..., ia, :], fk[ka][1][..., ia, :, :]
+            Xb, Jb = fk[kb][0][..., ib, :], fk[kb][1][..., ib, :, :]
+            rows = slice(i * q, (i + 1) * q)
+            X[..., rows] = Xa - Xb
+            da, db = self._chains[ka][1], self._chains[kb][1]
+            if ka == kb:                             # two points of one chain
+                J[..., rows, da] = Ja - Jb
+            elif (ka, kb) in self._disjoint:         # the usual case: two arms
+                J[..., rows, da] = Ja
+                J[..., rows, db] = -Jb
+            else:                                    # chains sharing ProMP dimensions
+                J[..., rows, da] += Ja
+                J[..., rows, db] -= Jb
+        return X, J
