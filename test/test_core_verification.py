@@ -467,3 +467,32 @@ def test_experiment_rows_report_the_verification():
     names = [r['name'] for r in verification_rows('x', report)]
     assert names == ['x.verified_per_step_max_pct', 'x.verified_trajectory_pct',
                      'x.verified_trajectory_upper95_pct', 'x.verified']
+
+
+def test_mutual_avoidance_pairs_share_the_kinematics_of_their_points(monkeypatch):
+    """The differences of chain points (mutual avoidance of two arms) are checked on positions
+    computed once per arm for all the pairs' points: the same reports as each pair's own
+    kinematics, with violations that occur (pairs near each other)."""
+    import pybullet_data
+    import cdmp_ros.core.adaptation.verification as verification
+    from cdmp_ros.core.adaptation.constraints import MutualAvoidance
+    from cdmp_ros.core.kinematics import dual_panda_chains
+    chains = dual_panda_chains(pybullet_data.getDataPath() + '/franka_panda/panda.urdf',
+                               distance=0.9)
+    pts = [[ChainPoint(c, PointOfInterest(link), range(7 * a, 7 * a + 7))
+            for link in ('ee', 'panda_hand', 'panda_link4')] for a, c in enumerate(chains)]
+    M = 4
+    rng = np.random.default_rng(3)
+    A = rng.normal(0.0, 1.0, (14 * M, 14 * M))
+    reach = np.r_[0.0, 0.6, 0.0, -1.2, 0.0, 1.8, 0.8]
+    p = ProMP(14, RbfBasis.uniform(M), np.tile(reach, 2).repeat(M),
+              0.002 * A @ A.T + 1e-3 * np.eye(14 * M))
+    cons = [MutualAvoidance(pts[0][i], pts[1][j], 0.25, alpha=0.99, name=f'pair_{i}{j}')
+            for i, j in ((0, 0), (0, 1), (1, 0), (2, 2))]
+    cons.append(Hyperplane(pts[0][0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.1], alpha=0.99))
+    shared = verify(p, cons, 400, np.random.default_rng(0), n_steps=20, threads=1)
+    monkeypatch.setattr(verification, '_difference_ends', lambda *a: None)
+    apart = verify(p, cons, 400, np.random.default_rng(0), n_steps=20, threads=1)
+    assert shared.constraints == apart.constraints
+    assert shared.trajectory_violation == apart.trajectory_violation
+    assert any(0.0 < c.per_step_max for c in shared.constraints[:4]), shared.constraints

@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 from scipy.stats import beta as beta_dist, binom
 
 from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
-from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DofPoint
+from cdmp_ros.core.adaptation.constraints.points import ChainPoint, DifferencePoint, DofPoint
 from cdmp_ros.core.adaptation.verification_report import (DETECTION_POWER, GUARANTEES,
                                                           ConstraintVerification, Verification)
 from cdmp_ros.core.errors import ValidationError
@@ -397,6 +397,7 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
             for i, m in enumerate(g.members):
                 X_of[(id(m), tkey)] = g._axes(X, i)
         ran += n_run
+    _difference_ends(constraints, grid, Z, X_of, violated)
     out = []
     for c in constraints:
         if isinstance(c, WeightConstraint):
@@ -409,11 +410,38 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
         tkey = times.tobytes()
         p = c.point
         X = X_of.get((id(p), tkey))
+        if X is None and type(p) is DifferencePoint:
+            Xa, Xb = X_of.get((id(p.a), tkey)), X_of.get((id(p.b), tkey))
+            if Xa is not None and Xb is not None:
+                X = Xa - Xb
         if X is None:
             Zc = _columns(Z[tkey], p.dofs)
             X = Zc if type(p) is DofPoint else p.forward(Zc)
         out.append(~np.asarray(c.satisfied(X, times), bool))
     return out, ran
+
+
+def _difference_ends(constraints: Sequence, grid: NDArray, Z: Dict[bytes, NDArray],
+                     X_of: Dict[Tuple[int, bytes], NDArray], violated: Dict[int, NDArray]
+                     ) -> None:
+    """Positions of the chain points of differences (mutual avoidance) into ``X_of``: one
+    forward-kinematics call per chain, dofs and time grid for all of its points that ``X_of``
+    does not hold yet (the pairs share them: two arms, a few points each)."""
+    pending: Dict[tuple, list] = {}
+    for c in constraints:
+        if (not isinstance(c, Constraint) or id(c) in violated
+                or type(c.point) is not DifferencePoint):
+            continue
+        tkey = c.times(grid).tobytes()
+        for cp in (c.point.a, c.point.b):
+            if type(cp) is ChainPoint and (id(cp), tkey) not in X_of:
+                members = pending.setdefault((id(cp.chain), cp.dofs, cp.axes, tkey), [])
+                if all(m is not cp for m in members):
+                    members.append(cp)
+    for (_, dofs, axes, tkey), members in pending.items():
+        X = members[0].chain.forward(_columns(Z[tkey], dofs), [m.point for m in members])
+        for i, m in enumerate(members):
+            X_of[(id(m), tkey)] = X[..., i, list(axes)] if axes != (0, 1, 2) else X[..., i, :]
 
 
 def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.Generator,
