@@ -40,7 +40,7 @@ from cdmp_ros.bag.reader import BagReader  # noqa: E402
 from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
 from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance  # noqa: E402
-from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling  # noqa: E402
+from cdmp_ros.core.streaming.streamer import ReferenceStreamer, coupling_of  # noqa: E402
 from cdmp_ros.cli.cmd_bringup import streamer_configs  # noqa: E402
 from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules  # noqa: E402
 
@@ -58,8 +58,7 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
                               coupling_max_acceleration=bound)
     capsules = load_collision_capsules('', cfg.coupling_capsule_links, chain=chain)
-    coupling = streamer_coupling(chain, cfg, configs['coupling'], damping=configs['damping'],
-                                 repeller=configs['repeller'], capsules=capsules)
+    coupling = coupling_of(chain, dict(configs, **{'': cfg}), capsules)
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
     selection = AdaptationSelector(cfg.stream_unadapted)
     obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,

@@ -32,12 +32,11 @@ DEMO_GRAPH = os.path.join(ROOT, 'config', 'graphs', 'demo.yaml')
 def demo_coupling(chain):
     """The obstacle coupling of the demo graph's streamer, as the node builds it."""
     from cdmp_ros.cli.cmd_bringup import streamer_configs
-    from cdmp_ros.core.streaming.streamer import streamer_coupling
+    from cdmp_ros.core.streaming.streamer import coupling_of
     from cdmp_ros.ros.robot_model import load_collision_capsules
     c = streamer_configs(DEMO_GRAPH)
-    capsules = load_collision_capsules('', c[''].coupling_capsule_links, chain=chain)
-    return streamer_coupling(chain, c[''], c['coupling'], c['damping'], c['repeller'],
-                             c['box_field'], c['board_field'], capsules)
+    return coupling_of(chain, c, load_collision_capsules('', c[''].coupling_capsule_links,
+                                                         chain=chain))
 
 
 def kernels():

@@ -209,14 +209,11 @@ def _package_dir() -> str:
 
 def _kernel_dirs() -> Set[str]:
     """Where cdmp_ros writes the kernels it generates at run time (outside the package)."""
-    import tempfile
-    dirs = [os.path.join(tempfile.gettempdir(), f'cdmp_ros_kernels_{os.getuid()}')]
     try:
-        from cdmp_ros.core.generated import cache_dir
-        dirs.append(cache_dir())
+        from cdmp_ros.core.generated import cache_dir, fallback_dir
     except ImportError:  # a version without a kernel cache
-        pass
-    return {os.path.realpath(d) for d in dirs}
+        return set()
+    return {os.path.realpath(d) for d in (cache_dir(), fallback_dir())}
 
 
 def _classify(calls, trace: PathTrace) -> None:
@@ -269,6 +266,10 @@ class _Window:
         self.main = threading.get_ident()
         self.tick = None
         self.on = self.done = False
+        #: the calling thread is delivering the obstacle: recorded to the end of the delivery
+        #: even if the tick thread published meanwhile (it may wake at its deadline and take
+        #: the obstacle before the delivery has woken it)
+        self.delivering = False
         self.obstacle = True
         self.calls = set()
         self.coupled = False   # the coupling flag of the reference that closed the window
@@ -286,10 +287,13 @@ class _Window:
         return bool(self.node._latency_pending_ns)
 
     def profile(self, frame, event, arg):
-        if event != 'call' or not self.on or self.done:
+        if event != 'call' or not self.on:
             return
         ident = threading.get_ident()
-        if ident != self.main and (ident != self.tick or not self._pending()):
+        if ident == self.main:
+            if self.done and not self.delivering:
+                return
+        elif ident != self.tick or self.done or not self._pending():
             return
         code = frame.f_code
         filename = code.co_filename
@@ -416,7 +420,11 @@ def measure(sphere: Sequence[float] = DEFAULT_SPHERE, marker: str = 'sphere',
         window.open(obstacle=True)
         sys.setprofile(window.profile)
         try:
-            _deliver(obstacles, data)
+            window.delivering = True
+            try:
+                _deliver(obstacles, data)
+            finally:
+                window.delivering = False
             tick_until(lambda: window.done, 'the first reference after the obstacle')
         finally:
             sys.setprofile(None)

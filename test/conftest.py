@@ -1,8 +1,11 @@
 """Shared fixtures. ROS processes started by tests obey the network rule: localhost-only
 discovery and a private ROS_DOMAIN_ID (see ../shared/design.md, Environment facts)."""
+import atexit
 import os
 import random
+import shutil
 import sys
+import tempfile
 import time
 import uuid
 
@@ -22,6 +25,11 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 199)))
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
+# Kernels generated at run time (cdmp_ros.core.generated) go into a directory of this session,
+# inherited by the node processes, removed at its end: the user's ~/.cache stays untouched.
+if 'CDMP_ROS_KERNEL_CACHE' not in os.environ:
+    os.environ['CDMP_ROS_KERNEL_CACHE'] = tempfile.mkdtemp(prefix='cdmp_ros_kernels_')
+    atexit.register(shutil.rmtree, os.environ['CDMP_ROS_KERNEL_CACHE'], True)
 
 
 def module_domain(offset: int) -> int:

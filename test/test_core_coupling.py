@@ -881,3 +881,72 @@ def test_an_end_effector_ball_is_a_larger_obstacle(panda, rng):
     assert active >= 4
     with pytest.raises(ValidationError, match='end_effector_radius'):
         CouplingConfig(end_effector_radius=-0.1)
+
+
+# ------------------------------------------------------------------ every kernel variant
+def _prismatic_planar():
+    """A 3-joint planar chain whose middle joint slides along z (a prismatic column)."""
+    from cdmp_ros.core.kinematics import Chain
+    p = planar_chain([1.0, 0.8, 0.5])
+    return Chain(p.joint_names, [False, True, False], p.B, p.base_transform, p.attachments,
+                 p.link_names, p.ee_link, p.ee_offset, p.lower, p.upper, p.velocity_limits)
+
+
+@pytest.mark.parametrize('case', ['planar near the limits', 'prismatic joint'])
+def test_planar_and_prismatic_kernels_match_the_oracle(case, rng):
+    """The generated kernel with task axes (0, 1) (zero third rows) near the joint limits (the
+    limit-aware Eq. 12 active), and on a chain with a prismatic joint, against the numpy
+    oracle."""
+    chain = planar_chain([1.0, 0.8, 0.5]) if case.startswith('planar') else _prismatic_planar()
+    field = RepellerField(gain=0.5, influence_distance=1.0, min_distance=0.01)
+    coupling = ObstacleCoupling(chain, ['link1', 'link2'], field,
+                                config=CouplingConfig(damping=DAMP))
+    centre, delta = (chain.lower + chain.upper) / 2, (chain.upper - chain.lower) / 2
+    n_weighted = 0
+    for _ in range(15):
+        q = rng.uniform(-0.8, 0.8, 3) * delta + centre
+        if case.startswith('planar'):
+            j = int(rng.integers(3))
+            q[j] = centre[j] + rng.choice([-1.0, 1.0]) * rng.uniform(0.9, 0.97) * delta[j]
+        X = chain.forward(q, [PointOfInterest('ee'), PointOfInterest('link2')])
+        obstacles = [Sphere((X[0, 0] + 0.3, X[0, 1] - 0.2, X[0, 2]), 0.1),
+                     Sphere((X[1, 0] - 0.2, X[1, 1] + 0.3, X[1, 2]), 0.1)]
+        got = coupling.joint_acceleration(q, None, obstacles)
+        ref = _reference_coupling(chain, q, obstacles, coupling.segments, field, None, 0.0)
+        assert np.abs(ref).max() > 1e-3
+        np.testing.assert_allclose(got, ref, atol=1e-9 * max(1.0, np.abs(ref).max()))
+        s = limit_scale(q, chain.lower, chain.upper, 0.9, 0.95)
+        n_weighted += bool(np.any(s < 1.0))
+    if case.startswith('planar'):
+        assert n_weighted == 15
+
+
+def test_an_end_effector_task_adds_eq7_without_the_obstacle_fields(panda, rng):
+    """``ee_task`` with ``end_effector=False``: Eq. 7 of the task's acceleration (at the
+    velocity J qd) plus the links' Eq. 12, against the numpy oracle; the task alone (no
+    obstacle within reach) still acts."""
+    field = RepellerField(gain=0.05, influence_distance=0.4, min_distance=0.01)
+    target = np.array([0.4, 0.1, 0.5])
+
+    def hold(x, xd):
+        return tuple(20.0 * (target - np.asarray(x)) - 4.0 * np.asarray(xd))
+
+    coupling = ObstacleCoupling(panda, ['panda_link3', 'panda_link5'], field,
+                                config=CouplingConfig(damping=DAMP, end_effector=False),
+                                ee_task=hold)
+    assert 'qd0' in coupling._coupled.source
+    for _ in range(6):
+        q = _well_conditioned_q(panda, rng)
+        qd = rng.normal(size=7)
+        X = panda.forward(q, [PointOfInterest('ee'), PointOfInterest('panda_link5')])
+        obstacles = [Sphere(tuple(X[1] + rng.normal(size=3) * 0.08), 0.05)]
+        got = coupling.joint_acceleration(q, qd, obstacles)
+        links, _ = _batched_reference(panda, q, obstacles, coupling.segments, field, None,
+                                      0.0, DAMP, end_effector=False)
+        x, J = panda.forward_and_jacobian(q[None], [PointOfInterest('ee')])
+        ref = links + end_effector_term(J[0, 0], hold(x[0, 0], J[0, 0] @ qd), DAMP)
+        np.testing.assert_allclose(got, ref, atol=1e-9 * max(1.0, np.abs(ref).max()))
+    far = [Sphere((5.0, 5.0, 5.0), 0.1)]
+    alone = coupling.joint_acceleration(q, qd, far)
+    np.testing.assert_allclose(alone, end_effector_term(J[0, 0], hold(x[0, 0], J[0, 0] @ qd),
+                                                        DAMP), atol=1e-9)

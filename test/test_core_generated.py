@@ -66,8 +66,8 @@ def test_any_other_configuration_runs_a_module_written_into_the_kernel_cache(
         panda, tmp_path, monkeypatch):
     """Another tool centre point: other source, written by the same generator into the kernel
     cache, with a header naming the generator and the configuration; a second coupling of the
-    same configuration reuses the file; an unwritable cache falls back to a temporary
-    directory."""
+    same configuration reuses the file; an unwritable cache falls back to a private temporary
+    directory, and a directory others may write into is never imported from."""
     from cdmp_ros.core import generated
     from cdmp_ros.core.streaming.streamer import StreamerConfig, streamer_coupling
     monkeypatch.setenv('CDMP_ROS_KERNEL_CACHE', str(tmp_path / 'kernels'))
@@ -90,9 +90,20 @@ def test_any_other_configuration_runs_a_module_written_into_the_kernel_cache(
     blocker.write_text('')
     monkeypatch.setenv('CDMP_ROS_KERNEL_CACHE', str(blocker / 'kernels'))
     monkeypatch.setattr(generated, '_LOADED', {})
+    private = tmp_path / 'private'
+    monkeypatch.setattr(generated, 'fallback_dir', lambda: str(private))
     third = streamer_coupling(panda, StreamerConfig(tcp_offset=(0.0, 0.0, 0.3)))
-    assert os.path.isfile(third._coupled.path)
-    assert not third._coupled.path.startswith(str(blocker))
+    assert os.path.dirname(third._coupled.path) == str(private)
+    assert os.stat(private).st_mode & 0o777 == 0o700
+    # a directory others may write into is not imported from: compiled in memory instead
+    shared = tmp_path / 'shared'
+    shared.mkdir()
+    os.chmod(shared, 0o777)
+    monkeypatch.setattr(generated, 'fallback_dir', lambda: str(shared))
+    monkeypatch.setattr(generated, '_LOADED', {})
+    fourth = streamer_coupling(panda, StreamerConfig(tcp_offset=(0.0, 0.0, 0.4)))
+    assert fourth._coupled.path.startswith('<generated, not written')
+    assert 'closed to others' in fourth._coupled.path and not os.listdir(shared)
 
 
 def test_the_checked_in_coupling_computes_what_its_source_computes(panda):

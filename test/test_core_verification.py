@@ -490,9 +490,16 @@ def test_mutual_avoidance_pairs_share_the_kinematics_of_their_points(monkeypatch
     cons = [MutualAvoidance(pts[0][i], pts[1][j], 0.25, alpha=0.99, name=f'pair_{i}{j}')
             for i, j in ((0, 0), (0, 1), (1, 0), (2, 2))]
     cons.append(Hyperplane(pts[0][0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.1], alpha=0.99))
+    # a constraint that keeps the screened group of pts[0][0] out of the per-step path: its
+    # positions there are the screen's centres where it decided, valid for its own
+    # constraints only (the pairs must not use them)
+    tcp = pts[0][0].forward(p.mean(np.linspace(0.0, 1.0, 20))[:, :7])
+    cons.append(UnboundWaypoint(pts[0][0], tcp[10], 0.05, alpha=0.9, name='via'))
     shared = verify(p, cons, 400, np.random.default_rng(0), n_steps=20, threads=1)
-    monkeypatch.setattr(verification, '_difference_ends', lambda *a: None)
+    full = verify(p, cons, 400, np.random.default_rng(0), n_steps=20, threads=1, screen=False)
+    monkeypatch.setattr(verification, '_difference_ends', lambda *a: {})
     apart = verify(p, cons, 400, np.random.default_rng(0), n_steps=20, threads=1)
-    assert shared.constraints == apart.constraints
+    assert shared.constraints == apart.constraints == full.constraints
     assert shared.trajectory_violation == apart.trajectory_violation
     assert any(0.0 < c.per_step_max for c in shared.constraints[:4]), shared.constraints
+    assert 0.0 < shared.kinematics_fraction < 1.0, shared.kinematics_fraction

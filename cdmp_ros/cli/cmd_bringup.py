@@ -242,22 +242,17 @@ def load_graph(path: str) -> Graph:
 
 def streamer_configs(graph_file: str, overrides: Optional[dict] = None) -> dict:
     """The configs of the streamer node of ``graph_file`` from its inline parameters (the
-    values of config/streamer.yaml are the dataclass defaults): ``{'': StreamerConfig,
-    'coupling': CouplingConfig, 'damping': DampingConfig, 'repeller': RepellerField,
-    'box_field': ConstantField, 'board_field': BoardField}`` (the sections of the node's
-    parameters), ``overrides`` (``{'section.name': value}``) applied on top.
+    values of config/streamer.yaml are the dataclass defaults), one per section of
+    :data:`cdmp_ros.core.streaming.streamer.PARAMETER_SECTIONS`, ``overrides``
+    (``{'section.name': value}``) applied on top.
 
     Raises
     ------
     ValidationError
         No streamer node, or a parameter of no section.
     """
-    from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig
-    from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
-    from cdmp_ros.core.streaming.config import StreamerConfig
-    sections = {'': StreamerConfig, 'coupling': CouplingConfig, 'damping': DampingConfig,
-                'repeller': RepellerField, 'box_field': ConstantField,
-                'board_field': BoardField}
+    from cdmp_ros.core.streaming.streamer import PARAMETER_SECTIONS
+    sections = dict(PARAMETER_SECTIONS)
     spec = next((s for s in load_graph(graph_file).nodes if s.executable == 'streamer'), None)
     if spec is None:
         raise ValidationError(f'{graph_file}: expected a node with executable streamer')

@@ -42,16 +42,16 @@ from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.braking import influence_warning, primitive_braking_distance
 from cdmp_ros.core.errors import CdmpError
-from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.joint_limits import describe_mismatches
-from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
+from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
 from cdmp_ros.core.streaming.latency import LatencyRing
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance
 from cdmp_ros.core.streaming.config import DEFAULT_CONTROLLER_TOPICS
 from cdmp_ros.core.streaming.schedule import ClockOffset, TickSchedule, clock_offset_ns
-from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, StreamerConfig, StreamFlags,
-                                              StreamState, streamer_coupling)
+from cdmp_ros.core.streaming.streamer import (PARAMETER_SECTIONS, ReferenceStreamer,
+                                              StreamerConfig, StreamFlags, StreamState,
+                                              coupling_of)
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.convert import (ForwardCommandWriter, JointStateMapper, JointStateWriter,
@@ -81,11 +81,8 @@ class StreamerNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('streamer', **kwargs)
-        self.params = ConfigParameters(
-            self, [('', StreamerConfig), ('coupling', CouplingConfig),
-                   ('damping', DampingConfig), ('repeller', RepellerField),
-                   ('box_field', ConstantField), ('board_field', BoardField)],
-            on_change=self._on_params)
+        self.params = ConfigParameters(self, list(PARAMETER_SECTIONS),
+                                       on_change=self._on_params)
         cfg: StreamerConfig = self.params['']
         # the limits, kinematics and capsules of the robot: the robot_description parameter,
         # else the robot_description topic (robot_description_timeout), else urdf_path
@@ -210,9 +207,7 @@ class StreamerNode(Node):
         return out
 
     def _make_coupling(self, configs) -> ObstacleCoupling:
-        return streamer_coupling(self.chain, configs[''], configs['coupling'],
-                                 configs['damping'], configs['repeller'], configs['box_field'],
-                                 configs['board_field'], self.capsules)
+        return coupling_of(self.chain, configs, self.capsules)
 
     def _controller_output(self, cfg: StreamerConfig):
         """The publisher and writer of ``controller_output`` (None, None for 'none'); the

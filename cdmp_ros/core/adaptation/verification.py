@@ -397,7 +397,7 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
             for i, m in enumerate(g.members):
                 X_of[(id(m), tkey)] = g._axes(X, i)
         ran += n_run
-    _difference_ends(constraints, grid, Z, X_of, violated)
+    ends = _difference_ends(constraints, grid, Z, violated)
     out = []
     for c in constraints:
         if isinstance(c, WeightConstraint):
@@ -411,7 +411,7 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
         p = c.point
         X = X_of.get((id(p), tkey))
         if X is None and type(p) is DifferencePoint:
-            Xa, Xb = X_of.get((id(p.a), tkey)), X_of.get((id(p.b), tkey))
+            Xa, Xb = ends.get((id(p.a), tkey)), ends.get((id(p.b), tkey))
             if Xa is not None and Xb is not None:
                 X = Xa - Xb
         if X is None:
@@ -422,11 +422,11 @@ def _evaluate_chunk(promp: ProMP, constraints: Sequence, W: NDArray, grid: NDArr
 
 
 def _difference_ends(constraints: Sequence, grid: NDArray, Z: Dict[bytes, NDArray],
-                     X_of: Dict[Tuple[int, bytes], NDArray], violated: Dict[int, NDArray]
-                     ) -> None:
-    """Positions of the chain points of differences (mutual avoidance) into ``X_of``: one
-    forward-kinematics call per chain, dofs and time grid for all of its points that ``X_of``
-    does not hold yet (the pairs share them: two arms, a few points each)."""
+                     violated: Dict[int, NDArray]) -> Dict[Tuple[int, bytes], NDArray]:
+    """The exact positions of the chain points of differences (mutual avoidance), keyed
+    ``(id(point), time key)``: one forward-kinematics call per chain, dofs and time grid for
+    all of them (the pairs share them: two arms, a few points each). Exact, never a screened
+    group's centres: a group's screen decides only its own constraints."""
     pending: Dict[tuple, list] = {}
     for c in constraints:
         if (not isinstance(c, Constraint) or id(c) in violated
@@ -434,14 +434,16 @@ def _difference_ends(constraints: Sequence, grid: NDArray, Z: Dict[bytes, NDArra
             continue
         tkey = c.times(grid).tobytes()
         for cp in (c.point.a, c.point.b):
-            if type(cp) is ChainPoint and (id(cp), tkey) not in X_of:
+            if type(cp) is ChainPoint:
                 members = pending.setdefault((id(cp.chain), cp.dofs, cp.axes, tkey), [])
                 if all(m is not cp for m in members):
                     members.append(cp)
+    ends: Dict[Tuple[int, bytes], NDArray] = {}
     for (_, dofs, axes, tkey), members in pending.items():
         X = members[0].chain.forward(_columns(Z[tkey], dofs), [m.point for m in members])
         for i, m in enumerate(members):
-            X_of[(id(m), tkey)] = X[..., i, list(axes)] if axes != (0, 1, 2) else X[..., i, :]
+            ends[(id(m), tkey)] = X[..., i, list(axes)] if axes != (0, 1, 2) else X[..., i, :]
+    return ends
 
 
 def verify(promp: ProMP, constraints: Sequence, n_samples: int, rng: np.random.Generator,

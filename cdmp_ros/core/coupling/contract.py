@@ -6,13 +6,8 @@ Every consumer (``DMP.rollout``, :class:`~cdmp_ros.core.dmp.stepper.DmpStepper` 
 experiments) calls ``coupling.joint_acceleration(q, qd, obstacles)`` and hands the result to
 the stepper, which alone maps it into the exogenous space of a CDMP (Eq. 21/29, paper 000, with
 the cap near saturation). :class:`~cdmp_ros.core.coupling.obstacle.ObstacleCoupling` (Eq. 7 and
-12) is the implementation for a kinematic chain.
-
-:func:`bound_into` is the one bound of a coupling's magnitude (the streamer's
-``coupling_max_acceleration``): potential fields grow without bound as an obstacle approaches
-(a FIRAS repeller like ``1/d^3``), and an obstacle that appears inside or next to a link can
-ask for an acceleration that moves the reference from mid-range onto the joint limits in one
-tick.
+12) is the implementation for a kinematic chain; the streamer bounds its result
+(:func:`cdmp_ros.core.streaming.streamer.bound_into`).
 """
 from typing import List, Optional, Protocol, Sequence, runtime_checkable
 

@@ -8,11 +8,11 @@ the product's default configurations, else written into the kernel cache):
 
 1. forward kinematics of the end effector and of the segment end points (the frame recursion of
    :mod:`cdmp_ros.core.kinematics.codegen`, constants folded); with velocity-dependent fields
-   also their velocities ``J qd``;
+   also their velocities ``J qd`` (with an end-effector task only, the end effector's);
 2. a call ``gate(x, obstacles[, xd])`` (closest points and potential fields:
    :class:`~cdmp_ros.core.coupling.obstacle.ClosestPointGate`) that returns None when no field
-   is active (then no Jacobian is computed at all) or the end-effector acceleration and, per
-   link, the closest point ``p`` (world) and its acceleration;
+   is active (then, without velocities, no Jacobian is computed at all) or the end-effector
+   acceleration and, per link, the closest point ``p`` (world) and its acceleration;
 3. the end-effector Jacobian and, per active link, the Jacobian ``J_o`` of the point ``p``
    rigidly attached to the link (columns ``z_j x (p - o_j)`` of the joints that move it only:
    the others are zero and are folded away); rows outside the chain's task axes are zero
@@ -296,7 +296,7 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
                      segments: Sequence[Tuple[int, Sequence[float], Sequence[float]]],
                      axes: Sequence[int] = (0, 1, 2),
                      limits: Optional[Tuple[Sequence[float], Sequence[float], float, float]]
-                     = None, velocity: bool = False, title: str = 'Obstacle coupling',
+                     = None, velocity=False, title: str = 'Obstacle coupling',
                      description: str = '') -> Callable:
     """Generate ``coupled(q, qd, gate, obstacles, eps2, lam2) -> list of n_dofs floats or
     None`` as a module (module docstring).
@@ -314,9 +314,10 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
     limits : (lower, upper, onset, lock), optional
         Joint limits and the limit usages where the limit-aware weighting of Eq. (12) starts
         and where it no longer moves a joint; None: Eq. (12) as is.
-    velocity : bool
-        The fields depend on the velocity: ``gate`` also receives the velocities ``xd`` (same
-        layout as ``x``) computed from ``qd``.
+    velocity : {False, 'ee', 'all'}
+        ``'all'`` (fields that depend on the velocity): ``gate`` also receives the velocities
+        ``xd`` of every point (same layout as ``x``) computed from ``qd``; ``'ee'`` (an
+        end-effector task only): ``xd`` holds the end effector's velocity alone (3 values).
     title, description : str
         The generated module's first line and its description of the configuration.
 
@@ -347,11 +348,11 @@ def compile_coupling(B, base, prismatic, ee: Tuple[int, Sequence[float]],
         points += [(k, emit_point(em, Rs, ps, k, start)), (k, emit_point(em, Rs, ps, k, end))]
     xs = [v for _, x in points for v in x]
     gate_args = '[' + ', '.join(literal(v) for v in xs) + '], obstacles'
-    if velocity:                      # xd = J qd of every point, for the fields
+    if velocity:                      # xd = J qd of the points, for the fields or ee_task
         qdn = [f'qd{k}' for k in range(n)]
         em.lines.append(f'    {", ".join(qdn)}, = qd')
         xds = []
-        for k, x in points:
+        for k, x in (points if velocity == 'all' else points[:1]):
             cols = emit_jacobian(em, Rs, ps, prismatic, k, x)
             xds += [em.sum([(1.0, col[r], qdn[j]) for j, col in enumerate(cols)])
                     for r in range(3)]

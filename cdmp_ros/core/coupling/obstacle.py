@@ -92,7 +92,7 @@ class CouplingConfig:
         Radius [m] of the capsules modelling the links (distances are to the capsule surface).
     end_effector : bool
         Apply the fields to the end-effector point (Eq. 7). The link terms always act in the
-        null space of the end-effector task.
+        null space of the end-effector task; an ``ee_task`` of the coupling acts either way.
     limit_aware : bool
         Weight the link terms (Eq. 12) away from joints near their limits (weighted least
         norm, module docstring); False: Eq. (12) as is.
@@ -217,8 +217,11 @@ class ObstacleCoupling:
             points += [PointOfInterest(name, start), PointOfInterest(name, end)]
         self.points = tuple(points)
         frames, coords = chain.resolve(self.points)
-        self._velocity = ee_task is not None or any(
-            getattr(f, 'damping', 0.0) for f in (sphere_field, box_field))
+        # 'all': velocity-dependent fields (every point's velocity); 'ee': an end-effector
+        # task only (the end effector's velocity)
+        self._velocity = ('all' if any(getattr(f, 'damping', 0.0)
+                                       for f in (sphere_field, box_field))
+                          else 'ee' if ee_task is not None else False)
         self.last_distances: List[float] = []
         self._eps2 = config.damping.epsilon ** 2
         self._lam2 = config.damping.lambda_max ** 2
@@ -250,8 +253,9 @@ class ObstacleCoupling:
             lo, hi = (', '.join(f'{v:.6g}' for v in side) for side in limits[:2])
             lines.append(f'the limit-aware Eq. (12) from limit usage {limits[2]!r} to '
                          f'{limits[3]!r} of the limits [{lo}] .. [{hi}];')
-        lines.append('the fields depend on the velocity: the gate gets xd = J qd.'
-                     if self._velocity else 'fields independent of the velocity.')
+        lines.append({'all': 'the fields depend on the velocity: the gate gets xd = J qd.',
+                      'ee': 'an end-effector task: the gate gets its velocity J qd.'}.get(
+                          self._velocity, 'fields independent of the velocity.'))
         return '\n'.join(lines)
 
     def joint_acceleration(self, q: Sequence[float], qd: Optional[Sequence[float]],
@@ -296,9 +300,9 @@ class ClosestPointGate:
     ``[e0, e1, e2] + [active, p (3), dx (3)] * n_links``; ``distances`` then holds the signed
     distance of the end effector and of every link to its nearest obstacle. ``x`` (and the
     velocities ``xd``, for velocity-dependent fields) list the end effector, then the start
-    and end of every segment (world); the velocity of a link's closest point is interpolated
-    between its segment's ends (exact: point velocities of one rigid link are affine in the
-    point).
+    and end of every segment (world); ``xd`` of 3 values is the end effector's alone (an
+    end-effector task); the velocity of a link's closest point is interpolated between its
+    segment's ends (exact: point velocities of one rigid link are affine in the point).
     """
 
     def __init__(self, radii: Sequence[float], sphere_field, box_field, config,
@@ -402,7 +406,7 @@ class ClosestPointGate:
             if best is not None:
                 t = bt
                 p = (a0 + t * u0, a1 + t * u1, a2 + t * u2)
-                if xd is None:
+                if xd is None or len(xd) == 3:                 # no link velocities
                     v = ZERO
                 else:
                     s = 1.0 - t

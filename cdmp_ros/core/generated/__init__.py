@@ -12,9 +12,11 @@ source into a function whose code lives in a file:
   written by ``python scripts/gen_kernels.py``; test/test_core_generated.py regenerates them
   and fails on any difference;
 - else a module in the kernel cache (:func:`cache_dir`: ``$CDMP_ROS_KERNEL_CACHE``, else
-  ``$XDG_CACHE_HOME/cdmp_ros/kernels`` or ``~/.cache/cdmp_ros/kernels``; a temporary
-  directory if that is not writable), named after the function and the hash of its source,
-  with a header naming the generator and the configuration.
+  ``$XDG_CACHE_HOME/cdmp_ros/kernels`` or ``~/.cache/cdmp_ros/kernels``; :func:`fallback_dir`
+  if that is not usable), named after the function and the hash of its source, with a header
+  naming the generator and the configuration. Code is imported from these directories, so
+  they must belong to the user and be closed to writes of others (else the source is compiled
+  in memory).
 
 Either way tracebacks and profiles point into a file whose first lines say what it is.
 """
@@ -23,13 +25,14 @@ import importlib
 import importlib.util
 import os
 import re
+import stat
 import tempfile
 import textwrap
 import threading
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
-__all__ = ['load_generated', 'lookup', 'cache_dir', 'source_hash', 'render_module',
-           'render_index', 'wrap_line']
+__all__ = ['load_generated', 'lookup', 'cache_dir', 'fallback_dir', 'source_hash',
+           'render_module', 'render_index', 'wrap_line']
 
 #: Longest line of a rendered module (flake8's limit in this project).
 MAX_LINE = 99
@@ -160,9 +163,25 @@ _LOADED: Dict[str, Callable] = {}
 _LOCK = threading.Lock()
 
 
+def fallback_dir() -> str:
+    """The temporary directory of the kernels when :func:`cache_dir` is not writable."""
+    return os.path.join(tempfile.gettempdir(), f'cdmp_ros_kernels_{os.getuid()}')
+
+
+def _private_dir(directory: str) -> Optional[str]:
+    """Create ``directory`` (mode 0700) if needed; what is wrong with it, or None when it is a
+    directory of this user that no one else may write (code is imported from it)."""
+    os.makedirs(directory, mode=0o700, exist_ok=True)
+    st = os.lstat(directory)
+    if (not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid()
+            or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
+        return f'not a directory of uid {os.getuid()} closed to others'
+    return None
+
+
 def _write(directory: str, filename: str, text: str) -> str:
-    """``text`` as ``directory/filename`` (kept if already identical; written atomically)."""
-    os.makedirs(directory, exist_ok=True)
+    """``text`` as ``directory/filename`` (kept if already identical; written atomically), in
+    a directory :func:`_private_dir` accepted."""
     path = os.path.join(directory, filename)
     try:
         with open(path, encoding='utf-8') as f:
@@ -186,17 +205,19 @@ def _write(directory: str, filename: str, text: str) -> str:
 
 
 def _cached(source: str, name: str, text: str) -> Callable:
-    """The function ``name`` of ``text`` written into the kernel cache (or a temporary
-    directory) and imported from there; compiled in memory only if neither is writable."""
+    """The function ``name`` of ``text`` written into the kernel cache (or a private temporary
+    directory) and imported from there; compiled in memory only if neither is usable."""
     key = source_hash(source)
     filename = f'{name}_{key[:20]}.py'
     path = None
     errors = []
-    for directory in (cache_dir(), os.path.join(tempfile.gettempdir(),
-                                                f'cdmp_ros_kernels_{os.getuid()}')):
+    for directory in (cache_dir(), fallback_dir()):
         try:
-            path = _write(directory, filename, text)
-            break
+            problem = _private_dir(directory)
+            if problem is None:
+                path = _write(directory, filename, text)
+                break
+            errors.append(f'{directory}: {problem}')
         except OSError as exc:
             errors.append(f'{directory}: {exc}')
     if path is None:

@@ -5,6 +5,6 @@ docstring."""
 INDEX = {
     '409ab1243917111c6ccdae5c236153c4f055046782bc663006d5f00d4aa38516':
         ('panda_coupling', 'coupled'),
-    'fabf4c28382335b2a7325fa6e4281d715103df24f4a9c1fd2f7bd42aadbb33b5':
+    'e7fa87c02c39386b7227f569636b76d5ed067a43afd6d842827a603d5918c9ff':
         ('panda_demo_coupling', 'coupled'),
 }

@@ -47,6 +47,12 @@ RADIUS_STEPS = 120
 MAX_MESH_BYTES = 50_000_000
 
 
+#: Decimals [m] of the fitted capsules' ends (:func:`collision_capsules`), and the largest
+#: distance that rounding moves a point of the axis.
+ENDS_DECIMALS = 9
+ENDS_ROUNDING = 1e-9
+
+
 @dataclass(frozen=True)
 class Capsule:
     """A segment ``start``-``end`` in the frame of ``link`` and a ``radius`` [m]."""
@@ -274,6 +280,9 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
             raise ValidationError(f'links[{i}]: no link {link!r} in {path!r}')
         centres, radii = collision_balls(by_name[link], mesh_dir, f'link {link!r}')
         a, b, r = fit_capsule(centres, radii)
-        out.append(Capsule(link, tuple(float(v) for v in a), tuple(float(v) for v in b),
-                           float(r)))
+        # ends rounded to ENDS_DECIMALS: the fit's last bits follow the CPU's BLAS kernels, the
+        # generated coupling kernels (their source and its hash) must not; the radius grows by
+        # the rounding so that the capsule still encloses the balls
+        a, b = (tuple(round(float(v), ENDS_DECIMALS) for v in e) for e in (a, b))
+        out.append(Capsule(link, a, b, float(r) + ENDS_ROUNDING))
     return out

@@ -61,6 +61,21 @@ MAX_SKIPPED_STAGE_STEPS = 2000
 STAGE_MARGIN = 1e-6
 
 
+#: The sections of the streamer's parameters (``<section>.<name>``; ``''``: StreamerConfig) and
+#: the config class of each: the node declares them, graph files and tools read them.
+PARAMETER_SECTIONS = (('', StreamerConfig), ('coupling', CouplingConfig),
+                      ('damping', DampingConfig), ('repeller', RepellerField),
+                      ('box_field', ConstantField), ('board_field', BoardField))
+
+
+def coupling_of(chain: Chain, configs, capsules: Sequence[Capsule] = ()) -> ObstacleCoupling:
+    """:func:`streamer_coupling` from the configs of every :data:`PARAMETER_SECTIONS`
+    (``configs[section]``)."""
+    return streamer_coupling(chain, configs[''], configs['coupling'], configs['damping'],
+                             configs['repeller'], configs['box_field'], configs['board_field'],
+                             capsules)
+
+
 def streamer_coupling(chain: Chain, config: StreamerConfig,
                       coupling: CouplingConfig = CouplingConfig(),
                       damping: DampingConfig = DampingConfig(),
