@@ -32,6 +32,17 @@ if 'CDMP_ROS_KERNEL_CACHE' not in os.environ:
     atexit.register(shutil.rmtree, os.environ['CDMP_ROS_KERNEL_CACHE'], True)
 
 
+def load_script(name: str):
+    """The module of ``scripts/<name>.py`` (scripts are not a package), executed once per
+    call."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        name, os.path.join(REPO_ROOT, 'scripts', name + '.py'))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def module_domain(offset: int) -> int:
     """A private domain id for one test module: the session's ``ROS_DOMAIN_ID`` plus ``offset``.
 

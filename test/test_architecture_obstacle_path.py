@@ -6,13 +6,12 @@ publishes the first ``joint_reference`` computed with that obstacle: the files o
 whose code runs on that path. docs/architecture.md lists them in the section headed
 **An obstacle message, to the next joint reference**; the two must agree.
 """
-import importlib.util
 import os
 import re
 
 import pytest
 
-from conftest import REPO_ROOT, module_domain
+from conftest import REPO_ROOT, load_script, module_domain
 
 SCRIPT = os.path.join(REPO_ROOT, 'scripts', 'obstacle_path.py')
 ARCHITECTURE = os.path.join(REPO_ROOT, 'docs', 'architecture.md')
@@ -20,10 +19,7 @@ HEADING = '**An obstacle message, to the next joint reference**'
 
 
 def _load_script():
-    spec = importlib.util.spec_from_file_location('obstacle_path', SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script('obstacle_path')
 
 
 @pytest.fixture(scope='module')

@@ -1,6 +1,5 @@
 """Sample demonstration bags: deterministic, within the Panda limits, smooth, and readable as
 (T, Y, joint_names) for the learner."""
-import importlib.util
 import os
 
 import numpy as np
@@ -12,17 +11,14 @@ from cdmp_ros.bag.demos import (PANDA_JOINTS, PANDA_Y_MAX, PANDA_Y_MIN, PLANAR4_
                                 PLANAR4_START, min_jerk, noisy_reach, planar4_reach_set,
                                 write_set)
 from cdmp_ros.core.errors import ValidationError
+from conftest import load_script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BAGS = os.path.join(ROOT, 'bags')
 
 
 def _load_script():
-    spec = importlib.util.spec_from_file_location(
-        'make_demo_bags', os.path.join(ROOT, 'scripts', 'make_demo_bags.py'))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script('make_demo_bags')
 
 
 def _messages(bag):

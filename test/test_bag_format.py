@@ -1,5 +1,4 @@
 """Bag layer: schemas, CDR codecs, writer/reader round trip, metadata.yaml (rosbag2 v9)."""
-import importlib.util
 import os
 import sys
 
@@ -13,12 +12,10 @@ from cdmp_ros.bag.cdr import (decode_joint_state, decode_string, encode_clock, e
 from cdmp_ros.bag.metadata import read_metadata
 from cdmp_ros.bag.scan import ScanState, scan
 from cdmp_ros.bag.schemas import normalize_type, schema_text, type_hash
+from conftest import load_script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-spec = importlib.util.spec_from_file_location(
-    'gen_msg_schemas', os.path.join(ROOT, 'scripts', 'gen_msg_schemas.py'))
-gen = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(gen)
+gen = load_script('gen_msg_schemas')
 SHARE = os.path.join(sys.prefix, 'share')
 
 

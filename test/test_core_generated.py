@@ -2,7 +2,6 @@
 are the same to the letter, and the streamer's default and demo couplings on the Panda run
 them; any other configuration runs a module the same generator writes into the kernel
 cache."""
-import importlib.util
 import math
 import os
 import shutil
@@ -12,16 +11,13 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, load_script
 
 SCRIPT = os.path.join(REPO_ROOT, 'scripts', 'gen_kernels.py')
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location('gen_kernels', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script('gen_kernels')
 
 
 @pytest.fixture(scope='module')
