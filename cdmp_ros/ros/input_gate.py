@@ -6,11 +6,12 @@ subscription, so that nothing is done for a message before it is admitted. In or
 1. **rate limit** (:class:`~cdmp_ros.common.rate_limit.RateLimiter`, per topic): the excess is
    dropped before anything else, every drop counted (reason ``flooding``);
 2. **constant-time size checks** on the CDR bytes, before deserialisation: the message size,
-   and the element count read from the CDR header (markers of a ``MarkerArray``, names of a
-   ``JointState``, bytes of a ``std_msgs/String``); see :func:`marker_count`,
-   :func:`json_bytes` and :func:`description_bytes` (both :func:`string_bytes`),
-   :func:`joint_names`, :func:`message_bytes`;
-3. **deserialisation**, then the header stamp (:func:`~cdmp_ros.ros.convert.check_stamp`);
+   and the element count read from the CDR header (:mod:`cdmp_ros.ros.cdr`; markers of a
+   ``MarkerArray``, names of a ``JointState``, bytes of a ``std_msgs/String``); see
+   :func:`marker_count`, :func:`json_bytes` and :func:`description_bytes` (both
+   :func:`string_bytes`), :func:`joint_names`, :func:`message_bytes`;
+3. **deserialisation** (a ``MarkerArray`` by :mod:`cdmp_ros.ros.cdr`, the rest by
+   rclpy), then the header stamp (:func:`~cdmp_ros.ros.convert.check_stamp`);
 4. the node's callback, which runs the per-element validation (:mod:`cdmp_ros.ros.convert`)
    and reports its own rejections through :meth:`InputGate.reject`.
 
@@ -23,17 +24,19 @@ Every rejection is counted by topic and reason category (:data:`REASONS`) and re
 Why before deserialisation: turning a 5,000-marker ``MarkerArray`` into Python objects costs
 about 0.2 s on these machines, whatever the node does with it next.
 """
-import struct
 import threading
 import time
 from typing import Callable, Dict, Optional
 
 import numpy as np
 from rclpy.serialization import deserialize_message
+from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.common.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
+from cdmp_ros.ros.cdr import (UnsupportedEncoding, cdr_first_count, cdr_joint_state_names,
+                              decode_marker_array)
 from cdmp_ros.ros.recorder_take import (ThreadTakenGroup, never_called, take_newest,
                                         to_monotonic)
 
@@ -68,8 +71,6 @@ SMALL_MESSAGE_BYTES = 1024
 #: about 0.2 s per MB here.
 ROBOT_DESCRIPTION_BYTES = 4_000_000
 
-_U32 = {0: struct.Struct('>I'), 1: struct.Struct('<I')}
-
 
 def reason_category(reason: str) -> str:
     """The :data:`REASONS` category of a rejection message ('other' if none matches)."""
@@ -77,31 +78,6 @@ def reason_category(reason: str) -> str:
         if any(t in reason for t in texts):
             return cat
     return 'other'
-
-
-def _u32(data: bytes, offset: int) -> Optional[int]:
-    """The CDR uint32 at ``offset`` (after the 4-byte encapsulation header), or None."""
-    if len(data) < offset + 4:
-        return None
-    return _U32.get(data[1] & 1, _U32[1]).unpack_from(data, offset)[0]
-
-
-def cdr_first_count(data: bytes) -> Optional[int]:
-    """Length of the first field of a CDR message when it is a sequence or a string
-    (``MarkerArray.markers``, ``String.data`` with its NUL): the uint32 after the
-    encapsulation header."""
-    return _u32(data, 4)
-
-
-def cdr_joint_state_names(data: bytes) -> Optional[int]:
-    """Number of names of a CDR ``JointState``: after the stamp (8 bytes) and the
-    ``frame_id`` string (length + characters), aligned to 4 bytes."""
-    n_frame = _u32(data, 12)
-    if n_frame is None:
-        return None
-    off = 16 + n_frame
-    off += (-(off - 4)) % 4
-    return _u32(data, off)
 
 
 # -- constant-time size checks: (topic, serialized bytes) -> reason or None ------------------
@@ -163,9 +139,21 @@ def read_raw(msg_type, topic: str, data: bytes, size=None):
         if reason is not None:
             return None, reason, 'oversize'
     try:
-        return deserialize_message(data, msg_type), None, None
+        return deserialize(data, msg_type), None, None
     except Exception as exc:  # noqa: BLE001 -- a bad payload must not end the node
         return None, f'{topic}: cannot be deserialized ({exc})', 'malformed'
+
+
+def deserialize(data: bytes, msg_type):
+    """The message of ``data``: a ``MarkerArray`` as
+    :class:`~cdmp_ros.ros.cdr.WireMarkerArray` records (rclpy's message if its
+    encapsulation is not plain CDR), any other type by rclpy."""
+    if msg_type is MarkerArray:
+        try:
+            return decode_marker_array(data)
+        except UnsupportedEncoding:
+            pass
+    return deserialize_message(data, msg_type)
 
 
 def joint_names(max_names: Callable[[], int]):
