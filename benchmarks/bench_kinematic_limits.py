@@ -129,8 +129,9 @@ class Recorder:
             return np.array(self.Q[-1]) if self.Q else None
 
 
-#: Points along the Panda from the shoulder to the fingertips, and the radius [m] around them
-#: that the arm's links fill (the largest collision capsule: 10.9 cm at the hand).
+#: Points along the Panda from the shoulder to the fingertips whose braking distances a new
+#: sphere respects, and the radius [m] around them that the arm's links fill (the largest
+#: collision capsule: 10.9 cm at the hand), for the first guess of a place only.
 ARM_POINTS = ('panda_link2', 'panda_link3', 'panda_link4', 'panda_link5', 'panda_link6',
               'panda_link7', 'panda_hand', 'ee')
 ARM_RADIUS = 0.11
@@ -138,27 +139,38 @@ ARM_RADIUS = 0.11
 CLEARANCE = 0.03
 
 
-def place_sphere(rng, chain, state, limits, radius, near=None, tries=50):
+def arm_capsules(chain):
+    """The arm as the demo driver sees it: capsules fitted to the collision geometry of its
+    links, and the fingers' capsule."""
+    from cdmp_ros.core.kinematics.capsules import ArmCapsules
+    from cdmp_ros.ros.demo_driver import ARM_LINKS, FINGER_RADIUS
+    from cdmp_ros.ros.robot_model import default_urdf_path
+    return ArmCapsules.from_urdf(chain, default_urdf_path(), ARM_LINKS, FINGER_RADIUS)
+
+
+def place_sphere(rng, arm, state, limits, radius, near=None, tries=50):
     """A sphere next to the arm that the arm can still avoid within its limits: its surface
     at least the braking distance of every arm point (at the arm's current motion,
     :func:`cdmp_ros.core.coupling.braking.braking_distance`) plus ``CLEARANCE`` away from
-    the arm's links, and at most 20 cm beyond that; ``near``: a jump of 3-15 cm from there.
-    None if no place is found in ``tries`` draws."""
+    the capsules around the arm's links and fingers (``arm``, :func:`arm_capsules`), and at
+    most 20 cm beyond that; ``near``: a jump of 3-15 cm from there. None if no place is found
+    in ``tries`` draws."""
     from cdmp_ros.core.coupling.braking import braking_distance
     from cdmp_ros.core.kinematics import PointOfInterest
     pts = [PointOfInterest(p) for p in ARM_POINTS]
     q, qd = state
-    X = chain.forward(q[None], pts)[0]
-    need = float(np.max(braking_distance(chain, q, qd, limits.acceleration, limits.jerk,
-                                         pts))) + CLEARANCE + ARM_RADIUS + radius
+    X = arm.chain.forward(q[None], pts)[0]
+    need = float(np.max(braking_distance(arm.chain, q, qd, limits.acceleration, limits.jerk,
+                                         pts))) + CLEARANCE
     for _ in range(tries):
         d = rng.normal(size=3)
         d /= np.linalg.norm(d)
         if near is None:
-            c = X[int(rng.integers(len(X)))] + d * (need + rng.uniform(0.0, 0.2))
+            c = X[int(rng.integers(len(X)))] + d * (need + ARM_RADIUS + radius
+                                                    + rng.uniform(0.0, 0.2))
         else:
             c = near + d * rng.uniform(0.03, 0.15)
-        gap = float(np.min(np.linalg.norm(X - c, axis=1)))
+        gap = arm.sphere_clearance(q, c, radius)
         if need <= gap <= need + 0.2 and c[2] > 0.05:
             return c
     return None
@@ -173,6 +185,7 @@ def run_storm(args, rate, chain, limits):
     from cdmp_ros.ros import qos
 
     rng = np.random.default_rng(args.seed)
+    arm = arm_capsules(chain)
     logdir = tempfile.mkdtemp(prefix='bench_kinematic_limits_')
     procs = start_nodes(args.domain, REPO, logdir, {'streamer': {
         'rate': float(rate), 'output_stage': str(args.stage == 'on').lower(),
@@ -225,7 +238,7 @@ def run_storm(args, rate, chain, limits):
             if u < 0.9 or sphere is None:
                 radius = float(rng.uniform(0.03, 0.07))
                 jump = sphere is not None and u >= 0.6
-                new = place_sphere(rng, chain, rec.recent_q(), limits, radius,
+                new = place_sphere(rng, arm, rec.recent_q(), limits, radius,
                                    sphere if jump else None)
                 if new is None:
                     counts['no room'] += 1

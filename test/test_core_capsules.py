@@ -193,3 +193,24 @@ def test_more_bad_inputs_are_named(tmp_path):
     (tmp_path / 'm.obj').write_text('# no vertices\n')
     with pytest.raises(ValidationError, match='no usable vertices'):
         collision_capsules(str(urdf), ['m'])
+
+
+def test_arm_capsules_sphere_clearance_against_the_link_frames(rng):
+    """ArmCapsules.sphere_clearance = min over capsules of |c - segment| - R - r, with each
+    segment's ends put in the base frame through the link frames of Chain.forward, and the
+    tool capsule = the chain's last link segment."""
+    from cdmp_ros.core.kinematics.capsules import ArmCapsules
+    chain = panda_chain(default_urdf_path())
+    caps = collision_capsules(default_urdf_path(), PANDA_LINKS[:8])
+    arm = ArmCapsules(chain, caps, tool_radius=0.06)
+    tool_link, tool_a, tool_b = chain.link_segments()[-1]
+    assert arm.capsules[-1] == Capsule(tool_link, tuple(tool_a), tuple(tool_b), 0.06)
+    for _ in range(20):
+        q = rng.uniform(chain.lower, chain.upper)
+        c, r = rng.uniform([-0.6, -0.6, 0.0], [0.6, 0.6, 1.0]), rng.uniform(0.0, 0.1)
+        want = np.inf
+        for cap in arm.capsules:
+            a, b = chain.forward(q, [PointOfInterest(cap.link, cap.start),
+                                     PointOfInterest(cap.link, cap.end)])
+            want = min(want, _segment_distance(c, a, b) - cap.radius - r)
+        assert arm.sphere_clearance(q, c, r) == pytest.approx(want, abs=1e-12)

@@ -46,8 +46,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
-from cdmp_ros.core.kinematics.capsules import Capsule, collision_capsules
-from cdmp_ros.core.kinematics.closest import segment_sphere
+from cdmp_ros.core.kinematics.capsules import ArmCapsules
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
@@ -118,12 +117,8 @@ class DemoDriver(Node):
         super().__init__('demo_driver')
         self.args = args
         self.chain = panda_chain(default_urdf_path())
-        caps = collision_capsules(default_urdf_path(), ARM_LINKS)
-        fingers = next(seg for seg in self.chain.link_segments() if seg[0] == 'panda_link7')
-        caps.append(Capsule(fingers[0], fingers[1], fingers[2], FINGER_RADIUS))
-        self.capsule_ends = [PointOfInterest(c.link, c.start) for c in caps] + \
-            [PointOfInterest(c.link, c.end) for c in caps]
-        self.capsule_radii = np.array([c.radius for c in caps])
+        self.arm = ArmCapsules.from_urdf(self.chain, default_urdf_path(), ARM_LINKS,
+                                         FINGER_RADIUS)
         self.ee = [PointOfInterest('ee')]
         self.events = {}
         self.diagnostics = {}
@@ -205,11 +200,7 @@ class DemoDriver(Node):
         the fingers. The first drop position lies above the path, where the arm may still be;
         a sphere appearing inside the arm is not this demo's scenario (and made the streamer's
         coupling jump the reference, a defect of its own)."""
-        n = len(self.capsule_radii)
-        ends = self.chain.forward(self.ref[0], self.capsule_ends)
-        _, d, _, _ = segment_sphere(ends[:n], ends[n:], p, self.args.radius,
-                                    self.capsule_radii)
-        return float(d.min()) > SPAWN_CLEARANCE
+        return self.arm.sphere_clearance(self.ref[0], p, self.args.radius) > SPAWN_CLEARANCE
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)

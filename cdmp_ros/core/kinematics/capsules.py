@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.chain import PointOfInterest
 from cdmp_ros.core.kinematics.closest import segment_sphere
 from cdmp_ros.core.kinematics.urdf import rpy_to_matrix
 
@@ -286,3 +287,38 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
         a, b = (tuple(round(float(v), ENDS_DECIMALS) for v in e) for e in (a, b))
         out.append(Capsule(link, a, b, float(r) + ENDS_ROUNDING))
     return out
+
+
+class ArmCapsules:
+    """Capsules fixed to the links of a chain, and how far a sphere is from them.
+
+    ``tool``: an extra capsule of that radius [m] around the chain's last link segment (for the
+    Panda: panda_link7's flange to the fingertips, which holds the fingers; they are not links of
+    the chain). The demo driver places its dropped sphere and the kinematic-limits storm its
+    spheres with :meth:`sphere_clearance`.
+    """
+
+    def __init__(self, chain, capsules: Sequence[Capsule], tool_radius: Optional[float] = None):
+        caps = list(capsules)
+        if tool_radius is not None:
+            link, start, end = chain.link_segments()[-1]
+            caps.append(Capsule(link, tuple(start), tuple(end), float(tool_radius)))
+        self.chain = chain
+        self.capsules = tuple(caps)
+        self._ends = [PointOfInterest(c.link, c.start) for c in caps] + \
+            [PointOfInterest(c.link, c.end) for c in caps]
+        self.radii = np.array([c.radius for c in caps])
+
+    @classmethod
+    def from_urdf(cls, chain, path: str, links: Sequence[str],
+                  tool_radius: Optional[float] = None) -> 'ArmCapsules':
+        """:func:`collision_capsules` of ``links`` in the URDF ``path``, plus the tool's."""
+        return cls(chain, collision_capsules(path, links), tool_radius)
+
+    def sphere_clearance(self, q: NDArray, center, radius: float) -> float:
+        """Least distance [m] between a sphere and the capsules at joint positions ``q``
+        (negative: they overlap)."""
+        n = len(self.radii)
+        ends = self.chain.forward(np.asarray(q, dtype=np.float64), self._ends)
+        _, d, _, _ = segment_sphere(ends[:n], ends[n:], center, radius, self.radii)
+        return float(d.min())
