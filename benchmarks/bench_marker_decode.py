@@ -1,5 +1,5 @@
 """Cost of turning a serialized ``obstacles`` MarkerArray into what the nodes read: rclpy's
-``deserialize_message`` against :func:`cdmp_ros.ros.cdr.decode_marker_array`.
+``deserialize_message`` against :func:`cdmp_ros.bag.cdr.decode_marker_array`.
 
 An obstacle message arrives seconds after the previous one, when its code path has gone cold,
 so each case is timed hot (back to back), after 2 ms (a tick's period) and after 100 ms of
@@ -14,7 +14,7 @@ import time
 from rclpy.serialization import deserialize_message, serialize_message
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cdmp_ros.ros.cdr import decode_marker_array
+from cdmp_ros.bag.cdr import decode_marker_array
 
 
 def sphere(i):

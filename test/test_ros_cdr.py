@@ -16,8 +16,9 @@ from visualization_msgs.msg import Marker, MarkerArray, UVCoordinate  # noqa: E4
 
 from cdmp_ros.ros.convert import ObstacleSet  # noqa: E402
 from cdmp_ros.ros.input_gate import deserialize, read_raw  # noqa: E402
-from cdmp_ros.ros.cdr import (MIN_MARKER_BYTES, CdrError, UnsupportedEncoding,  # noqa: E402
-                              WireMarkerArray, decode_marker_array)
+from cdmp_ros.bag.cdr import (MIN_MARKER_BYTES, UnsupportedEncoding, WireMarkerArray,  # noqa
+                              decode_marker_array)
+from cdmp_ros.bag.errors import BagFormatError as CdrError  # noqa: E402
 
 FIELDS = ('ns', 'id', 'type', 'action', 'frame_locked')
 

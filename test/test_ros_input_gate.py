@@ -143,7 +143,7 @@ def test_cdr_peeks_read_the_counts_of_serialized_messages():
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from cdmp_ros.ros.cdr import cdr_first_count, cdr_joint_state_names
+    from cdmp_ros.bag.cdr import cdr_first_count, cdr_joint_state_names
     for n in (0, 1, 7, 123):
         assert cdr_first_count(serialize_message(marker_array(n))) == n
     for frame in ('', 'a', 'ab', 'abc', 'abcd', 'base_link_0'):

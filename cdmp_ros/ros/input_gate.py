@@ -6,11 +6,11 @@ subscription, so that nothing is done for a message before it is admitted. In or
 1. **rate limit** (:class:`~cdmp_ros.common.rate_limit.RateLimiter`, per topic): the excess is
    dropped before anything else, every drop counted (reason ``flooding``);
 2. **constant-time size checks** on the CDR bytes, before deserialisation: the message size,
-   and the element count read from the CDR header (:mod:`cdmp_ros.ros.cdr`; markers of a
+   and the element count read from the CDR header (:mod:`cdmp_ros.bag.cdr`; markers of a
    ``MarkerArray``, names of a ``JointState``, bytes of a ``std_msgs/String``); see
    :func:`marker_count`, :func:`json_bytes` and :func:`description_bytes` (both
    :func:`string_bytes`), :func:`joint_names`, :func:`message_bytes`;
-3. **deserialisation** (a ``MarkerArray`` by :mod:`cdmp_ros.ros.cdr`, the rest by
+3. **deserialisation** (a ``MarkerArray`` by :mod:`cdmp_ros.bag.cdr`, the rest by
    rclpy), then the header stamp (:func:`~cdmp_ros.ros.convert.check_stamp`);
 4. the node's callback, which runs the per-element validation (:mod:`cdmp_ros.ros.convert`)
    and reports its own rejections through :meth:`InputGate.reject`.
@@ -35,7 +35,7 @@ from visualization_msgs.msg import MarkerArray
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.common.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
-from cdmp_ros.ros.cdr import (UnsupportedEncoding, cdr_first_count, cdr_joint_state_names,
+from cdmp_ros.bag.cdr import (UnsupportedEncoding, cdr_first_count, cdr_joint_state_names,
                               decode_marker_array)
 from cdmp_ros.ros.recorder_take import (ThreadTakenGroup, never_called, take_newest,
                                         to_monotonic)
@@ -146,7 +146,7 @@ def read_raw(msg_type, topic: str, data: bytes, size=None):
 
 def deserialize(data: bytes, msg_type):
     """The message of ``data``: a ``MarkerArray`` as
-    :class:`~cdmp_ros.ros.cdr.WireMarkerArray` records (rclpy's message if its
+    :class:`~cdmp_ros.bag.cdr.WireMarkerArray` records (rclpy's message if its
     encapsulation is not plain CDR), any other type by rclpy."""
     if msg_type is MarkerArray:
         try:
