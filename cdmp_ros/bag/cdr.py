@@ -38,7 +38,6 @@ class _Layout:
     """The ``struct`` formats of one byte order."""
 
     def __init__(self, order: str):
-        self.order = order
         self.u32 = struct.Struct(order + 'I')
         self.i32 = struct.Struct(order + 'i')
         self.stamp = struct.Struct(order + 'iI')

@@ -32,11 +32,11 @@ import numpy as np
 from rclpy.serialization import deserialize_message
 from visualization_msgs.msg import MarkerArray
 
+from cdmp_ros.bag.cdr import (UnsupportedEncoding, cdr_first_count, cdr_joint_state_names,
+                              decode_marker_array)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.common.rate_limit import RateLimiter
 from cdmp_ros.ros.convert import check_stamp, stamp_to_ns
-from cdmp_ros.bag.cdr import (UnsupportedEncoding, cdr_first_count, cdr_joint_state_names,
-                              decode_marker_array)
 from cdmp_ros.ros.recorder_take import (ThreadTakenGroup, never_called, take_newest,
                                         to_monotonic)
 
