@@ -97,6 +97,8 @@ class Recorder:
         self.lock = threading.Lock()
         self.status = {}
         self.stamps, self.Q = [], []
+        #: (time.monotonic(), the sim's status message) whenever it names a contact
+        self.contact_log = []
         node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._diag, 200)
         node.create_subscription(JointState, 'joint_reference', self._ref, qos.REFERENCE)
 
@@ -106,6 +108,8 @@ class Recorder:
                 kv = {x.key: x.value for x in s.values}
                 kv['_message'] = s.message
                 self.status[s.name] = kv
+                if s.name == 'sim: state' and '; contact ' in s.message:
+                    self.contact_log.append((time.monotonic(), s.message.split('; contact ')[1]))
 
     def _ref(self, msg):
         with self.lock:
@@ -187,9 +191,10 @@ def run_storm(args, rate, chain, limits):
     rng = np.random.default_rng(args.seed)
     arm = arm_capsules(chain)
     logdir = tempfile.mkdtemp(prefix='bench_kinematic_limits_')
-    procs = start_nodes(args.domain, REPO, logdir, {'streamer': {
-        'rate': float(rate), 'output_stage': str(args.stage == 'on').lower(),
-        'diagnostics_period': 0.5}})
+    streamer = {'rate': float(rate), 'output_stage': str(args.stage == 'on').lower(),
+                'diagnostics_period': 0.5}
+    streamer.update(kv.split(':=', 1) for kv in args.streamer_param)
+    procs = start_nodes(args.domain, REPO, logdir, {'streamer': streamer})
     rclpy.init(domain_id=args.domain)
     node = rclpy.create_node('kinematic_storm')
     rec = Recorder(node)
@@ -217,8 +222,10 @@ def run_storm(args, rate, chain, limits):
         base = {k: float(rec.get('sim: state', k, '0') or 0)
                 for k in ('contacts_since_start', 'reflex_errors')}
         print(f'storm at {rate:g} Hz for {args.duration:g} s (seed {args.seed})', flush=True)
-        end = time.monotonic() + args.duration
+        t_start = time.monotonic()
+        end = t_start + args.duration
         sphere = None
+        events = []
         while time.monotonic() < end:
             time.sleep(float(rng.uniform(0.3, 1.2)))
             u = rng.random()
@@ -233,6 +240,7 @@ def run_storm(args, rate, chain, limits):
                 goal_pub.publish(JointState(name=list(chain.joint_names),
                                             position=[float(v) for v in g]))
                 counts['goal beyond' if beyond else 'goal inside'] += 1
+                events.append((time.monotonic(), 'goal beyond' if beyond else 'goal inside'))
                 continue
             arr = MarkerArray()
             if u < 0.9 or sphere is None:
@@ -245,6 +253,9 @@ def run_storm(args, rate, chain, limits):
                     continue
                 sphere = new
                 counts['sphere jumps' if jump else 'sphere appears'] += 1
+                events.append((time.monotonic(), f'sphere r={radius:.3f} at '
+                               f'({sphere[0]:.2f}, {sphere[1]:.2f}, {sphere[2]:.2f})'
+                               + (' (jump)' if jump else '')))
                 m = Marker(type=Marker.SPHERE, action=Marker.ADD, id=1, ns='storm')
                 m.header.frame_id = 'panda_link0'
                 m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, sphere)
@@ -283,6 +294,10 @@ def run_storm(args, rate, chain, limits):
                [str(rep['samples']), f'{contacts:.0f}', f'{reflex:.0f}',
                 f'{float(lat[0]):.2f} / {float(lat[1]):.2f}'])
     print(line, flush=True)
+    for t, pairs in rec.contact_log:
+        before = [f'{e - t_start:.2f} s {what}' for e, what in events if t - 3.0 < e <= t]
+        print(f'  contact at {t - t_start:6.2f} s: {pairs}; events of the 3 s before: '
+              f'{before}', flush=True)
     print(f'  events: {counts}; alive at the end: {alive}; references missed by the '
           f'recording: {int(np.sum(np.diff(S) > round(1e9 / rate)))}; logs {logdir}',
           flush=True)
@@ -292,15 +307,19 @@ def run_storm(args, rate, chain, limits):
 # -- part 3: the tick ---------------------------------------------------------------------------
 def tick_cost(args, chain, limits, n_ticks=5000):
     import dataclasses
+    import itertools
+    from cdmp_ros.cli.cmd_bringup import NodeSpec, spec_streamer_configs
     from cdmp_ros.core.dmp.dmp import CDMP
     from cdmp_ros.core.kinematics import PointOfInterest
     from cdmp_ros.core.coupling.obstacle import Sphere
     from cdmp_ros.core.primitive_io import dumps_primitive
     from cdmp_ros.core.streaming.config import StreamerConfig
     from cdmp_ros.core.streaming.primitives import prepare_primitive
-    from cdmp_ros.core.streaming.streamer import ReferenceStreamer, streamer_coupling
-    lines = ['| streamer tick, in-process | rate [Hz] | mean [us] | p99 [us] | max [us] |',
-             '|---|---|---|---|---|']
+    from cdmp_ros.core.streaming.streamer import (ReferenceStreamer, coupling_of,
+                                                  streamer_coupling)
+    from cdmp_ros.ros.robot_model import load_collision_capsules
+    lines = ['| streamer tick, in-process | coupling | rate [Hz] | mean [us] | p99 [us] | '
+             'max [us] |', '|---|---|---|---|---|---|']
     T = np.linspace(0.0, 2.0, 401)
     q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
     q1 = np.array([0.8, 0.2, -0.4, -1.6, 0.3, 1.9, 1.2])
@@ -308,27 +327,36 @@ def tick_cost(args, chain, limits, n_ticks=5000):
     prim = CDMP(limits.lower, limits.upper, joint_names=chain.joint_names).fit(
         T, q0 + s[:, None] * (q1 - q0))
     text = dumps_primitive(prim)
-    for rate in args.rates:
-        for stage in (True, False):
+    shipped = spec_streamer_configs(NodeSpec('streamer', 'streamer', (
+        os.path.join(REPO, 'config', 'streamer.yaml'),)))
+    capsules = load_collision_capsules('', shipped[''].coupling_capsule_links, chain=chain)
+    for rate, stage, which in itertools.product(args.rates, (True, False),
+                                                ('config/streamer.yaml', 'code defaults')):
+        if which == 'code defaults':
             cfg = StreamerConfig(rate=float(rate), joint_states_timeout=0.0, output_stage=stage)
-            st = ReferenceStreamer(limits.lower, limits.upper, cfg,
-                                   coupling=streamer_coupling(chain, cfg), limits=limits)
-            prep = prepare_primitive(text, chain.joint_names, cfg.dt, limits.lower,
-                                     limits.upper, limits.velocity)
-            st.activate(prep, 0.0)
-            x = chain.forward(q0[None], [PointOfInterest('ee')])[0, 0]
-            st.obstacles = [Sphere(x + np.array([0.1, 0.05, 0.0]), 0.05)]
-            times = np.empty(n_ticks)
-            for k in range(n_ticks):
-                t = time.perf_counter()
-                st.advance(1, k * cfg.dt)
-                times[k] = time.perf_counter() - t
-                if k % 1000 == 999:  # a fresh reach keeps the stage and coupling busy
-                    st.activate(dataclasses.replace(prep), k * cfg.dt)
-            us = times * 1e6
-            lines.append(f'| output stage {"on" if stage else "off"} | {rate:g} | '
-                         f'{us.mean():.0f} | {np.percentile(us, 99):.0f} | {us.max():.0f} |')
-            print(lines[-1], flush=True)
+            coupling = streamer_coupling(chain, cfg)
+        else:
+            cfg = dataclasses.replace(shipped[''], rate=float(rate), joint_states_timeout=0.0,
+                                      output_stage=stage)
+            coupling = coupling_of(chain, {**shipped, '': cfg}, capsules)
+        st = ReferenceStreamer(limits.lower, limits.upper, cfg, coupling=coupling,
+                               limits=limits)
+        prep = prepare_primitive(text, chain.joint_names, cfg.dt, limits.lower,
+                                 limits.upper, limits.velocity)
+        st.activate(prep, 0.0)
+        x = chain.forward(q0[None], [PointOfInterest('ee')])[0, 0]
+        st.obstacles = [Sphere(x + np.array([0.1, 0.05, 0.0]), 0.05)]
+        times = np.empty(n_ticks)
+        for k in range(n_ticks):
+            t = time.perf_counter()
+            st.advance(1, k * cfg.dt)
+            times[k] = time.perf_counter() - t
+            if k % 1000 == 999:  # a fresh reach keeps the stage and coupling busy
+                st.activate(dataclasses.replace(prep), k * cfg.dt)
+        us = times * 1e6
+        lines.append(f'| output stage {"on" if stage else "off"} | {which} | {rate:g} | '
+                     f'{us.mean():.0f} | {np.percentile(us, 99):.0f} | {us.max():.0f} |')
+        print(lines[-1], flush=True)
     return lines
 
 
@@ -344,6 +372,8 @@ def main():
     ap.add_argument('--domain', type=int, default=75)
     ap.add_argument('--stage', choices=('on', 'off'), default='on',
                     help="the streamer's output_stage in parts demos and storm")
+    ap.add_argument('--streamer-param', action='append', default=[], metavar='NAME:=VALUE',
+                    help='one more streamer parameter in the storm (repeatable)')
     ap.add_argument('--out', default=os.path.join(tempfile.gettempdir(), 'bench_kinematic'))
     args = ap.parse_args()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'

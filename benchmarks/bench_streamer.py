@@ -12,7 +12,9 @@ time, in % of one core).
 Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 Bounded: about (start-up + seconds + 2) s per configuration.
 
-Options: ``--param name:=value`` (repeatable) is passed to the streamer (e.g.
+Options: ``--params-file FILE`` (repeatable) gives the streamer a parameter file (e.g.
+``config/streamer.yaml``, the shipped coupling on the whole arm; default: the code's defaults);
+``--param name:=value`` (repeatable, after the files) is passed to the streamer (e.g.
 ``realtime_priority:=50``, ``tick_thread:=false``); ``--listener-priority P`` runs the
 measuring subscriber under SCHED_FIFO priority P (set before ``rclpy.init`` so the DDS threads
 inherit it, as a controller's would); ``--configs 1000,1000o`` selects configurations (``o`` =
@@ -277,9 +279,15 @@ def listen_latency(reps, priority=0, graph=False):
     rclpy.try_shutdown()
 
 
+#: Parameter files of the streamer (``--params-file``), applied before every ``-p``.
+PARAMS_FILES = []
+
+
 def start_streamer(rate, domain, params):
-    cmd = [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args', '-p', f'rate:={rate}',
-           '-p', 'joint_states_timeout:=0.0']
+    cmd = [sys.executable, '-m', 'cdmp_ros.nodes.streamer', '--ros-args']
+    for f in PARAMS_FILES:
+        cmd += ['--params-file', f]
+    cmd += ['-p', f'rate:={rate}', '-p', 'joint_states_timeout:=0.0']
     for p in params:
         cmd += ['-p', p]
     return subprocess.Popen(cmd, env=env(domain), cwd=REPO, stdout=subprocess.DEVNULL,
@@ -385,7 +393,12 @@ def main():
     ap.add_argument('--latency-rate', type=float, default=500.0)
     ap.add_argument('--graph', default='',
                     help='nodes started next to the streamer: sim, adapter (comma-separated)')
+    ap.add_argument('--params-file', action='append', default=[], metavar='FILE',
+                    help='a parameter file of the streamer, before the --param values '
+                    '(repeatable; e.g. config/streamer.yaml, the shipped coupling); default: '
+                    "the code's defaults")
     args = ap.parse_args()
+    PARAMS_FILES[:] = [os.path.abspath(f) for f in args.params_file]
     graph = tuple(filter(None, args.graph.split(',')))
     for name in graph:
         if name not in GRAPH_NODES:
@@ -404,7 +417,9 @@ def main():
         rows.append((rate, obstacle, s))
     print(f'Streamer timing, {args.seconds:g} s per configuration, separate subscriber '
           f'process, load average {load0:.2f} -> {os.getloadavg()[0]:.2f} on '
-          f'{os.cpu_count()} cores; streamer parameters {args.param or "defaults"}; '
+          f'{os.cpu_count()} cores; streamer parameter files '
+          f'{[os.path.relpath(f, REPO) for f in PARAMS_FILES] or "none"}, parameters '
+          f'{args.param or "defaults"}; '
           f'listener SCHED_FIFO {args.listener_priority or "off"}; alongside: '
           f'{", ".join(graph) or "nothing (streamer and listener only)"}\n')
     print('| rate [Hz] | obstacle (coupling every tick) | received | missing | on time (<= 1 '

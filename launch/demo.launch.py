@@ -3,9 +3,10 @@
     ros2 launch cdmp_ros demo.launch.py
     ros2 service call /learner/refit std_srvs/srv/Trigger   # fit from bags/, start the reach
 
-sim (pybullet Panda, computed-torque control), streamer at 500 Hz with link avoidance,
-adapter, learner (waits for ``~/refit``, as the demo's scripted user calls it) and recorder
-(every topic into ``rosbag2_<date>`` in the working directory). ``cdmp bringup demo`` starts
+sim (pybullet Panda, computed-torque control), streamer at 500 Hz (the whole arm avoids
+obstacles: config/streamer.yaml), adapter, learner (waits for ``~/refit``, as the demo's
+scripted user calls it) and recorder (every topic into ``rosbag2_<date>`` in the working
+directory). ``cdmp bringup demo`` starts
 the same graph without ROS; test/test_ros_launch.py keeps the two in step.
 """
 import os
@@ -30,16 +31,8 @@ def generate_launch_description():
         # demo.yaml
         node('sim', 'sim.yaml', control='computed_torque', real_time=True,
              realtime_priority=45),
-        node('streamer', 'streamer.yaml', **{
-            'rate': 500.0,
-            # the arm from the elbow to the hand avoids obstacles too: see demo.yaml
-            'coupling_capsule_links': ['panda_link3', 'panda_link4', 'panda_link5',
-                                       'panda_link6', 'panda_link7', 'panda_hand'],
-            'coupling_links': ['panda_link7'],
-            'damping.epsilon': 0.1,
-            'coupling.link_radius': 0.06,
-            'repeller.gain': 0.03,
-            'repeller.influence_distance': 0.25}),
+        # the coupling of streamer.yaml: capsules around the arm from the elbow to the fingers
+        node('streamer', 'streamer.yaml', rate=500.0),
         node('recorder', 'bag.yaml'),
         node('adapter', 'adapter.yaml'),
         # the URDF's soft limits (safety_controller) as the task's limits: see demo.yaml

@@ -7,10 +7,11 @@ The streamer's tick runs one generated kernel: the whole obstacle coupling
 runs, this script builds the streamer's coupling, takes the generated source and writes it as a
 module, plus the index by which the generators find it (:mod:`cdmp_ros.core.generated`):
 
-- ``panda_coupling``: the streamer's defaults (config/streamer.yaml) on the Panda of
-  pybullet_data;
-- ``panda_demo_coupling``: the streamer of the demo graph (config/graphs/demo.yaml: capsules
-  fitted around links 3-7 and the hand, a capsule on link 7).
+- ``panda_coupling``: the streamer's code defaults (``StreamerConfig()``, no parameter file:
+  joint-axis segments of links 3 and 5) on the Panda of pybullet_data;
+- ``panda_demo_coupling``: the streamer of config/streamer.yaml, which the launch files, the
+  demo graph (config/graphs/demo.yaml) and ``cdmp bringup`` use: capsules fitted around
+  links 3-7 and the hand, a capsule on link 7.
 
 Any other configuration is written into the kernel cache at run time by the same generator.
 
@@ -47,9 +48,9 @@ def kernels():
     chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
     return [
         ('panda_coupling', 'coupled', streamer_coupling(chain, StreamerConfig()),
-         "Panda: the streamer's default obstacle coupling (config/streamer.yaml)."),
+         "Panda: the obstacle coupling of the streamer's code defaults (no parameter file)."),
         ('panda_demo_coupling', 'coupled', demo_coupling(chain),
-         "Panda: the obstacle coupling of the demo graph's streamer (config/graphs/demo.yaml)."),
+         'Panda: the obstacle coupling of config/streamer.yaml (launch files, the demo graph).'),
     ]
 
 

@@ -107,6 +107,8 @@ def test_urdf_primitives_and_errors(tmp_path):
         <geometry><cylinder radius="0.05" length="0.4"/></geometry></collision></link>
       <link name="ball"><collision><geometry><sphere radius="0.1"/></geometry></collision>
         </link>
+      <link name="cap"><collision><origin xyz="0.5 0 0" rpy="0 1.57079632679 0"/>
+        <geometry><capsule radius="0.05" length="1"/></geometry></collision></link>
       <link name="none"/>
       <link name="stl"><collision><geometry><mesh filename="package://x/m.stl"/></geometry>
         </collision></link>
@@ -123,6 +125,14 @@ def test_urdf_primitives_and_errors(tmp_path):
     assert (cyl.distance(rims) <= 1e-9).all()
     assert cyl.radius == pytest.approx(0.05, abs=2e-3)
     assert ball.radius == pytest.approx(0.1) and np.allclose(ball.start, 0)
+    # a capsule is its own capsule: the axis from x = 0 to x = 1 (pitched 90 degrees), radius
+    # 0.05 up to the ends' rounding
+    cap, = collision_capsules(str(urdf), ['cap'])
+    assert sorted([cap.start[0], cap.end[0]]) == pytest.approx([0.0, 1.0], abs=1e-8)
+    assert np.allclose([cap.start[1:], cap.end[1:]], 0.0, atol=1e-8)
+    assert cap.radius == pytest.approx(0.05, abs=1e-8)
+    surface = np.array([[0.3, 0.05, 0.0], [0.7, 0.0, -0.05], [-0.05, 0.0, 0.0], [1.05, 0, 0]])
+    assert np.abs(cap.distance(surface)).max() <= 1e-7
     with pytest.raises(ValidationError, match="'none': no <collision>"):
         collision_capsules(str(urdf), ['none'])
     with pytest.raises(ValidationError, match=r'only Wavefront \.obj'):

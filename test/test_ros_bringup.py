@@ -83,6 +83,32 @@ def test_a_node_takes_several_parameter_files_in_order(tmp_path):
         'sim.yaml', os.path.join('robots', 'planar4', 'sim.yaml')]
 
 
+def test_streamer_configs_are_the_node_parameters_of_its_files_and_graph(tmp_path):
+    """The configs a tool reads off a graph (the kernel generator, the coupling replay) are
+    the streamer's: its parameter files in order (config/streamer.yaml's capsules), then the
+    graph's inline parameters, then the overrides; the files' parameters of no section
+    (``joint_limits.*``) are not configs."""
+    from cdmp_ros.cli.cmd_bringup import streamer_configs
+    (tmp_path / 'mine.yaml').write_text(yaml.safe_dump({'/**/streamer': {'ros__parameters': {
+        'repeller': {'gain': 0.05}, 'joint_limits': {'panda_joint1': {'max_jerk': 1.0}}}}}))
+    graph = tmp_path / 'graph.yaml'
+    graph.write_text(yaml.safe_dump({'nodes': [{
+        'name': 'streamer', 'executable': 'streamer',
+        'params_file': ['streamer.yaml', 'mine.yaml'],
+        'parameters': {'rate': 1000.0, 'repeller.influence_distance': 0.3}}]}))
+    c = streamer_configs(str(graph), {'damping.epsilon': 0.05})
+    with open(os.path.join(package_config_dir(), 'streamer.yaml')) as f:
+        shipped = yaml.safe_load(f)['/**']['ros__parameters']
+    assert c[''].coupling_capsule_links == tuple(shipped['coupling_capsule_links'])
+    assert c[''].coupling_capsule_links and c['coupling'].link_radius == 0.06
+    assert c[''].rate == 1000.0                                   # inline
+    assert c['repeller'].gain == 0.05                             # the later file
+    assert c['repeller'].influence_distance == 0.3                # inline over the files
+    assert c['damping'].epsilon == 0.05                           # the override
+    with pytest.raises(ValidationError, match='nosuch.x'):
+        streamer_configs(str(graph), {'nosuch.x': 1})
+
+
 def test_the_documented_graph_format_is_the_parsed_one():
     """The example graph of the module docstring parses and names every key the parser
     accepts, no other; a node is renamed by a ``__node`` remapping (there is no other key)."""

@@ -119,6 +119,28 @@ class NodeSpec:
     delay: float = 0.0
     arguments: Sequence[str] = ()
 
+    def effective_parameters(self) -> Dict:
+        """The node's parameters as ROS applies them: its parameter files' ``ros__parameters``
+        (under ``/**``, ``/**/<name>``, ``<name>`` or ``/<name>``, and the executable's name),
+        a later file's values over an earlier's, the inline ``parameters`` (dotted names) on
+        top; nested dicts, one level per dot."""
+        params: Dict = {}
+        keys = ('/**', self.executable, '/' + self.executable, '/**/' + self.executable,
+                self.name, '/' + self.name, '/**/' + self.name)
+        for path in self.params_files:
+            with open(path) as f:
+                doc = yaml.safe_load(f) or {}
+            for key in dict.fromkeys(keys):
+                if isinstance(doc.get(key), dict):
+                    _merge(params, doc[key].get('ros__parameters') or {})
+        for name, value in self.parameters.items():
+            node = params
+            *path, last = name.split('.')
+            for part in path:
+                node = node.setdefault(part, {})
+            node[last] = value
+        return params
+
     def command(self) -> List[str]:
         """The argv of the process."""
         cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{self.executable}', *self.arguments,
@@ -141,6 +163,15 @@ class Graph:
     nodes: List[NodeSpec]
     environment: Dict[str, str] = field(default_factory=dict)
     stop_timeout: float = 5.0
+
+
+def _merge(into: Dict, values: Dict) -> None:
+    """``values`` (nested parameter dicts) over ``into``, parameter by parameter."""
+    for k, v in values.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = dict(v) if isinstance(v, dict) else v
 
 
 def _known_keys(where: str, d: dict, allowed) -> None:
@@ -241,28 +272,45 @@ def load_graph(path: str) -> Graph:
 
 
 def streamer_configs(graph_file: str, overrides: Optional[dict] = None) -> dict:
-    """The configs of the streamer node of ``graph_file`` from its inline parameters (the
-    values of config/streamer.yaml are the dataclass defaults), one per section of
-    :data:`cdmp_ros.core.streaming.streamer.PARAMETER_SECTIONS`, ``overrides``
-    (``{'section.name': value}``) applied on top.
+    """The configs of the streamer node of ``graph_file`` as the node gets them (its parameter
+    files, then its inline parameters: :meth:`NodeSpec.effective_parameters`), one per section
+    of :data:`cdmp_ros.core.streaming.streamer.PARAMETER_SECTIONS`, ``overrides``
+    (``{'section.name': value}``) applied on top. Parameters of the files that are in no
+    section (``joint_limits.*``, the node's own) are not configs and are left out.
 
     Raises
     ------
     ValidationError
-        No streamer node, or a parameter of no section.
+        No streamer node, or an inline parameter or override of no section.
     """
-    from cdmp_ros.core.streaming.streamer import PARAMETER_SECTIONS
-    sections = dict(PARAMETER_SECTIONS)
     spec = next((s for s in load_graph(graph_file).nodes if s.executable == 'streamer'), None)
     if spec is None:
         raise ValidationError(f'{graph_file}: expected a node with executable streamer')
-    values = {k: {} for k in sections}
-    for key, v in {**spec.parameters, **(overrides or {})}.items():
-        section, _, name = key.rpartition('.')
+    return spec_streamer_configs(spec, overrides, graph_file)
+
+
+def spec_streamer_configs(spec: NodeSpec, overrides: Optional[dict] = None,
+                          where: str = 'streamer') -> dict:
+    """:func:`streamer_configs` of one streamer :class:`NodeSpec` (e.g. ``NodeSpec('streamer',
+    'streamer', (path of config/streamer.yaml,))``: the shipped configuration)."""
+    import dataclasses
+    from cdmp_ros.core.streaming.streamer import PARAMETER_SECTIONS
+    sections = dict(PARAMETER_SECTIONS)
+    for key in {**spec.parameters, **(overrides or {})}:
+        section = key.rpartition('.')[0]
         if section not in sections:
-            raise ValidationError(f'{graph_file}: streamer parameter {key!r}: expected one of '
+            raise ValidationError(f'{where}: streamer parameter {key!r}: expected one of '
                                   f'the sections {[k for k in sections if k]} or none')
-        values[section][name] = tuple(v) if isinstance(v, list) else v
+    params = spec.effective_parameters()
+    for key, v in (overrides or {}).items():
+        section, _, name = key.rpartition('.')
+        (params.setdefault(section, {}) if section else params)[name] = v
+    values = {}
+    for section, cls in sections.items():
+        given = params if section == '' else params.get(section) or {}
+        names = {f.name for f in dataclasses.fields(cls)}
+        values[section] = {k: tuple(v) if isinstance(v, list) else v
+                           for k, v in given.items() if k in names and not isinstance(v, dict)}
     return {k: cls(**values[k]) for k, cls in sections.items()}
 
 

@@ -25,7 +25,6 @@ import json
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
-import yaml
 
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.cdr import decode_string
@@ -165,32 +164,9 @@ def _promp(d: Dict, chain):
 
 
 def adapter_parameters(spec) -> Dict:
-    """The adapter's parameters in a graph: its parameter files' ``ros__parameters`` (under
-    ``/**`` or its node name), a later file's values over an earlier's, with the graph's inline
-    ``parameters`` (dotted names) on top."""
-    params: Dict = {}
-    for path in spec.params_files:
-        with open(path) as f:
-            doc = yaml.safe_load(f) or {}
-        for key in ('/**', 'adapter', '/adapter', spec.name, '/' + spec.name):
-            if isinstance(doc.get(key), dict):
-                _merge(params, doc[key].get('ros__parameters', {}))
-    for name, value in spec.parameters.items():
-        node = params
-        *path, last = name.split('.')
-        for part in path:
-            node = node.setdefault(part, {})
-        node[last] = value
-    return params
-
-
-def _merge(into: Dict, values: Dict) -> None:
-    """``values`` (nested parameter dicts) over ``into``, parameter by parameter."""
-    for k, v in values.items():
-        if isinstance(v, dict) and isinstance(into.get(k), dict):
-            _merge(into[k], v)
-        else:
-            into[k] = dict(v) if isinstance(v, dict) else v
+    """The adapter's parameters in a graph (:meth:`~cdmp_ros.cli.cmd_bringup.NodeSpec.
+    effective_parameters`: its files, then its inline parameters)."""
+    return spec.effective_parameters()
 
 
 def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:

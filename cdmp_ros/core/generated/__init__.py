@@ -7,8 +7,9 @@ straight-line Python source for one chain and set of points. :func:`load_generat
 source into a function whose code lives in a file:
 
 - the checked-in module of exactly this source, if there is one (found by the SHA-256 of the
-  source in :data:`cdmp_ros.core.generated.index.INDEX`): the streamer's default coupling on
-  the Panda of pybullet_data (``panda_coupling``) and the demo graph's (``panda_demo_coupling``),
+  source in :data:`cdmp_ros.core.generated.index.INDEX`): on the Panda of pybullet_data, the
+  streamer's code defaults (``panda_coupling``) and config/streamer.yaml's, which the launch
+  files and the demo graph use (``panda_demo_coupling``),
   written by ``python scripts/gen_kernels.py``; test/test_core_generated.py regenerates them
   and fails on any difference;
 - else a module in the kernel cache (:func:`cache_dir`: ``$CDMP_ROS_KERNEL_CACHE``, else

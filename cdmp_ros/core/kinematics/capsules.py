@@ -10,13 +10,15 @@ to the capsule is a lower bound of the distance to the link's collision shape (t
 simulator and a real collision checker use).
 
 Geometry read from ``<collision>``: ``<mesh filename scale>`` (Wavefront ``.obj`` vertices;
-other formats are refused), ``<box size>``, ``<cylinder radius length>`` and ``<sphere
-radius>``, each placed by its ``<origin xyz rpy>``. A mesh's ``package://`` or relative
+other formats are refused), ``<box size>``, ``<cylinder radius length>``, ``<sphere
+radius>`` and ``<capsule radius length>`` (pybullet's extension: ``length`` between the centres
+of its end caps), each placed by its ``<origin xyz rpy>``. A mesh's ``package://`` or relative
 ``filename`` is looked up under ``mesh_dir`` (default: the URDF's directory), with and
 without its first path component (the package name).
 
 Fit (:func:`fit_capsule`): the geometry becomes balls (points with a radius: mesh and box
-vertices with radius 0, sphere centres, cylinder rims sampled with the chord's sag as radius).
+vertices with radius 0, sphere centres, cylinder rims sampled with the chord's sag as radius,
+a capsule's two end centres with its radius).
 For each candidate axis (the principal axis of the points and the three axes of the link
 frame, then refined by Nelder-Mead on the volume) and radius ``R`` (a grid from the smallest
 possible), the shortest segment whose capsule contains every ball is closed form: a ball at
@@ -219,12 +221,15 @@ def collision_balls(link_el, mesh_dir: str, where: str) -> Tuple[NDArray, NDArra
             V = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
                           for sz in (-1, 1)]) * half
             rho = np.zeros(8)
-        elif shape.tag in ('sphere', 'cylinder'):
+        elif shape.tag in ('sphere', 'cylinder', 'capsule'):
             r = _floats(shape, 'radius', 1, None, at)
             if r[0] < 0:
                 raise ValidationError(f'{at}: <{shape.tag}> radius: expected >= 0, got {r[0]}')
             if shape.tag == 'sphere':
                 V, rho = np.zeros((1, 3)), r.copy()
+            elif shape.tag == 'capsule':  # the balls at the ends of its axis: exact
+                half = 0.5 * _floats(shape, 'length', 1, None, at)[0]
+                V, rho = np.array([[0.0, 0.0, -half], [0.0, 0.0, half]]), np.repeat(r, 2)
             else:
                 half = 0.5 * _floats(shape, 'length', 1, None, at)[0]
                 a = np.linspace(0.0, 2.0 * np.pi, RIM_POINTS, endpoint=False)
