@@ -144,8 +144,7 @@ class StreamerNode(Node):
                                    key=lambda request: request[0])
         self.worker.start()
         self.counts = {'ticks': 0, 'published': 0, 'clamped': 0, 'coupling_rejected': 0,
-                       'coupled': 0, 'coupling_bounded': 0, 'output_limited': 0,
-                       'separation_slowed': 0}
+                       'coupled': 0, 'coupling_bounded': 0, 'output_limited': 0}
         self.active_text = None
         # which primitive is streamed (the deterministic-restart rule) and the latency from
         # an adaptation's trigger stamp to the first reference computed from it
@@ -400,8 +399,6 @@ class StreamerNode(Node):
                 c['coupling_bounded'] += 1
             if flags & StreamFlags.LIMITED:
                 c['output_limited'] += 1
-            if flags & StreamFlags.SEPARATION:
-                c['separation_slowed'] += 1
         self.reporter.timing('tick', time.perf_counter() - t_start)
 
     def _switch_in(self, topic: str, prepared, now: float) -> None:
@@ -485,7 +482,6 @@ class StreamerNode(Node):
             n_obstacles = len(self.obstacles)
             # the largest coupling asked for beyond the bound in this period (0: none)
             peak, st.coupling_peak = st.coupling_peak, 0.0
-            lowest, st.separation.lowest = st.separation.lowest, st.separation.cap
             adaptation = dict(self.selection.values(), **self._adapt_latency.values(),
                               **self._adapt_first)
         level = OK if state is StreamState.RUNNING else WARN
@@ -511,8 +507,6 @@ class StreamerNode(Node):
                 primitive=(f'{active.kind} from {active.source}' if active else 'none'),
                 obstacles=n_obstacles,
                 min_obstacle_distance_m=f'{self.streamer.min_distance:.4f}',
-                speed_scale=f'{self.streamer.separation.cap:.4f}',
-                speed_scale_min=f'{lowest:.4f}',
                 coupling_peak_rad_s2=f'{peak:.4g}',
                 rate_hz=f'{self.config.rate:g}', **latency, **adaptation,
                 **extra,

@@ -32,8 +32,7 @@ system runs in a warped time ``d sigma = kappa dt`` with ``0 < kappa <= 1``. Aft
 ``kappa = min(1, kappa_prev + recovery_rate * dt, min_d vmax_d / |yd_nominal_d|)``: it drops at
 once when a joint would exceed its limit and recovers towards nominal speed at
 ``recovery_rate`` [1/s]. The reported velocity ``yd = kappa * yd_nominal`` never exceeds the
-limits. :meth:`DmpStepper.set_speed_cap` bounds ``kappa`` from above as well (the streamer's
-speed and separation monitoring), with or without velocity limits.
+limits.
 """
 import enum
 import functools
@@ -372,8 +371,6 @@ class DmpStepper:
         else:
             self._yo = self._yd_ = [0.0] * n
         self._vmax = None
-        #: Upper bound of kappa (:meth:`set_speed_cap`; 1.0: none).
-        self.speed_cap = 1.0
         if velocity_limits is not None:
             vl = as_array('velocity_limits', velocity_limits, (n,))
             if np.any(vl <= 0):
@@ -442,16 +439,13 @@ class DmpStepper:
             as_array('origin_y', origin_y, (n,)))
         self._x[:] = x0.tolist()
         self._x0[:] = np.asarray(origin, dtype=np.float64).tolist()
-        # under a speed cap the motion starts at that speed: the warped velocity z is the
-        # real one over kappa (the reported velocity is then start_yd, no jump)
-        k0 = self.speed_cap
-        self._z[:] = np.clip(self.tau * xd0 / k0, -1e12, 1e12).tolist()
+        self._z[:] = np.clip(self.tau * xd0, -1e12, 1e12).tolist()
         self._g[:] = g.tolist()
         self._g0[:] = g0.tolist()
         k = int(round(min(u_start, MAX_PHASE_U) / self._h))
         self._k = k
         self._u = k * self._h
-        self._kappa = k0
+        self._kappa = 1.0
         self._t = k * self.dt
         self._forcing_into(self._u, self._phi, k)
         self._finish_outputs(self._zeros, init=True)
@@ -461,31 +455,13 @@ class DmpStepper:
         self._consts = (self._a, self._ab, self._h, self._h * self._ag, self._xclamp,
                         self._inv_tau, self._inv_tau * self._inv_tau, self._cdmp)
         out.xi = self._x  # the exogenous state itself (read-only for users)
-        if self._vmax is None and self._noise is None and self.speed_cap >= 1.0:
+        if self._vmax is None and self._noise is None:
             self.update = self._update_fast
 
     def set_goal(self, goal_y: ArrayLike) -> None:
         """Change the goal target; the goal state follows through Eq. 14/22 (no jump)."""
         g0 = self.prim.to_internal(as_array('goal_y', goal_y, (self.n_dims,)))
         self._g0[:] = g0.tolist()
-
-    def set_speed_cap(self, cap: float) -> None:
-        """Bound the time warp: ``kappa <= cap`` from the next step on (a speed and
-        separation monitor slows the motion so; ``1.0`` lifts the bound, and kappa then
-        recovers at ``recovery_rate``). The path is kept, only its speed changes. Values
-        outside ``(0, 1]`` or not numbers are clipped into ``[1e-6, 1]``; never raises,
-        allocation-free."""
-        try:
-            c = float(cap)
-        except (TypeError, ValueError):
-            c = 1.0
-        if not c < 1.0:  # also NaN: no bound
-            c = 1.0
-        elif c < 1e-6:
-            c = 1e-6
-        self.speed_cap = c
-        if c < 1.0 and 'update' in self.__dict__:
-            del self.update  # the fast path ignores kappa: the general one from now on
 
     def set_joint_coupling(self, dq_dd: Optional[Sequence[float]]) -> CouplingResult:
         """Set the coupling term of the next ticks (``input.coupling``) from a joint-space
@@ -625,7 +601,7 @@ class DmpStepper:
         f0, f1, d0, d1, e0, e1, w0, w1, w2, w3, w4, w5 = self._tick_interpolants(u)
         noise = self._noise
         nk = noise[k] if noise is not None and k < len(noise) else self._zeros
-        fast = self._vmax is None and kappa >= 1.0 and self.speed_cap >= 1.0
+        fast = self._vmax is None
         out = self.output
         y, yd, ydd, xo, xdo = out.y, out.yd, out.ydd, out.xi, out.xid
         inv_tau = self._inv_tau
@@ -778,12 +754,8 @@ class DmpStepper:
         kappa = 1.0
         cdmp = self._cdmp
         vmax = self._vmax
-        cap = self.speed_cap
-        if vmax is not None or cap < 1.0 or self._kappa < 1.0:
-            kappa = min(1.0, self._kappa + self.recovery_rate * self.dt)
-            if kappa > cap:
-                kappa = cap
         if vmax is not None:
+            kappa = min(1.0, self._kappa + self.recovery_rate * self.dt)
             for d in range(self.n_dims):
                 v = z[d] * inv_tau
                 if cdmp:
@@ -794,9 +766,9 @@ class DmpStepper:
                     # backed off by 1e-12: kappa * v rounds to at most vmax (a consumer that
                     # checks |yd| <= vmax strictly must not see a 1-ulp excess)
                     kappa = vmax[d] / v * VMAX_BACKOFF
-            if kappa < 1.0 and kappa < cap:  # held below the cap: the velocity limits
+            if kappa < 1.0:
                 status |= StepStatus.VELOCITY_LIMITED
-        self._kappa = kappa
+            self._kappa = kappa
         k2 = kappa * kappa * inv_tau * inv_tau
         y, yd, ydd, xo, xdo = out.y, out.yd, out.ydd, out.xi, out.xid
         for d in range(self.n_dims):

@@ -102,19 +102,6 @@ class StreamerConfig:
     coupling_decimation: int = _param(
         1, 'Evaluate the coupling every N ticks and hold it in between (box obstacles with '
         'link terms cost milliseconds per evaluation).', 1, 1000)
-    separation_monitoring: bool = _param(
-        True, 'Speed and separation monitoring: slow the motion (its time warp, the path '
-        'kept) so that every coupling point approaching an obstacle can stop, within the '
-        'acceleration limits, before it comes within separation_margin of it '
-        '(core/streaming/separation.py).')
-    separation_margin: float = _param(
-        0.02, 'Clearance [m] the coupling points keep from the obstacles under speed and '
-        'separation monitoring (their distances: the tool centre point and the link '
-        'capsules of the coupling).', 0.0, 1.0)
-    separation_reaction_time: float = _param(
-        0.02, 'Reaction time [s] of the speed and separation monitoring: the approach the '
-        'motion keeps before its brake acts (an evaluation period, the jerk ramp, the output '
-        "stage's lag).", 0.0, 1.0)
     tick_thread: bool = _param(
         True, 'Publish from a dedicated tick thread that sleeps to absolute deadlines of the '
         'steady clock (False: an executor timer, sharing the executor thread with the '

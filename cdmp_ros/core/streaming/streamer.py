@@ -48,7 +48,6 @@ from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
 from cdmp_ros.core.streaming.config import StreamerConfig
 from cdmp_ros.core.streaming.output_stage import OutputStage
-from cdmp_ros.core.streaming.separation import SeparationMonitor
 from cdmp_ros.core.joint_limits import KinematicLimits
 from cdmp_ros.core.dmp.transform import SAT_MARGIN, XI_SAT, TanhTransform
 from cdmp_ros.core.validation import as_array, check_limits
@@ -164,7 +163,6 @@ class StreamFlags(enum.IntFlag):
     COUPLING_REJECTED = 16  #: the coupling term was non-finite or failed and was dropped
     COUPLING_BOUNDED = 32   #: the coupling term was scaled down to coupling_max_acceleration
     LIMITED = 64          #: the output stage bent the reference to keep the limits
-    SEPARATION = 128      #: speed and separation monitoring slowed the motion
 
 
 def _h(s: float) -> float:
@@ -326,10 +324,6 @@ class ReferenceStreamer:
         self.stage = OutputStage(lo, hi, self.limits.velocity, self.limits.acceleration,
                                  self.limits.jerk, config.dt, config.output_bandwidth,
                                  margin=STAGE_MARGIN)
-        #: speed and separation monitoring (``config.separation_*``)
-        self.separation = SeparationMonitor(config.separation_margin,
-                                            config.separation_reaction_time,
-                                            self.limits.acceleration)
         self._bind_output()
 
     # -- configuration ------------------------------------------------------------------------
@@ -343,8 +337,6 @@ class ReferenceStreamer:
         self._goal_transform = TanhTransform(self.lower, self.upper,
                                              margin=config.limit_margin)
         self.stage.bandwidth = config.output_bandwidth
-        self.separation.margin = config.separation_margin
-        self.separation.reaction_time = config.separation_reaction_time
         self._bind_output()
 
     def _bind_output(self) -> None:
@@ -439,7 +431,6 @@ class ReferenceStreamer:
         self.active_limits = lim
         self.stage.set_limits(lim.velocity.tolist(), lim.acceleration.tolist(),
                               lim.jerk.tolist())
-        self.separation.set_limits(lim.acceleration.tolist())
 
     # -- the tick -----------------------------------------------------------------------------
     def advance(self, n_steps: int, now: float,
@@ -540,9 +531,6 @@ class ReferenceStreamer:
         prim = prep.prim
         goal = self.goal_override if self.goal_override is not None else prim.goal_y_
         y = np.asarray(self.y)
-        # the speed cap in force carries over (the new stepper starts at that speed)
-        prep.stepper.set_speed_cap(self.separation.cap if self.config.separation_monitoring
-                                   else 1.0)
         prep.stepper.reset(start_y=y, start_yd=np.asarray(self.yd), goal_y=goal,
                            phase_u=phase_u)
         self._calls = self.config.coupling_decimation  # evaluate at the first step
@@ -621,22 +609,11 @@ class ReferenceStreamer:
             self.min_distance = math.inf
             stepper.set_joint_coupling(None)
             cj[:] = self._zeros
-            if self.separation.cap < 1.0:
-                self.separation.reset()
-                stepper.set_speed_cap(1.0)
             return 0
         coupling = self.coupling
-        separation = 0
         try:
             a = coupling.joint_acceleration(self.y, self.yd, obstacles)
-            distances = coupling.last_distances
-            self.min_distance = min(distances, default=math.inf)
-            if self.config.separation_monitoring:
-                cap = self.separation.update(distances, obstacles, self.steps, self._dt,
-                                             self.yd, stepper.output.kappa)
-                stepper.set_speed_cap(cap)
-                if cap < 1.0:
-                    separation = int(StreamFlags.SEPARATION)
+            self.min_distance = min(coupling.last_distances, default=math.inf)
         except Exception:  # noqa: BLE001 -- the tick must not raise; reported as rejected
             a = ()
         bounded = 0
@@ -659,9 +636,8 @@ class ReferenceStreamer:
         else:
             cj[:] = self._zeros
         if result is CouplingResult.REJECTED:
-            return int(StreamFlags.COUPLING_REJECTED) | separation
-        return ((int(StreamFlags.COUPLED) | bounded) if result is CouplingResult.APPLIED
-                else 0) | separation
+            return int(StreamFlags.COUPLING_REJECTED)
+        return (int(StreamFlags.COUPLED) | bounded) if result is CouplingResult.APPLIED else 0
 
     def _guard(self) -> int:
         flags = 0
