@@ -402,7 +402,20 @@ def test_diagnostics_status_names_start_with_the_fully_qualified_node_name(node)
         rclpy.try_shutdown(context=ctx)
 
 
+#: What config/streamer.yaml sets beyond the code's defaults: the coupling of the Panda's whole
+#: arm (capsules fitted to the collision geometry of links 3-7 and the hand, the fingers'
+#: capsule on panda_link7's axis) with the gains and damping it was tuned with. The code's
+#: defaults stay those of the core classes, which the paper reproductions use.
+SHIPPED_COUPLING = {
+    'coupling_capsule_links': ('panda_link3', 'panda_link4', 'panda_link5', 'panda_link6',
+                               'panda_link7', 'panda_hand'),
+    'coupling_links': ('panda_link7',), 'coupling.link_radius': 0.06, 'damping.epsilon': 0.1,
+    'repeller.gain': 0.03, 'repeller.influence_distance': 0.25}
+
+
 def test_config_file_mirrors_every_parameter_with_its_default():
+    """config/streamer.yaml lists every parameter of the streamer, each at its default but
+    for the shipped coupling (:data:`SHIPPED_COUPLING`)."""
     from cdmp_ros.core.coupling.obstacle import DampingConfig
     from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
     from cdmp_ros.core.coupling.obstacle import CouplingConfig
@@ -411,4 +424,7 @@ def test_config_file_mirrors_every_parameter_with_its_default():
     sections = [('', StreamerConfig), ('coupling', CouplingConfig), ('damping', DampingConfig),
                 ('repeller', RepellerField), ('box_field', ConstantField),
                 ('board_field', BoardField)]
-    assert config_file_parameters('streamer') == parameter_defaults(sections)
+    defaults = parameter_defaults(sections)
+    assert set(SHIPPED_COUPLING) <= set(defaults)
+    assert all(defaults[k] != v for k, v in SHIPPED_COUPLING.items())
+    assert config_file_parameters('streamer') == {**defaults, **SHIPPED_COUPLING}
