@@ -10,9 +10,12 @@ nodes run with (the URDF merged with Franka's datasheet, ``config/joint_limits/p
 2. ``storm``: sim, streamer, adapter and learner from ``config/*.yaml`` as processes, then for
    ``--duration`` s a bounded publisher (loopback only) sends valid goals (half inside the
    limits, half up to 0.5 rad beyond them) and spheres that appear next to the arm, jump
-   3-15 cm and vanish, one event every 0.3-1.2 s (seeded); every reference is recorded;
+   3-15 cm and vanish, one event every 0.3-1.2 s (seeded); every reference is recorded, and
+   every contact the sim reports is printed with its links and the events of the 3 s before
+   it; ``--streamer-param NAME:=VALUE`` (repeatable) adds streamer parameters;
 3. ``tick``: the streamer's tick cost in-process (a 7-joint CDMP reach with the obstacle
-   coupling of one sphere next to the hand), with the output stage on and off.
+   coupling of one sphere next to the hand), with the output stage on and off, for the
+   coupling of config/streamer.yaml and for the code's defaults.
 
 ``--stage off`` runs parts 1-2 with the streamer's ``output_stage: false`` (the references as
 integrated, before this stage existed). Every ROS process runs with
@@ -20,6 +23,7 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a private domain id.
 
     .venv/bin/python benchmarks/bench_kinematic_limits.py [--parts demos storm tick]
         [--rates 500 1000] [--duration 45] [--seed 0] [--domain 75] [--stage on|off]
+        [--streamer-param NAME:=VALUE ...]
 """
 import argparse
 import os
