@@ -8,6 +8,8 @@ domain) and makes one part of its stop hang forever: the middleware teardown
 that never returns). The test waits for the
 node's ``ready`` line, sends SIGINT and waits (bounded) for the exit. No duration is asserted:
 what is checked is the exit code, the message and the stack of the place that hung.
+A last case checks the order of the teardown that removed the hang of the sim and the streamer:
+the node is destroyed only after its EventsExecutor shut down.
 """
 import signal
 import subprocess
@@ -27,7 +29,7 @@ NODE = '''
 import sys
 import threading
 
-from cdmp_ros.ros.node_main import catch_stop_signals, run_node
+from cdmp_ros.ros.node_main import catch_stop_signals, make_executor, run_node
 catch_stop_signals()
 from rclpy.node import Node
 
@@ -62,6 +64,8 @@ class Stuck(Node):
         print('closed', flush=True)
 
     def destroy_node(self):
+        if HANG == 'order':     # the executor must have let go of every entity by now
+            print(f'destroyed after the executor shut down: {SHUT_DOWN[0]}', flush=True)
         if HANG == 'teardown':
             hang_forever()
         if HANG == 'gil':
@@ -69,7 +73,25 @@ class Stuck(Node):
         return super().destroy_node()
 
 
-sys.exit(run_node(Stuck, ['--ros-args'], graceful=True))
+SHUT_DOWN = [False]
+
+
+class Recording:
+    """The EventsExecutor (a pybind11 class) with its shutdown recorded."""
+    def __init__(self, executor):
+        self._executor = executor
+
+    def __getattr__(self, name):
+        return getattr(self._executor, name)
+
+    def shutdown(self, *args):
+        result = self._executor.shutdown(*args)
+        SHUT_DOWN[0] = True
+        return result
+
+
+EXECUTOR = Recording(make_executor()) if HANG == 'order' else None   # as the sim's main()
+sys.exit(run_node(Stuck, ['--ros-args'], graceful=True, executor=EXECUTOR))
 '''
 
 
@@ -127,4 +149,14 @@ def test_a_node_that_stops_normally_is_not_touched():
     """The same node without a hang: exit code 0, no watchdog message."""
     code, text = _run('none')
     assert code == 0 and 'closed' in text, text
+    assert '[node_main]' not in text, text
+
+
+def test_the_node_is_destroyed_after_its_events_executor_shut_down():
+    """The hung stops of the sim and the streamer: the EventsExecutor holds the entities of
+    its nodes until its shutdown, so a node destroyed before it had its DDS entities deleted
+    inside that shutdown. run_node destroys the node after the executor's shutdown."""
+    code, text = _run('order')
+    assert code == 0 and 'closed' in text, text
+    assert 'destroyed after the executor shut down: True' in text, text
     assert '[node_main]' not in text, text

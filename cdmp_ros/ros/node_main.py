@@ -268,7 +268,14 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
             if STOP.is_set():       # the teardown below is where the stop hung
                 _arm_backstop(STOP_LIMIT)
             executor.remove_node(node)
-            node.destroy_node()
+        # The executor lets go of the node's entities before the node destroys them. Reversed,
+        # rclpy's EventsExecutor holds every entity "in use" until its shutdown, so the DDS
+        # entities are deleted from inside that shutdown's callback teardown (the stack of the
+        # hung stops of the sim and the streamer: an event's __exit__ under
+        # executor.shutdown()); in this order they are deleted by destroy_node() with no
+        # executor callback left on them, as the SingleThreadedExecutor's nodes always did.
         executor.shutdown()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return code
