@@ -6,9 +6,11 @@ From a ``cdmp demo --kind promp`` output directory: the learner's primitive (the
 (``AdaptRequestConfig``, ``avoid_links`` panda_link4, the request continues the motion); per
 law: converged, KL, evaluations, wall time and the per-step maximum of the sampled violation
 (``--samples`` trajectories, 50 steps) of the end effector and panda_link4 (allowed 1 - alpha).
+The 'auto' law is solved twice: without the saddle point's correction of the Gamma levels
+(``max_level_corrections`` 0) and with the default.
 
 Run: .venv/bin/python benchmarks/link_point_resolve.py out/demo_promp \
-         --tails gamma conservative saddlepoint
+         --tails auto gamma conservative saddlepoint
 """
 import argparse
 import dataclasses
@@ -36,7 +38,8 @@ from link_point_tail import MARGIN, N_STEPS, sampled  # noqa: E402
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('out', help='output directory of cdmp demo --kind promp')
-    ap.add_argument('--tails', nargs='+', default=['gamma', 'conservative', 'saddlepoint'],
+    ap.add_argument('--tails', nargs='+',
+                    default=['auto', 'gamma', 'conservative', 'saddlepoint'],
                     choices=TAILS)
     ap.add_argument('--samples', type=int, default=200_000)
     args = ap.parse_args(argv)
@@ -50,19 +53,26 @@ def main(argv=None):
     cfg = AdaptRequestConfig(avoid_links=('panda_link4',))
     req = AdaptRequest(prior, (Sphere(tuple(center), float(obs['radius'])),), continues=True)
     rng = np.random.default_rng(3)
-    print('| law | converged | KL | evaluations | wall [ms] | end effector per-step max | '
-          'panda_link4 |')
-    print('|---|---|---|---|---|---|---|')
+    print('| law | converged | KL | evaluations | level corrections | wall [ms] | '
+          'end effector per-step max | panda_link4 |')
+    print('|---|---|---|---|---|---|---|---|')
+    built = build_problem(req, chain, cfg)
+    rows = []
     for tail in args.tails:
+        if tail == 'auto':
+            rows.append(('auto, no correction',
+                         dataclasses.replace(built.config, tail=tail, max_level_corrections=0)))
+        rows.append((tail, dataclasses.replace(built.config, tail=tail)))
+    for name, config in rows:
         built = build_problem(req, chain, cfg)
         t = time.perf_counter()
-        adapted, rep = solve_levels(built.prior, built.constraints,
-                                    dataclasses.replace(built.config, tail=tail))
+        adapted, rep = solve_levels(built.prior, built.constraints, config)
         wall = time.perf_counter() - t
         S = sampled(adapted, chain, center, float(obs['radius']) + MARGIN,
                     np.linspace(0.0, 1.0, N_STEPS), args.samples, rng)
-        print(f'| {tail} | {rep.converged} | {rep.kl:.3f} | {rep.n_evaluations} | '
-              f'{wall * 1e3:.0f} | {S[:, 0].max():.5f} | {S[:, 1].max():.5f} |', flush=True)
+        print(f'| {name} | {rep.converged} | {rep.kl:.3f} | {rep.n_evaluations} | '
+              f'{rep.n_level_corrections} | {wall * 1e3:.0f} | {S[:, 0].max():.5f} | '
+              f'{S[:, 1].max():.5f} |', flush=True)
 
 
 if __name__ == '__main__':

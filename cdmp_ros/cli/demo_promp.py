@@ -15,6 +15,9 @@ streamer follows the adapted mean. From the bag:
   which the end effector or an avoided link origin comes within the sphere's radius plus the
   adapter's ``obstacle_margin`` at any of 100 phases (``trajectory``), and the largest such
   fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
+- ``adapted_laws``: per probability law, the constraints of the last adaptation that used it
+  (its report's ``ConstraintReport.law``: 'gaussian' for the joint limits, under the default
+  tail 'gamma, saddle-point checked' for the end effector and the links);
 - ``adaptation_latency_ms``: per obstacle message answered, the streamer's own figure (the
   stamp of its first reference computed from the first adapted primitive answering it minus
   the stamp of that message), from its diagnostics in the bag;
@@ -152,6 +155,18 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
     if after and last is not None:
         out['adapted_violation'] = sphere_violation(
             _promp(after[-1], chain), chain, links, last, radius, rng)
+    if after:
+        out['adapted_laws'] = constraint_laws(after[-1])
+    return out
+
+
+def constraint_laws(d: Dict) -> Dict[str, List[str]]:
+    """Per probability law (``ConstraintReport.law``), the constraints of an adapted
+    primitive dict whose report used it (its ``metadata.adaptation.constraints``)."""
+    out: Dict[str, List[str]] = {}
+    for c in ((d.get('metadata') or {}).get('adaptation') or {}).get('constraints') or []:
+        if isinstance(c, dict) and 'name' in c:
+            out.setdefault(str(c.get('law') or 'not reported'), []).append(str(c['name']))
     return out
 
 

@@ -222,6 +222,10 @@ def markdown(s: Dict) -> str:
                                 f'trajectory {v["trajectory"]:.4f} (95 % bound '
                                 f'{v["trajectory_upper95"]:.4f}), per step max '
                                 f'{v["per_step_max"]:.4f}; {v["n_samples"]} samples')]
+        laws = p.get('adapted_laws')
+        if laws:
+            rows[-1:-1] = [('probability laws of the last adaptation', '; '.join(
+                f'{law}: {", ".join(names)}' for law, names in laws.items()))]
     lines = ['| quantity | value |', '|---|---|'] + [f'| {a} | {b} |' for a, b in rows]
     return '\n'.join(lines) + '\n'
 

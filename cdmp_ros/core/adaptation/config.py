@@ -33,6 +33,8 @@ from cdmp_ros.core.validation import check_positive
 RANGES = {'n_steps': (2, 1000), 'max_outer': (1, 100), 'max_inner': (1, 10000),
           'lambda0': (1e-6, 1e6), 'eta': (1e-6, 100.0), 'kappa': (0.0, 1e6)}
 _INTEGERS = ('n_steps', 'max_outer', 'max_inner')
+#: ConstraintReport.law of Gamma-matched rows checked by the saddle point (tail 'auto').
+CHECKED_LAW = 'gamma, saddle-point checked'
 #: Approximations of the law of quadratic forms (AdaptationConfig.tail).
 TAILS = ('auto', 'saddlepoint', 'gamma', 'conservative')
 
@@ -135,7 +137,15 @@ class AdaptationConfig:
         small-shape lower tail penalises a wide distribution). 'conservative': per row the
         larger violation of the two laws; it behaves as 'gamma' on the planar arm and brings
         the ProMP demo's end-effector violation close to 1 - alpha; not yet the default of
-        link points.
+        link points. Under 'auto' the Gamma-matched rows are checked by the saddle point of
+        the same Gaussian after the solve, and their levels corrected where it shows more
+        violation than allowed (``max_level_corrections``).
+    max_level_corrections : int
+        'auto' tail: how many times a solve whose Gamma-matched rows violate more than
+        confidence_margin (1 - alpha) under the saddle-point law is re-solved, warm, with
+        those rows' levels tightened by the ratio of the two laws there
+        (:func:`~cdmp_ros.core.adaptation.solver.corrected_levels`; at most 20 times the
+        asked level). 0: no check (the Gamma match alone, paper 003's Eq. 15). Default 2.
     whiten : bool
         Precondition the parameters with the prior's Cholesky factor L0: mu = mu0 + L0 nu,
         L = L0 L~, L~ = L~_tril + diag(exp(gamma~)). L stays lower triangular with
@@ -207,6 +217,7 @@ class AdaptationConfig:
     max_log_step: float = 3.0
     max_log_decrease: float = 0.3
     tail: str = 'auto'
+    max_level_corrections: int = 2
     whiten: bool = True
     guarantee: str = 'per_step'
     verification_samples: Optional[int] = None
@@ -251,7 +262,8 @@ class AdaptationConfig:
             raise ValidationError(f'guarantee: expected one of {list(GUARANTEES)}, got '
                                   f'{self.guarantee!r}')
         for name, lo, hi in (('verification_samples', 1, MAX_VERIFICATION_SAMPLES),
-                             ('max_refinements', 0, 20), ('max_evaluations', 1, 10 ** 7)):
+                             ('max_refinements', 0, 20), ('max_evaluations', 1, 10 ** 7),
+                             ('max_level_corrections', 0, 10)):
             v = getattr(self, name)
             if v is None and name in ('verification_samples', 'max_evaluations'):
                 continue
@@ -285,6 +297,17 @@ class ConstraintReport:
     probability: float      # the approximation's satisfaction probability (worst time)
     satisfied: bool
     lagrange_max: float
+    #: the law of ``probability``: 'gaussian' (a linear form: joint limits, hyperplanes,
+    #: corners), the quadratic forms' ``AdaptationConfig.tail`` ('saddlepoint', 'gamma',
+    #: 'conservative'), or under 'auto' for points through the unscented transform
+    #: :data:`CHECKED_LAW`: solved with the Gamma match, ``probability`` the lower of it and
+    #: of the saddle point's check of the same Gaussian (``max_level_corrections``)
+    law: str = ''
+
+    @property
+    def checked(self) -> bool:
+        """Whether the saddle point checked the Gamma match (:data:`CHECKED_LAW`)."""
+        return self.law == CHECKED_LAW
 
 
 @dataclass(frozen=True)
@@ -372,6 +395,9 @@ class AdaptationReport:
     #: outer iterations whose multiplier step was halved and retried from the last iterate
     #: (:data:`cdmp_ros.core.adaptation.solver.BACKTRACK_GROWTH`)
     n_backtracks: int = 0
+    #: re-solves whose Gamma levels the saddle point's check tightened
+    #: (AdaptationConfig.max_level_corrections)
+    n_level_corrections: int = 0
     #: KKT residuals of the returned iterate (:class:`KKTResiduals`); None when the solve
     #: did not get to an iterate (trajectory guarantee: those of the returned solve)
     kkt: Optional['KKTResiduals'] = None
@@ -397,7 +423,11 @@ class AdaptationReport:
                  f'evaluations: {self.n_evaluations}, time: {self.time_s * 1e3:.1f} ms']
         for c in self.constraints:
             lines.append(f'  {c.name} [{c.kind}]: P = {c.probability:.6f} '
-                         f'(alpha = {c.alpha}) {"ok" if c.satisfied else "VIOLATED"}')
+                         f'(alpha = {c.alpha}) {"ok" if c.satisfied else "VIOLATED"}'
+                         f'{f" [{c.law}]" if c.law else ""}')
+        if self.n_level_corrections:
+            lines.append(f'Gamma levels corrected by the saddle point: '
+                         f'{self.n_level_corrections} re-solve(s)')
         if self.kkt is not None:
             k = self.kkt
             lines.append(f'KKT: duality gap {k.gap:.3g} ({k.gap_relative:.3g} of max(1, KL)), '

@@ -20,6 +20,19 @@ the jump and retries with half the multiplier step that caused it (in log), at m
 951 and 826 evaluations, and 92 other problems solved cold (the 80 events of
 ``bench_adaptation_solve.py`` seeds 3 and 7, events 21-34 of the tracked stream) give the same
 evaluations and KL with and without it.
+
+The saddle point's check of the Gamma match (``AdaptationConfig.tail`` 'auto'): the rows of
+points through the unscented transform are solved with the Gamma match, whose tail can be
+several times too light (the ProMP demo's end effector: 0.08-0.11 % under the Gamma match
+where sampled trajectories show 0.25-0.30 %). After the solve, :meth:`Problem.check_values`
+evaluates those rows under the saddle-point law of the same Gaussian; where one violates more
+than allowed, :func:`corrected_levels` tightens its Gamma level by the ratio of the two laws
+and the solve continues warm from where it ended, at most
+``AdaptationConfig.max_level_corrections`` times. The reported probability of a checked row is
+the lower of the two laws. A saddle-point check in the outer loop itself (each row's stopping
+test under both laws) was tried and not kept: its multipliers chase the heavier tail from the
+first iterate, and the crossing sphere of the tracked stream ended at KL 36.2 (17.8 with the
+correction after the solve), a recovering obstacle unconverged after 1,462 evaluations.
 """
 import time
 from typing import Callable, Optional, Sequence, Tuple
@@ -46,6 +59,11 @@ BACKTRACK_GROWTH = 2.0
 BACKTRACK_MIN = 0.05
 #: Backtracks per solve at most (each one costs an outer iteration of ``max_outer``).
 MAX_BACKTRACKS = 3
+
+
+#: The saddle point's correction of the Gamma levels (:func:`corrected_levels`) tightens a
+#: row's level to at most this many times below the asked 1 - alpha.
+MAX_LEVEL_RATIO = 20.0
 
 
 def _jumped(worst: float, before: float) -> bool:
@@ -121,98 +139,122 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     eta = np.concatenate([np.full(s.stop - s.start, c.eta or config.eta)
                           for c, s in zip(prob.constraints, prob.slices)]) \
         if prob.constraints else np.zeros(0)
-    # stopping level: violation probability confidence_margin * (1 - alpha) (1: alpha itself);
-    # EMM aim: violation_target times that
-    alpha_stop = 1.0 - config.confidence_margin * (1.0 - prob.alpha)
-    alpha_aim = 1.0 - config.violation_target * (1.0 - alpha_stop)
-    n_inner = 0
-    n_outer = 0
-    prev = None
-    status = 'max_outer_reached'
-    feasible = False
-    last = None      # (theta, multipliers, largest violation) of the last kept iterate
-    jump = None      # last + the multipliers that made the next inner loop jump away from it
-    n_back = 0
     kkt_stop = config.stop_rule == 'kkt'
-    best_feasible = None   # kkt: (objective, theta, multipliers, gradient) of the lowest
-    jac = None
-    for n_outer in range(1, int(config.max_outer) + 1):
-        ftol = config.lbfgs_ftol
-        if config.lbfgs_ftol_first is not None:
-            # inexact early inner loops: the multipliers are still far from their values
-            ftol = max(ftol, config.lbfgs_ftol_first * config.lbfgs_ftol_decay ** (n_outer - 1))
-        options = {'maxiter': int(config.max_inner), 'ftol': ftol,
-                   'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor}
-        if budget is not None:
-            options['maxfun'] = max(1, int(budget) - prob.n_evaluations)
-        best[0], best[1] = np.inf, None
-        try:
-            res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
-                           options=options)
-        except Cancelled as exc:   # where it was: a refinement resumes from there
-            exc.state = _state(prob, theta if best[1] is None else best[1], lam)
-            exc.n_evaluations = prob.n_evaluations
-            raise
-        if np.all(np.isfinite(res.x)):
-            theta = res.x
-            jac = res.jac
-        n_inner += int(res.nit)
-        F = prob.cached_values(theta)
-        if F is None:
-            mu, L, _ = prob.unpack(theta)
-            F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
-        C = alpha_stop - F
-        worst = float(np.max(C)) if C.size else 0.0
-        if jump is not None and _jumped(worst, jump[2]) and n_back < MAX_BACKTRACKS:
-            # not recovered one outer iteration after the jump: the multiplier step overshot;
-            # retry from the iterate before the jump with half that step
-            theta, lam = jump[0].copy(), np.sqrt(jump[1] * jump[3])
-            last, jump = jump[:3], None
-            n_back += 1
-            continue
-        jump = (*last, lam.copy()) if last is not None and _jumped(worst, last[2]) else None
-        feasible = bool(np.all(C <= config.feasibility_tol * config.confidence_margin))
-        value = float(res.fun)
-        if feasible:
-            status = 'converged'
-            if not kkt_stop:
+    counts = {'outer': 0, 'inner': 0, 'back': 0}
+
+    def outer_loop(theta, lam, alpha):
+        """Algorithm 1's outer loop from (theta, lam) for the levels ``alpha`` (per value):
+        (theta, lam, jac, feasible, status, alpha_aim, alpha_stop) where it ended."""
+        # stopping level: violation probability confidence_margin * (1 - alpha) (1: alpha
+        # itself); EMM aim: violation_target times that
+        alpha_stop = 1.0 - config.confidence_margin * (1.0 - alpha)
+        alpha_aim = 1.0 - config.violation_target * (1.0 - alpha_stop)
+        # feasibility_tol, in proportion where a level was tightened (corrected_levels)
+        tol = (config.feasibility_tol * config.confidence_margin
+               * (1.0 - alpha) / np.maximum(1.0 - prob.alpha, 1e-300))
+        prev = None
+        status = 'max_outer_reached'
+        feasible = False
+        last = None      # (theta, multipliers, largest violation) of the last kept iterate
+        jump = None      # last + the multipliers that made the next inner loop jump away
+        n_back = 0
+        best_feasible = None   # kkt: (objective, theta, multipliers, gradient) of the lowest
+        jac = None
+        for n_outer in range(1, int(config.max_outer) + 1):
+            counts['outer'] += 1
+            ftol = config.lbfgs_ftol
+            if config.lbfgs_ftol_first is not None:
+                # inexact early inner loops: the multipliers are still far from their values
+                ftol = max(ftol, config.lbfgs_ftol_first
+                           * config.lbfgs_ftol_decay ** (n_outer - 1))
+            options = {'maxiter': int(config.max_inner), 'ftol': ftol,
+                       'gtol': config.lbfgs_gtol, 'maxcor': config.lbfgs_maxcor}
+            if budget is not None:
+                options['maxfun'] = max(1, int(budget) - prob.n_evaluations)
+            best[0], best[1] = np.inf, None
+            try:
+                res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
+                               options=options)
+            except Cancelled as exc:   # where it was: a refinement resumes from there
+                exc.state = _state(prob, theta if best[1] is None else best[1], lam)
+                exc.n_evaluations = prob.n_evaluations
+                raise
+            if np.all(np.isfinite(res.x)):
+                theta = res.x
+                jac = res.jac
+            counts['inner'] += int(res.nit)
+            F = _values(prob, theta)
+            C = alpha_stop - F
+            worst = float(np.max(C)) if C.size else 0.0
+            if jump is not None and _jumped(worst, jump[2]) and n_back < MAX_BACKTRACKS:
+                # not recovered one outer iteration after the jump: the multiplier step
+                # overshot; retry from the iterate before the jump with half that step
+                theta, lam = jump[0].copy(), np.sqrt(jump[1] * jump[3])
+                last, jump = jump[:3], None
+                n_back += 1
+                counts['back'] += 1
+                continue
+            jump = (*last, lam.copy()) if last is not None and _jumped(worst, last[2]) else None
+            feasible = bool(np.all(C <= tol))
+            value = float(res.fun)
+            if feasible:
+                status = 'converged'
+                if not kkt_stop:
+                    break
+                objective = value - float(np.sum(lam * (alpha - F)))
+                if best_feasible is None or objective < best_feasible[0]:
+                    best_feasible = (objective, theta.copy(), lam.copy(), jac)
+                if kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, objective,
+                                 config).reached:
+                    best_feasible = None     # a KKT point: this iterate
+                    break
+            if budget is not None and prob.n_evaluations >= budget:
+                status = 'evaluation_budget_exhausted'
                 break
-            objective = value - float(np.sum(lam * (prob.alpha - F)))
-            if best_feasible is None or objective < best_feasible[0]:
-                best_feasible = (objective, theta.copy(), lam.copy(), jac)
-            if kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, objective,
-                             config).reached:
-                best_feasible = None     # a KKT point: this iterate
+            if (not config.relative_step and prev is not None
+                    and abs(value - prev) < config.objective_tol):
+                status = 'converged' if feasible else 'stalled_infeasible'
                 break
-        if budget is not None and prob.n_evaluations >= budget:
-            status = 'evaluation_budget_exhausted'
+            prev = value
+            last = (theta.copy(), lam.copy(), worst)
+            lam = multiplier_update(lam, F, eta, alpha_aim, config,
+                                    None if best_feasible is None else config.kkt_log_decrease)
+        if best_feasible is not None:
+            # kkt not reached: the feasible iterate of lowest objective (the last one may
+            # have lost feasibility while the multipliers came down)
+            _, theta, lam, jac = best_feasible
+            feasible, status = True, 'converged'
+        return theta, lam, jac, feasible, status, alpha_aim, alpha_stop
+
+    alpha = prob.alpha
+    theta, lam, jac, feasible, status, alpha_aim, alpha_stop = outer_loop(theta, lam, alpha)
+    # The Gamma match's levels corrected by the saddle point (AdaptationConfig.tail 'auto',
+    # points through the unscented transform): see level_correction.
+    n_corrections = 0
+    F_check, checked = prob.check_values(theta)
+    while (feasible and n_corrections < config.max_level_corrections
+           and (budget is None or prob.n_evaluations < budget)):
+        alpha_new = corrected_levels(alpha, prob.alpha, _values(prob, theta), F_check, checked,
+                                     config)
+        if alpha_new is None:
             break
-        if (not config.relative_step and prev is not None
-                and abs(value - prev) < config.objective_tol):
-            status = 'converged' if feasible else 'stalled_infeasible'
-            break
-        prev = value
-        last = (theta.copy(), lam.copy(), worst)
-        lam = multiplier_update(lam, F, eta, alpha_aim, config,
-                                None if best_feasible is None else config.kkt_log_decrease)
-    if best_feasible is not None:
-        # kkt not reached: the feasible iterate of lowest objective (the last one may have
-        # lost feasibility while the multipliers came down)
-        _, theta, lam, jac = best_feasible
-        feasible, status = True, 'converged'
+        n_corrections += 1
+        alpha = alpha_new
+        theta, lam, jac, feasible, status, alpha_aim, alpha_stop = outer_loop(theta, lam, alpha)
+        F_check, checked = prob.check_values(theta)
+    n_outer, n_inner, n_back = counts['outer'], counts['inner'], counts['back']
     mu, L, gamma = prob.unpack(theta)
     Sigma = L @ L.T
     adapted = prior.copy(mu, 0.5 * (Sigma + Sigma.T))
     kl = float(prob.kl(mu, L))
-    F = prob.cached_values(theta)
-    if F is None:
-        F = prob.constraint_values(mu, L)
+    F = _values(prob, theta)
+    F_report = np.where(checked, np.minimum(F, F_check), F)
     reports = []
-    for c, sl in zip(prob.constraints, prob.slices):
-        p = float(np.min(F[sl]))
+    for c, sl, law in zip(prob.constraints, prob.slices, prob.laws):
+        p = float(np.min(F_report[sl]))
         reports.append(ConstraintReport(c.name, c.kind, c.alpha, p,
                                         p >= c.alpha - config.feasibility_tol,
-                                        float(np.max(lam[sl]))))
+                                        float(np.max(lam[sl])), law))
     if not feasible and all(r.satisfied for r in reports):
         # the stricter margin level was not reached, the constraints' own alpha was
         feasible, status = True, 'converged_without_margin'
@@ -221,10 +263,61 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
     report = AdaptationReport(feasible, status, kl, kl / prior.n_basis, n_outer, n_inner,
                               prob.n_evaluations, time.perf_counter() - t_start, reports,
                               start='cold' if start is None else 'warm', n_backtracks=n_back,
+                              n_level_corrections=n_corrections,
                               kkt=kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, kl,
                                                 config),
                               state=_state(prob, theta, lam))
     return adapted, report
+
+
+def _values(prob: Problem, theta: NDArray) -> NDArray:
+    """F of every multiplier at ``theta`` (the inner loop's tail laws)."""
+    F = prob.cached_values(theta)
+    if F is None:
+        mu, L, _ = prob.unpack(theta)
+        F = prob.constraint_values(mu, L) if prob.n_values else np.zeros(0)
+    return F
+
+
+def corrected_levels(alpha: NDArray, alpha_asked: NDArray, F: NDArray, F_check: NDArray,
+                     checked: NDArray, config: AdaptationConfig) -> Optional[NDArray]:
+    """The levels of a re-solve whose Gamma-matched rows meet the asked level under the
+    saddle-point law, or None when no row needs (or can get) a tighter level.
+
+    A row of a point through the unscented transform is solved with the Gamma match (see
+    ``AdaptationConfig.tail``), whose tail can be several times lighter than the saddle point
+    of the same Gaussian (which agrees with sampled trajectories). Where a solve ended with a
+    row's saddle-point violation v_s above its allowed confidence_margin (1 - alpha), the
+    row's Gamma level becomes (1 - alpha) v_g / (v_s k), v_g its Gamma violation there and
+    k = 1 + feasibility_tol / (1 - alpha) the stopping rule's tolerance (it accepts k times
+    the level): the level at which the saddle point ends within 1 - alpha, tolerance
+    included, if the ratio of the two laws stays what it is near the solution (the next
+    check says whether it did). Never looser than the current level, never tighter than
+    1 / :data:`MAX_LEVEL_RATIO` of the asked one.
+
+    Parameters
+    ----------
+    alpha, alpha_asked : (n_values,)
+        The levels of the last solve and the asked ones.
+    F, F_check : (n_values,)
+        Satisfaction probabilities of the inner loop's laws and of the check
+        (:meth:`Problem.check_values`) at the solution.
+    checked : (n_values,) bool
+        The rows the check covers.
+    """
+    v_asked = 1.0 - alpha_asked
+    v_check = 1.0 - F_check
+    need = checked & (v_check > config.confidence_margin * v_asked)
+    if not np.any(need):
+        return None
+    v = 1.0 - alpha
+    v_gamma = np.maximum(1.0 - F, 0.0)
+    k = 1.0 + config.feasibility_tol / np.maximum(v_asked, 1e-300)
+    target = v_asked * v_gamma / (np.maximum(v_check, 1e-300) * k)
+    v_new = np.where(need, np.clip(np.minimum(v, target), v_asked / MAX_LEVEL_RATIO, None), v)
+    if np.all(v_new[need] >= v[need]):
+        return None
+    return 1.0 - v_new
 
 
 def duality_gap(lam: NDArray, F: NDArray, alpha_aim: NDArray) -> float:
