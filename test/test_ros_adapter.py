@@ -71,6 +71,12 @@ def alive(h, proc):
     assert h.wait_state(lambda m, lv, kv: True, t, TIMEOUT), 'no diagnostics any more'
 
 
+def no_obstacles(d):
+    """An adapted primitive computed without obstacles (a wait_adapted predicate: not the
+    refinement of an earlier request with obstacles, also triggered by 'obstacles')."""
+    return d['metadata']['adapter']['obstacles_used'] == 0
+
+
 def promp_of(d):
     from cdmp_ros.core.primitive_io import promp_from_dict
     return promp_from_dict(d)
@@ -132,8 +138,9 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
     assert len(obs) == 1 and obs[0].scale.x == pytest.approx(0.1)
     n0 = h.n_adapted()
     h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-    d = h.wait_adapted(n0, trigger='obstacles')
-    assert d['metadata']['adapter']['obstacles_used'] == 0
+    # (not a refinement of the last request, also triggered by 'obstacles')
+    d = h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles)
+    assert d is not None and d['metadata']['adapter']['obstacles_used'] == 0
 
 
 def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
@@ -147,8 +154,13 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
 
     def move_to(x):
         n0 = h.n_adapted()
-        h.publish('obstacles', MarkerArray(markers=[h.sphere(x, 0.05)]))
-        d = h.wait_adapted(n0, trigger='obstacles')
+        m = h.sphere(x, 0.05)
+        stamp = m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec
+        h.publish('obstacles', MarkerArray(markers=[m]))
+        # the answer to this message (a refinement of the last request, also triggered by
+        # 'obstacles', may be published meanwhile)
+        d = h.wait_adapted(n0, trigger='obstacles', pred=lambda d: d['metadata']['adapter'].get(
+            'trigger_stamp_ns') == stamp)
         assert d is not None
         path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
         assert np.linalg.norm(path - x, axis=1).min() > 0.05
@@ -159,15 +171,19 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
              ('started', 'published', 'kept_warm', 'cancelled', 'failed')]
         return n if sum(n[1:]) == n[0] else None
 
+    def settled(rid):  # the diagnostics after request rid's result (which started any
+        # refinement of it, and counted it) with no refinement running
+        return lambda m, lv, kv: kv.get('request_id') == str(rid) and ended(kv) is not None
+
     try:
-        move_to(centre)
-        t = time.monotonic()  # (a refinement of an earlier warm solve may be running)
-        st = h.wait_state(lambda m, lv, kv: ended(kv) is not None, t, TIMEOUT)
+        _, rid0 = move_to(centre)
+        t = time.monotonic()  # (a refinement of this or an earlier warm solve may be running)
+        st = h.wait_state(settled(rid0), t - 1.0, TIMEOUT)
         assert st is not None, h.states_since(t)[-1:]
         before = ended(st[2])
         t0 = time.monotonic()
         rep, rid = move_to(centre + [0.0, 0.01, 0.0])
-        assert rep['start'] == 'warm', rep
+        assert rep['start'] == 'warm', (rep.get('start_note'), rep['status'])
         assert rep['n_evaluations'] >= 1
         # the diagnostics of this request (the last one's are repeated every period)
         st = h.wait_state(lambda m, lv, kv: kv.get('request_id') == str(rid), t0, TIMEOUT)
@@ -187,7 +203,7 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
         assert h.set_parameter('adaptation.warm_start', True).successful
         n0 = h.n_adapted()
         h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-        assert h.wait_adapted(n0, trigger='obstacles') is not None
+        assert h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles) is not None
 
 
 def test_box_obstacle_becomes_a_wall(graph, prims, chain):
@@ -202,7 +218,8 @@ def test_box_obstacle_becomes_a_wall(graph, prims, chain):
     m.scale.x, m.scale.y, m.scale.z = 0.3, 0.3, 0.1
     n0 = h.n_adapted()
     h.publish('obstacles', MarkerArray(markers=[m]))
-    d = h.wait_adapted(n0, trigger='obstacles')
+    d = h.wait_adapted(n0, trigger='obstacles',
+                       pred=lambda d: d['metadata']['adapter']['obstacles_used'] == 1)
     assert d is not None and d['metadata']['adapter']['obstacles_used'] == 1
     box = Box(tuple(centre - [0.15, 0.15, 0.05]), tuple(centre + [0.15, 0.15, 0.05]))
     path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
