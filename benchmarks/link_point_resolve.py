@@ -5,7 +5,8 @@ From a ``cdmp demo --kind promp`` output directory: the learner's primitive (the
 ``/primitive``), the sphere's last position, the adapter's default request settings
 (``AdaptRequestConfig``, ``avoid_links`` panda_link4, the request continues the motion); per
 law: converged, KL, evaluations, wall time and the per-step maximum of the sampled violation
-(``--samples`` trajectories, 50 steps) of the end effector and panda_link4 (allowed 1 - alpha).
+(``--samples`` trajectories, 50 steps) of the end effector and panda_link4 (allowed 1 - alpha),
+with the one-sided 95 % Clopper-Pearson bound of that step's count.
 The 'auto' law is solved twice: without the saddle point's correction of the Gamma levels
 (``max_level_corrections`` 0) and with the default.
 
@@ -29,6 +30,7 @@ from cdmp_ros.cli.demo_promp import _primitives, _promp  # noqa: E402
 from cdmp_ros.core.adaptation.config import TAILS, AdaptRequestConfig  # noqa: E402
 from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem  # noqa: E402
 from cdmp_ros.core.adaptation.solver import solve_levels  # noqa: E402
+from cdmp_ros.core.adaptation.verification import clopper_pearson_upper  # noqa: E402
 from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
 from cdmp_ros.core.kinematics.closest import Sphere  # noqa: E402
 from cdmp_ros.sim.robot_specs import panda_urdf_path  # noqa: E402
@@ -54,7 +56,7 @@ def main(argv=None):
     req = AdaptRequest(prior, (Sphere(tuple(center), float(obs['radius'])),), continues=True)
     rng = np.random.default_rng(3)
     print('| law | converged | KL | evaluations | level corrections | wall [ms] | '
-          'end effector per-step max | panda_link4 |')
+          'end effector per-step max (95 % bound) | panda_link4 (95 % bound) |')
     print('|---|---|---|---|---|---|---|---|')
     built = build_problem(req, chain, cfg)
     rows = []
@@ -70,9 +72,11 @@ def main(argv=None):
         wall = time.perf_counter() - t
         S = sampled(adapted, chain, center, float(obs['radius']) + MARGIN,
                     np.linspace(0.0, 1.0, N_STEPS), args.samples, rng)
+        worst = S.max(axis=0)
+        bound = clopper_pearson_upper(np.round(worst * args.samples), args.samples)
         print(f'| {name} | {rep.converged} | {rep.kl:.3f} | {rep.n_evaluations} | '
-              f'{rep.n_level_corrections} | {wall * 1e3:.0f} | {S[:, 0].max():.5f} | '
-              f'{S[:, 1].max():.5f} |', flush=True)
+              f'{rep.n_level_corrections} | {wall * 1e3:.0f} | {worst[0]:.5f} ({bound[0]:.5f}) | '
+              f'{worst[1]:.5f} ({bound[1]:.5f}) |', flush=True)
 
 
 if __name__ == '__main__':

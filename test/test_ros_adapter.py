@@ -302,7 +302,7 @@ def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
     assert h.n_adapted() == n0
     h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
     # the goal's motion-starting request failed: the next request starts the motion too
-    d = h.wait_adapted(n0, trigger='obstacles')
+    d = h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles)
     assert d is not None and d['metadata']['adapter']['continues'] is False
     alive(h, proc)
 

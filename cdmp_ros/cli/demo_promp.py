@@ -53,8 +53,8 @@ def _primitives(bag: str, topic: str) -> List[tuple]:
 
 def upper95(k: int, n: int) -> float:
     """One-sided 95 % Clopper-Pearson upper bound of a binomial proportion k / n."""
-    from scipy.stats import beta
-    return 1.0 if k >= n else float(beta.ppf(0.95, k + 1, n - k))
+    from cdmp_ros.core.adaptation.verification import clopper_pearson_upper
+    return float(clopper_pearson_upper(k, n))
 
 
 def sphere_violation(promp, chain, links: Sequence[str], center, radius: float,

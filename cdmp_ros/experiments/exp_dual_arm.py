@@ -33,6 +33,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
+from cdmp_ros.core.adaptation.verification import clopper_pearson_upper
 from cdmp_ros.experiments.results import row, write_results
 
 NAME = 'dual-arm'
@@ -228,14 +229,6 @@ def cross_correlation(promp) -> float:
     return float(np.mean(np.abs(C[:n, n:] / np.outer(sd[:n], sd[n:]))))
 
 
-def binomial_upper(k: int, n: int, confidence: float = 0.95) -> float:
-    """One-sided Clopper-Pearson upper bound of a probability from k events in n trials."""
-    from scipy.stats import beta
-    if k >= n:
-        return 1.0
-    return float(beta.ppf(confidence, k + 1, n - k))
-
-
 # -- pybullet --------------------------------------------------------------------------------
 class Cell:
     """The dual-Panda cell in a private pybullet world, with the table as a visual box: link
@@ -398,8 +391,8 @@ def solve(seed: int = 0, n_basis: int = 8, n_steps: int = 50, n_samples: int = 1
             step, traj = checks[tag][c.name]
             rows += [row(f'{tag}.{c.name}.collision_step_pct', step * pct, None, '%'),
                      row(f'{tag}.{c.name}.collision_traj_pct', traj * pct, None, '%')]
-        rows += [row(f'adapted.{c.name}.collision_step_upper95_pct',
-                     100 * binomial_upper(checks['adapted'][c.name][0], n_samples), None, '%'),
+        upper = float(clopper_pearson_upper(checks['adapted'][c.name][0], n_samples))
+        rows += [row(f'adapted.{c.name}.collision_step_upper95_pct', 100 * upper, None, '%'),
                  row(f'adapted.{c.name}.min_mean_distance_m',
                      float(dists['adapted'][(i, j)].mean(axis=0).min()), None, 'm')]
     for key in ('table', 'limits'):
