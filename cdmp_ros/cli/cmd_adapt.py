@@ -16,7 +16,10 @@ violation (fraction of sampled trajectories violating it at any step) with its 9
 confidence bound (one-sided Clopper-Pearson), and the overall trajectory-level violation
 (any constraint); JSON key ``verification``: {"n_samples", "trajectory_violation",
 "trajectory_violation_upper95", "constraints": [{"name", "per_step_max", "trajectory",
-"upper95", ...}]}.
+"upper95", ...}]}. Each constraint's optimiser figures (JSON ``constraints``) name the law of
+its probability (``law``: ``gaussian`` for linear forms, the tail of the quadratic forms, or
+``gamma, saddle-point checked`` for link points under the default tail), and
+``n_level_corrections`` counts the re-solves that check tightened.
 
 Exit status: 0 when every constraint holds at its confidence (converged: under the
 optimiser's approximation and by the sampled verification, per step or per trajectory as the

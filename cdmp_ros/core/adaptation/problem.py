@@ -466,10 +466,8 @@ class Problem:
         Gamma match (``checked`` True), F of :meth:`constraint_values` elsewhere.
 
         The Gamma match keeps the optimiser from inflating the joint variance (its gradients
-        penalise a wide distribution), but its tail can be several times too light: the
-        ProMP demo's end effector, 0.08-0.11 % under the Gamma match where 200,000 sampled
-        trajectories and the saddle point of the same unscented Gaussian show 0.25-0.30 %.
-        The solver corrects those rows' levels by this check
+        penalise a wide distribution), but its tail can be several times too light; the
+        solver corrects those rows' levels by this check
         (:func:`~cdmp_ros.core.adaptation.solver.corrected_levels`)."""
         mu, L, _ = self.unpack(theta)
         F = self.cached_values(theta)

@@ -23,16 +23,12 @@ evaluations and KL with and without it.
 
 The saddle point's check of the Gamma match (``AdaptationConfig.tail`` 'auto'): the rows of
 points through the unscented transform are solved with the Gamma match, whose tail can be
-several times too light (the ProMP demo's end effector: 0.08-0.11 % under the Gamma match
-where sampled trajectories show 0.25-0.30 %). After the solve, :meth:`Problem.check_values`
-evaluates those rows under the saddle-point law of the same Gaussian; where one violates more
-than allowed, :func:`corrected_levels` tightens its Gamma level by the ratio of the two laws
-and the solve continues warm from where it ended, at most
-``AdaptationConfig.max_level_corrections`` times. The reported probability of a checked row is
-the lower of the two laws. A saddle-point check in the outer loop itself (each row's stopping
-test under both laws) was tried and not kept: its multipliers chase the heavier tail from the
-first iterate, and the crossing sphere of the tracked stream ended at KL 36.2 (17.8 with the
-correction after the solve), a recovering obstacle unconverged after 1,462 evaluations.
+several times too light. After the solve, :meth:`Problem.check_values` evaluates those rows
+under the saddle-point law of the same Gaussian; where one violates more than allowed,
+:func:`corrected_levels` tightens its Gamma level by the ratio of the two laws and the solve
+continues warm, at most ``AdaptationConfig.max_level_corrections`` times. The reported
+probability of a checked row is the lower of the two laws. (Checking both laws in the outer
+loop's stopping test instead was tried and not kept: RESULTS.md, "Link points".)
 """
 import time
 from typing import Callable, Optional, Sequence, Tuple
