@@ -55,10 +55,16 @@ def use(h, prims, kind):
     from std_msgs.msg import String
     t0 = time.monotonic()
     n0 = h.n_adapted()
+    with h.lock:   # (request ids grow; a refinement keeps the id of the request it refines)
+        last = max((a[1].get('metadata', {}).get('adapter', {}).get('request_id', -1)
+                    for a in h.adapted), default=-1)
     h.publish('primitive', String(data=prims[kind]))
     assert h.wait_state(lambda m, lv, kv: kv.get('primitive') == kind, t0, TIMEOUT)
     if kind == 'promp':
-        d = h.wait_adapted(n0, source=prims[kind])  # any trigger: the latest request wins
+        # any trigger (the latest request wins), but a request made after this primitive
+        # arrived, not a refinement of an earlier one of the same text
+        d = h.wait_adapted(n0, source=prims[kind], pred=lambda d: d['metadata']['adapter'].get(
+            'request_id', -1) > last)
         assert d is not None and d['kind'] == 'promp', h.states_since(t0)[-2:]
         return d
     return None
