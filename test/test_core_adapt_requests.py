@@ -312,32 +312,17 @@ def panda_rng3():
     return chain, prior
 
 
-def test_a_jump_the_next_outer_iteration_recovers_from_is_not_backtracked(panda_rng3):
-    """The largest violation jumps (0.05 -> 0.48) but the next outer iteration recovers: the
-    solve goes on to the optimum (KL 17.1; retrying at once from before the jump ended at
-    KL 59.6)."""
+@pytest.mark.parametrize('spheres', [RECOVERING, CROSSING], ids=['recovering', 'crossing'])
+def test_requests_whose_multiplier_steps_jump_converge(panda_rng3, spheres):
+    """Two requests whose largest violation jumps during the solve (RECOVERING: the next outer
+    iteration recovers; CROSSING: the step overshoots, and without the backtracking the solve
+    diverged, KL 136,461 after 2,673 evaluations) converge and pass their sampled verification.
+    Whether a given solve backtracks flips with the last bit of its inputs (with the BLAS of
+    the machine), so the backtracking itself is tested on scripted inner loops
+    (test_core_promp_backtracking.py)."""
     chain, prior = panda_rng3
-    req = AdaptRequest(prior, tuple(Sphere(c, r) for c, r in RECOVERING),
-                       start_y=RECOVERING_START, continues=True)
-    rep = run_request(req, chain, AdaptRequestConfig()).report
-    assert rep.converged and rep.n_backtracks == 0 and rep.kl < 20.0
-
-
-def test_an_overshooting_multiplier_step_is_backtracked(panda_rng3, monkeypatch):
-    """A cold solve whose multiplier step overshoots (the inner loop satisfies the obstacle by
-    breaking the joint limits, and the next one does not recover) goes back to the iterate
-    before the jump with half the step: without the backtracking this problem diverges (KL
-    136,461 after 2,673 evaluations); with it, it converges at the KL of its neighbours in the
-    stream (17.2 and 20.0) and the sampled verification confirms it."""
-    from cdmp_ros.core.adaptation import solver
-    chain, prior = panda_rng3
-    req = AdaptRequest(prior, tuple(Sphere(c, r) for c, r in CROSSING),
-                       start_y=prior.mean([0.0])[0], continues=True)
+    start = RECOVERING_START if spheres is RECOVERING else prior.mean([0.0])[0]
+    req = AdaptRequest(prior, tuple(Sphere(c, r) for c, r in spheres), start_y=start,
+                       continues=True)
     res = run_request(req, chain, AdaptRequestConfig())
-    rep = res.report
-    assert res.outcome == 'converged' and rep.verification.holds
-    assert rep.n_backtracks >= 1 and 15.0 < rep.kl < 21.0
-    # the same solve without backtracking: it never recovers within max_outer
-    monkeypatch.setattr(solver, 'MAX_BACKTRACKS', 0)
-    bad = run_request(req, chain, AdaptRequestConfig(max_outer=6))
-    assert bad.outcome != 'converged' and bad.report.n_backtracks == 0
+    assert res.outcome == 'converged' and res.report.verification.holds
