@@ -360,7 +360,11 @@ def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
         n0 = h.n_adapted()
         h.publish('goal', h.joint_state(Q_GOAL - 0.05))
         assert h.wait_state(lambda m, lv, kv: 'goal left to the streamer' in m, t0, TIMEOUT)
-        assert h.n_adapted() == n0
+        # no answer to this goal (an answer to the primitive itself, or to an earlier
+        # request, may still arrive after n0 on a loaded machine)
+        with h.lock:
+            late = [d['metadata'].get('adapter', {}) for _, d in h.adapted[n0:]]
+        assert not [m for m in late if m.get('trigger') == 'goal'], late
     finally:
         assert h.set_parameter('retarget_dmp_on_goal', True).successful
 
