@@ -1,16 +1,20 @@
 """The saddle point's check of the Gamma-matched link-point rows (AdaptationConfig.tail 'auto',
 max_level_corrections): the check is the saddle-point law of the same moments, the corrected
 levels follow their closed form, and a solve whose Gamma rows violate under the saddle point
-ends with every checked row within its level under both laws, confirmed by sampling."""
+ends with every checked row within its level under both laws, confirmed by sampling; a warm
+start carries the levels the check implied (SolverState.levels) and, for a nearby problem, needs
+no re-solve of its own."""
 import dataclasses
 
 import numpy as np
 import pytest
 
 from cdmp_ros.core.adaptation.config import CHECKED_LAW, AdaptationConfig
+from cdmp_ros.core.adaptation.constraints import Repeller
 from cdmp_ros.core.adaptation.guarantee import adapt
 from cdmp_ros.core.adaptation.problem import Problem
-from cdmp_ros.core.adaptation.solver import (MAX_LEVEL_RATIO, corrected_levels,
+from cdmp_ros.core.adaptation.solver import (CARRY_FRACTION, MAX_LEVEL_RATIO, carried_levels,
+                                             corrected_levels, implied_levels,
                                              monte_carlo_satisfaction, solve_levels)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import panda_chain
@@ -137,3 +141,83 @@ def test_max_level_corrections_is_checked():
         with pytest.raises(ValidationError, match='max_level_corrections'):
             AdaptationConfig(max_level_corrections=bad)
     assert AdaptationConfig(max_level_corrections=0).max_level_corrections == 0
+
+
+def test_implied_levels_closed_form():
+    cfg = AdaptationConfig()
+    asked = np.full(5, 0.999)
+    k = 1.0 + cfg.feasibility_tol / 1e-3
+    # Gamma and saddle-point violations at a solution: ratio 3; at the level; the saddle point
+    # lighter than the Gamma match; far from the level (below CARRY_FRACTION); 100x
+    F = 1.0 - np.array([2e-4, 1e-3, 6e-4, 1e-6, 1e-3])
+    F_check = 1.0 - np.array([6e-4, 1e-3, 3e-4, 0.5 * CARRY_FRACTION * 1e-3, 0.1])
+    checked = np.ones(5, bool)
+    v = 1.0 - implied_levels(asked, F, F_check, checked, cfg)
+    # the level of corrected_levels, from the ratio at the solution, not from the solve's level
+    assert v[0] == pytest.approx(1e-3 * 2e-4 / (6e-4 * k))
+    assert v[1] == pytest.approx(1e-3 / k)
+    assert v[2] == pytest.approx(1e-3)             # never looser than asked
+    assert v[3] == pytest.approx(1e-3)             # far from its level: the asked one
+    assert v[4] == pytest.approx(1e-3 / MAX_LEVEL_RATIO)   # the floor
+    # unchecked rows keep the asked level
+    assert np.array_equal(implied_levels(asked, F, F_check, np.zeros(5, bool), cfg), asked)
+    # the same level as corrected_levels where that one tightens (a row over its level); row
+    # 0 is within its level, so this solve needs no correction, but a next solve where it binds
+    # under the Gamma match would (the ratio 3 stays): it starts at the implied level
+    c = corrected_levels(asked, asked, F, F_check, checked, cfg)
+    assert 1.0 - c[4] == pytest.approx(v[4]) and c[0] == asked[0]
+
+
+def test_carried_levels_tighten_by_name_and_size(chain):
+    prior, cons, cfg = _problem(chain)
+    prob = Problem(prior, cons, cfg)
+    c0, sl0 = prob.constraints[-1], prob.slices[-1]
+    n = sl0.stop - sl0.start
+    tighter = np.full(n, 0.9999)
+    looser = np.full(n, 0.9)
+    alpha = carried_levels(prob, ((c0.name, tighter), ('no such constraint', tighter)))
+    assert np.all(alpha[sl0] == 0.9999)
+    np.testing.assert_array_equal(np.delete(alpha, np.arange(sl0.start, sl0.stop)),
+                                  np.delete(prob.alpha, np.arange(sl0.start, sl0.stop)))
+    # never looser than asked; a size that does not match is ignored
+    assert np.array_equal(carried_levels(prob, ((c0.name, looser),)), prob.alpha)
+    assert np.array_equal(carried_levels(prob, ((c0.name, tighter[:-1]),)), prob.alpha)
+    assert np.array_equal(carried_levels(prob, ()), prob.alpha)
+
+
+def test_a_warm_start_carries_the_implied_levels(chain):
+    """A solve that needed the correction hands its implied levels to the next solve
+    (SolverState.levels); a warm start solves those rows at them (the Gamma match then sits
+    within the carried level, not the asked one), and, for the obstacles moved by 2 cm, ends
+    with every checked row within its level under the saddle point without a re-solve where
+    the same warm start without the levels needed one; sampling confirms the level."""
+    prior, cons, cfg = _problem(chain, seed=2)
+    _, rep = solve_levels(prior, cons, cfg)
+    assert rep.converged and rep.n_level_corrections >= 1
+    carried = dict(rep.state.levels)
+    assert carried and set(carried) <= {c.name for c in cons if c.kind != 'joint_limit'}
+    for levels in carried.values():
+        assert np.all(levels >= 0.999) and np.any(levels > 0.999)
+    # the warm solve honours levels it is handed: here 0.9999 on every sphere row
+    strict = dataclasses.replace(rep.state, levels=tuple(
+        (c.name, np.full(cfg.n_steps, 0.9999)) for c in cons if c.kind == 'repeller'))
+    strict_sol, rep_s = solve_levels(prior, cons, dataclasses.replace(
+        cfg, max_level_corrections=0), start=strict)
+    prob = Problem(prior, cons, dataclasses.replace(cfg, tail='gamma'))
+    F = prob.constraint_values(strict_sol.mean_w, np.linalg.cholesky(strict_sol.cov_w))
+    rows = np.concatenate([np.full(s.stop - s.start, c.kind == 'repeller')
+                           for c, s in zip(prob.constraints, prob.slices)])
+    assert rep_s.converged and np.min(F[rows]) >= 0.9999 - 2 * cfg.feasibility_tol
+    # the obstacles moved by 2 cm
+    moved = [Repeller(c.point, c.center - 0.02, c.radius, alpha=c.alpha, name=c.name)
+             if c.kind == 'repeller' else c for c in cons]
+    assert sum(c.kind == 'repeller' for c in moved) == 6
+    _, rep_0 = solve_levels(prior, moved, cfg, start=dataclasses.replace(rep.state, levels=()))
+    warm, rep_w = solve_levels(prior, moved, cfg, start=rep.state)
+    assert rep_w.converged and rep_w.start == 'warm'
+    assert rep_0.n_level_corrections >= 1 and rep_w.n_level_corrections == 0
+    for c in rep_w.constraints:
+        assert c.satisfied, c
+    links = [c for c in moved if c.kind != 'joint_limit']
+    S = monte_carlo_satisfaction(warm, links, 200_000, np.random.default_rng(6), cfg.n_steps)[0]
+    assert 1.0 - S.min() <= 1.0 - 0.999

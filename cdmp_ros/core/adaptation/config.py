@@ -284,9 +284,16 @@ class SolverState:
     :class:`~cdmp_ros.core.adaptation.problem.Problem`, relative to its prior) and the
     multipliers lambda of each constraint, by name. A solve of a problem with the same prior
     can start from it (``solve_levels(..., start=state)``): its constraints of the same name
-    and size start from these multipliers, the others from their ``lambda0``."""
+    and size start from these multipliers, the others from their ``lambda0``.
+
+    ``levels``: per constraint, by name, the levels of its rows that the saddle point's check
+    of the Gamma match implied at the end of the solve (``AdaptationConfig.tail`` 'auto';
+    :func:`~cdmp_ros.core.adaptation.solver.implied_levels`), for the constraints that have
+    such rows. A warm start solves those rows at these levels from the start (never looser
+    than asked), so that a request close to the last one needs no re-solve of its own."""
     theta: NDArray[np.float64]
     multipliers: Tuple[Tuple[str, NDArray[np.float64]], ...]
+    levels: Tuple[Tuple[str, NDArray[np.float64]], ...] = ()
 
 
 @dataclass

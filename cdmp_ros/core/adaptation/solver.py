@@ -27,8 +27,11 @@ several times too light. After the solve, :meth:`Problem.check_values` evaluates
 under the saddle-point law of the same Gaussian; where one violates more than allowed,
 :func:`corrected_levels` tightens its Gamma level by the ratio of the two laws and the solve
 continues warm, at most ``AdaptationConfig.max_level_corrections`` times. The reported
-probability of a checked row is the lower of the two laws. (Checking both laws in the outer
-loop's stopping test instead was tried and not kept: RESULTS.md, "Link points".)
+probability of a checked row is the lower of the two laws. The levels the last check implies
+(:func:`implied_levels`) go into ``report.state``: a warm start solves those rows at them from
+the start, so a request close to the last one needs no re-solve of its own. (Checking both
+laws in the outer loop's stopping test instead was tried and not kept: RESULTS.md, "Link
+points".)
 """
 import time
 from typing import Callable, Optional, Sequence, Tuple
@@ -45,7 +48,8 @@ from cdmp_ros.core.errors import Cancelled, ValidationError
 from cdmp_ros.core.promp.promp import ProMP
 
 __all__ = ['AdaptationConfig', 'AdaptationReport', 'ConstraintReport', 'Problem', 'SolverState',
-           'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels']
+           'sample_points', 'monte_carlo_satisfaction', 'multiplier_update', 'solve_levels',
+           'corrected_levels', 'implied_levels', 'carried_levels']
 
 
 #: Backtracking of a multiplier step (module docstring): the largest violation of the stopping
@@ -60,6 +64,9 @@ MAX_BACKTRACKS = 3
 #: The saddle point's correction of the Gamma levels (:func:`corrected_levels`) tightens a
 #: row's level to at most this many times below the asked 1 - alpha.
 MAX_LEVEL_RATIO = 20.0
+#: A warm start carries the implied level of a checked row (:func:`implied_levels`) whose
+#: saddle-point violation at the solution is at least this fraction of the asked 1 - alpha.
+CARRY_FRACTION = 0.1
 
 
 def _jumped(worst: float, before: float) -> bool:
@@ -89,7 +96,8 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
         Start from these parameters and multipliers (``report.state`` of an earlier solve
         of a problem with the same prior; constraints it does not name start at their
         ``lambda0``) instead of the prior and ``lambda0``: a warm start
-        (``report.start == 'warm'``).
+        (``report.start == 'warm'``); the rows its ``levels`` name are solved at those
+        levels (:func:`carried_levels`) instead of the asked ones.
 
     Returns
     -------
@@ -172,7 +180,7 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
                 res = minimize(fun, theta, args=(lam,), jac=True, method='L-BFGS-B',
                                options=options)
             except Cancelled as exc:   # where it was: a refinement resumes from there
-                exc.state = _state(prob, theta if best[1] is None else best[1], lam)
+                exc.state = _state(prob, theta if best[1] is None else best[1], lam, alpha)
                 exc.n_evaluations = prob.n_evaluations
                 raise
             if np.all(np.isfinite(res.x)):
@@ -222,7 +230,8 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
             feasible, status = True, 'converged'
         return theta, lam, jac, feasible, status, alpha_aim, alpha_stop
 
-    alpha = prob.alpha
+    # a warm start solves the checked rows at the levels its solve's check implied
+    alpha = prob.alpha if start is None else carried_levels(prob, start.levels)
     theta, lam, jac, feasible, status, alpha_aim, alpha_stop = outer_loop(theta, lam, alpha)
     # The Gamma match's levels corrected by the saddle point (AdaptationConfig.tail 'auto',
     # points through the unscented transform): see level_correction.
@@ -262,7 +271,9 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
                               n_level_corrections=n_corrections,
                               kkt=kkt_residuals(prob, F, lam, jac, alpha_aim, alpha_stop, kl,
                                                 config),
-                              state=_state(prob, theta, lam))
+                              state=_state(prob, theta, lam,
+                                           implied_levels(prob.alpha, F, F_check, checked,
+                                                          config)))
     return adapted, report
 
 
@@ -307,9 +318,7 @@ def corrected_levels(alpha: NDArray, alpha_asked: NDArray, F: NDArray, F_check: 
     if not np.any(need):
         return None
     v = 1.0 - alpha
-    v_gamma = np.maximum(1.0 - F, 0.0)
-    k = 1.0 + config.feasibility_tol / np.maximum(v_asked, 1e-300)
-    target = v_asked * v_gamma / (np.maximum(v_check, 1e-300) * k)
+    target = _level_target(v_asked, F, F_check, config)
     v_new = np.where(need, np.clip(np.minimum(v, target), v_asked / MAX_LEVEL_RATIO, None), v)
     if np.all(v_new[need] >= v[need]):
         return None
@@ -339,10 +348,62 @@ def kkt_residuals(prob: Problem, F: NDArray, lam: NDArray, jac: Optional[NDArray
     return KKTResiduals(gap, rel, stat, feas, binding, reached)
 
 
-def _state(prob: Problem, theta: NDArray, lam: NDArray) -> SolverState:
-    """The optimiser's variables as a :class:`SolverState` (multipliers by constraint)."""
-    return SolverState(theta.copy(), tuple((c.name, lam[sl].copy())
-                                           for c, sl in zip(prob.constraints, prob.slices)))
+def _state(prob: Problem, theta: NDArray, lam: NDArray,
+           levels: Optional[NDArray] = None) -> SolverState:
+    """The optimiser's variables as a :class:`SolverState` (multipliers by constraint;
+    ``levels``: the rows' levels for the next solve, kept for the constraints where they
+    differ from the asked ones)."""
+    pairs = tuple(zip(prob.constraints, prob.slices))
+    kept = () if levels is None else tuple(
+        (c.name, levels[sl].copy()) for c, sl in pairs if np.any(levels[sl] != prob.alpha[sl]))
+    return SolverState(theta.copy(), tuple((c.name, lam[sl].copy()) for c, sl in pairs), kept)
+
+
+def carried_levels(prob: Problem, levels) -> NDArray:
+    """The levels a warm start solves ``prob`` at: the asked ones, tightened to the
+    ``levels`` of a :class:`SolverState` (by constraint name, where the size matches)."""
+    alpha = prob.alpha.copy()
+    known = dict(levels)
+    for c, sl in zip(prob.constraints, prob.slices):
+        a = known.get(c.name)
+        if a is not None and a.size == sl.stop - sl.start:
+            alpha[sl] = np.maximum(alpha[sl], a)
+    return alpha
+
+
+def implied_levels(alpha_asked: NDArray, F: NDArray, F_check: NDArray, checked: NDArray,
+                   config: AdaptationConfig) -> NDArray:
+    """The levels at which the Gamma-matched rows of a solution would meet the asked level
+    under the saddle-point law, for the next solve of a nearby problem (a warm start).
+
+    The level of :func:`corrected_levels`, computed afresh from the two laws' ratio at the
+    solution rather than from the levels the solve used, so a stream of warm starts carries
+    no tightening that its problems no longer need: (1 - alpha) v_g / (v_s k) for a checked
+    row whose saddle-point violation v_s is at least :data:`CARRY_FRACTION` of the asked
+    1 - alpha (far from its level the two tails' ratio says nothing about it there), clipped
+    to [1 / :data:`MAX_LEVEL_RATIO`, 1] times the asked 1 - alpha; the asked level elsewhere.
+    The check after the next solve still decides: it tightens further where this was not
+    enough (it never loosens).
+    """
+    v_asked = 1.0 - alpha_asked
+    v_check = 1.0 - F_check
+    near = checked & (v_check >= CARRY_FRACTION * v_asked)
+    if not np.any(near):
+        return alpha_asked.copy()
+    target = _level_target(v_asked, F, F_check, config)
+    v = np.where(near, np.clip(target, v_asked / MAX_LEVEL_RATIO, v_asked), v_asked)
+    return 1.0 - v
+
+
+def _level_target(v_asked: NDArray, F: NDArray, F_check: NDArray,
+                  config: AdaptationConfig) -> NDArray:
+    """(1 - alpha) v_g / (v_s k) per row: the Gamma violation at which the saddle point's
+    ends within the asked 1 - alpha (tolerance k = 1 + feasibility_tol / (1 - alpha) of the
+    stopping rule included) if the two laws' ratio v_g / v_s stays what it is at ``F`` and
+    ``F_check`` (:func:`corrected_levels`, :func:`implied_levels`)."""
+    v_gamma = np.maximum(1.0 - F, 0.0)
+    k = 1.0 + config.feasibility_tol / np.maximum(v_asked, 1e-300)
+    return v_asked * v_gamma / (np.maximum(1.0 - F_check, 1e-300) * k)
 
 
 def multiplier_update(lam: NDArray, F: NDArray, eta: NDArray, alpha_aim: NDArray,

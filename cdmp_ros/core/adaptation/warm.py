@@ -150,7 +150,7 @@ def predict_state(before: SolverState, last: SolverState) -> SolverState:
     theta = 2 theta_last - theta_before, with the multipliers of ``last`` (extrapolating them
     as well, by their growth factor clipped to [1/2, 2], cost more evaluations on the tracked
     streams of ``benchmarks/bench_warm_track.py``)."""
-    return SolverState(2.0 * last.theta - before.theta, last.multipliers)
+    return SolverState(2.0 * last.theta - before.theta, last.multipliers, last.levels)
 
 
 def _same_prior(a: ProMP, b: ProMP) -> bool:
