@@ -2,7 +2,8 @@
 
 For each ``cdmp demo --kind promp`` output directory given (``benchmarks/bench_demo_promp.py``
 leaves ten): the learner's primitive, the adapter's default request settings
-(``AdaptRequestConfig``, ``avoid_links`` panda_link4, requests that continue the motion), one
+(``AdaptRequestConfig``, ``avoid_links`` of ``--avoid-links``, requests that continue the
+motion), one
 request without obstacles (as the adapter's first), then ``--positions`` requests for the
 demo's sphere falling from 12 cm above its last position to it, solved as the adapter solves
 them (``run_request`` with the warm starts of one stream, the sampled verification included).
@@ -15,7 +16,7 @@ per-step violation of the end effector within the sphere + 6 cm (``--samples`` t
 50 steps; allowed 1 - alpha = 0.1 %): the worst, and how many answers exceed 0.1 %.
 
 Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_warm_levels.py \
-         /tmp/bench_demo_promp/run*
+         /tmp/bench_demo_promp/run* [--avoid-links panda_link4]
 """
 import argparse
 import json
@@ -41,7 +42,7 @@ from cdmp_ros.sim.robot_specs import panda_urdf_path  # noqa: E402
 from link_point_tail import MARGIN, N_STEPS, sampled  # noqa: E402
 
 
-def stream(out, chain, positions, samples):
+def stream(out, chain, positions, samples, avoid_links):
     """The requests of one demo directory: per request (evaluations, level corrections, KL,
     wall [s], converged and verified, sampled end-effector per-step max or None)."""
     with open(os.path.join(out, 'driver.json')) as f:
@@ -49,7 +50,7 @@ def stream(out, chain, positions, samples):
     obs = driver['obstacle']
     end = np.asarray(driver['crossing'][-1] if driver.get('crossing') else obs['center'], float)
     prior = _promp(_primitives(os.path.join(out, 'bag'), '/primitive')[0][1], chain)
-    cfg = AdaptRequestConfig(avoid_links=('panda_link4',))
+    cfg = AdaptRequestConfig(avoid_links=tuple(avoid_links))
     warm = WarmStarts()
     run_request(AdaptRequest(prior, (), continues=False), chain, cfg, warm=warm)
     rows = []
@@ -76,6 +77,9 @@ def main(argv=None):
     ap.add_argument('outs', nargs='+', help='output directories of cdmp demo --kind promp')
     ap.add_argument('--positions', type=int, default=8)
     ap.add_argument('--samples', type=int, default=200_000)
+    ap.add_argument('--avoid-links', nargs='+', default=list(AdaptRequestConfig().avoid_links),
+                    help='links avoiding the sphere besides the end effector (default: the '
+                         "adapter's, %(default)s)")
     args = ap.parse_args(argv)
     if args.positions < 4:
         ap.error('--positions: expected at least 4')
@@ -89,8 +93,8 @@ def main(argv=None):
         if mode.startswith('asked'):
             solver.implied_levels = lambda alpha_asked, *_: alpha_asked.copy()
         try:
-            rows = [r for out in args.outs for r in stream(out, chain, args.positions,
-                                                           args.samples)]
+            rows = [r for out in args.outs
+                    for r in stream(out, chain, args.positions, args.samples, args.avoid_links)]
         finally:
             solver.implied_levels = carried
         ev = np.array([r[0] for r in rows])

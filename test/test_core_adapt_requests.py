@@ -161,7 +161,9 @@ def test_build_problem_collects_limits_near_obstacles_and_conditions(chain, prio
     assert (prob.obstacles_used, prob.obstacles_ignored) == (2, 1)
     kinds = [type(c) for c in prob.constraints]
     assert kinds.count(JointLimit) == 7
-    assert kinds.count(Repeller) == 2 and kinds.count(Hyperplane) == 2   # ee + panda_link4
+    points = 1 + len(cfg.avoid_links)     # the end effector, panda_link4 and panda_hand
+    assert cfg.avoid_links == ('panda_link4', 'panda_hand')
+    assert kinds.count(Repeller) == points and kinds.count(Hyperplane) == points
     rep = [c for c in prob.constraints if isinstance(c, Repeller)]
     assert rep[0].radius == pytest.approx(0.06)
     np.testing.assert_allclose(prob.prior.mean([0.0])[0], q0, atol=0.02)

@@ -122,7 +122,7 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
     after = [d for t, d in adapted if isinstance(drop, int) and t >= drop]
     obs = driver.get('obstacle', {})
     ad = adapter_params.get('adaptation', {})
-    links = list(ad.get('avoid_links', ['panda_link4']))
+    links = list(ad.get('avoid_links', ['panda_link4', 'panda_hand']))
     radius = float(obs.get('radius', 0.0)) + float(ad.get('obstacle_margin', 0.02))
     out = {'adaptations': len(after), 'adaptation_latency_ms': adaptation_latencies(bag),
            'violation_radius_m': radius, 'violation_points': ['ee'] + links,

@@ -530,8 +530,8 @@ class AdaptRequestConfig:
         0.3, 'Obstacles farther than this [m] from the prior mean path of every point of '
         'interest are left out of the problem.', 0.0, 100.0)
     avoid_links: Tuple[str, ...] = _param(
-        ('panda_link4',), 'Links whose frame origin gets the obstacle constraints besides the '
-        'end effector (the Panda elbow by default).')
+        ('panda_link4', 'panda_hand'), 'Links whose frame origin gets the obstacle constraints '
+        'besides the end effector (the Panda elbow and the flange of its hand by default).')
     joint_limits: bool = _param(
         True, 'Constrain every joint to the robot limits (paper 003 Eq. 12).')
     condition_start: bool = _param(
