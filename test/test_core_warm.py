@@ -16,7 +16,10 @@ from cdmp_ros.core.adaptation.warm import (KL_SLACK, PREDICT_ATOL, PREDICT_RTOL,
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import Box, OrientedBox, Sphere
 
-CFG = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000)
+#: panda_link4 only (the adapter's default before the hand's flange was added): the problem
+#: whose solves these tests' figures describe
+CFG = AdaptRequestConfig(n_steps=25, alpha=0.99, verification_samples=1000,
+                         avoid_links=('panda_link4',))
 
 
 @pytest.fixture(scope='module')
