@@ -31,6 +31,7 @@ import numpy as np
 
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.cdr import decode_string
+from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.requests import ee_band
 from cdmp_ros.core.kinematics import PointOfInterest
 from cdmp_ros.core.primitive_io import promp_from_dict, validate_primitive_dict
@@ -122,7 +123,7 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
     after = [d for t, d in adapted if isinstance(drop, int) and t >= drop]
     obs = driver.get('obstacle', {})
     ad = adapter_params.get('adaptation', {})
-    links = list(ad.get('avoid_links', ['panda_link4', 'panda_hand']))
+    links = list(ad.get('avoid_links', AdaptRequestConfig().avoid_links))
     radius = float(obs.get('radius', 0.0)) + float(ad.get('obstacle_margin', 0.02))
     out = {'adaptations': len(after), 'adaptation_latency_ms': adaptation_latencies(bag),
            'violation_radius_m': radius, 'violation_points': ['ee'] + links,
