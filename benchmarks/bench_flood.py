@@ -43,6 +43,8 @@ Every ROS process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a privat
         [--domain 70] [--code DIR]    # DIR: run the nodes from another checkout (before/after)
         [--param NODE:NAME:=VALUE ...]  # e.g. streamer:realtime_priority:=0 (default scheduling)
         [--valid-obstacles 20] [--valid-goal-points 0.5]
+        [--probe]   # also tick benchmarks/tick_probe.py (a bare 500 Hz publisher in a
+                    # process of its own) over the flood: the on-time ceiling of the load
 """
 import argparse
 import json
@@ -283,6 +285,9 @@ def main():
                          'flood publisher itself)')
     ap.add_argument('--categories', default='',
                     help='comma-separated categories of bad messages to send (default: all)')
+    ap.add_argument('--probe', action='store_true',
+                    help='also run benchmarks/tick_probe.py (the streamer schedule in a process '
+                         'of its own, subscribing to nothing) during the flood')
     ap.add_argument('--valid-obstacles', type=float, default=20.0,
                     help='Hz of valid sphere obstacles near the arm (0: none)')
     ap.add_argument('--valid-goal-points', type=float, default=0.5,
@@ -376,6 +381,14 @@ def main():
         import psutil
         ps = {n: psutil.Process(procs[n].pid) for n in NODES}
         ps['bench (publisher)'] = psutil.Process()
+        probe = None
+        if args.probe:  # inside the flood's window: ~2 s to start, 5 s shorter than the flood
+            probe = subprocess.Popen(
+                [sys.executable, os.path.join(REPO, 'benchmarks', 'tick_probe.py'),
+                 '--duration', str(max(1.0, args.duration - 5.0))],
+                env=ros_env(args.domain, REPO),
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            ps['probe'] = psutil.Process(probe.pid)
         cpu0 = {n: p.cpu_times() for n, p in ps.items()}
         t_start = time.monotonic()
         next_goal, g = t_start, 0
@@ -442,6 +455,7 @@ def main():
                / (time.monotonic() - t_start) * 100 for n, p in ps.items()}
         time.sleep(3.0)  # the last rejections and diagnostics arrive
         alive = {n: procs[n].poll() is None for n in NODES}
+        probe_out = probe.communicate(timeout=60)[0].strip() if probe else ''
     finally:
         stop.set()
         spinner.join(timeout=5)
@@ -480,6 +494,8 @@ def main():
           f'tick_wake_late p99 / max '
           f'{obs.get("streamer: timing", "tick_wake_late_p99_ms")} / '
           f'{obs.get("streamer: timing", "tick_wake_late_max_ms")} ms')
+    if args.probe:
+        print(f'tick probe (own process)       {probe_out.splitlines()[-1] if probe_out else "-"}')
     print(f'alive at the end               {alive}')
     timing = {k: v for k, v in obs.status.get('streamer: timing', {}).items()
               if k.endswith(('_p99_ms', '_max_ms'))}
