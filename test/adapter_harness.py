@@ -58,17 +58,25 @@ class Harness(NodeHarness):
     target = 'adapter'
 
     def __init__(self, domain_id: int):
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
 
         from cdmp_ros.ros import qos
 
+        # qos.LATCHED (reliable, transient local) with a deep queue: matches the adapter's
+        # publisher, gets its latched message, and keeps every answer published after it
+        answers = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
         super().__init__('adapter_test', domain_id, spin=False)
         self.adapted = []        # (receive time, dict)
         self.viz = []            # (receive time, MarkerArray)
         self.input_publishers('primitive', 'goal', 'goal_point', 'constraints', 'joint_states',
                               'obstacles')
-        self.subscribe(String, 'adapted_primitive', self._on_adapted, qos.LATCHED)
+        # every answer, not the latest only: a warm answer and its refinement, published in
+        # quick succession, would otherwise replace each other in a keep-last-1 queue before
+        # the spin thread takes the first (the tests match answers by their trigger stamp)
+        self.subscribe(String, 'adapted_primitive', self._on_adapted, answers)
         self.subscribe(MarkerArray, 'visualization', self._on_viz, qos.LATCHED)
         self.robot_q = None      # published on joint_states at 20 Hz while not None
         self.node.create_timer(0.05, self._robot)
