@@ -42,16 +42,17 @@ N_STEPS = 50
 MARGIN = 0.02
 
 
-def sampled(promp, chain, center, radius, phases, n, rng, chunk=20_000):
-    """Per-phase violation frequency of each point, (len(phases), len(POINTS))."""
-    pois = [PointOfInterest(p) for p in POINTS]
-    cnt = np.zeros((len(phases), len(POINTS)))
+def sampled(promp, chain, center, radius, phases, n, rng, points=POINTS, chunk=20_000):
+    """Per-phase violation frequency of each of ``points`` (link names, 'ee'),
+    (len(phases), len(points))."""
+    pois = [PointOfInterest(p) for p in points]
+    cnt = np.zeros((len(phases), len(points)))
     done = 0
     while done < n:
         k = min(chunk, n - done)
         Y = promp.sample_trajectories(phases, k, rng)
         X = chain.forward(Y.reshape(-1, Y.shape[-1]), pois)
-        d = np.linalg.norm(X - center, axis=-1).reshape(k, len(phases), len(POINTS))
+        d = np.linalg.norm(X - center, axis=-1).reshape(k, len(phases), len(points))
         cnt += (d < radius).sum(axis=0)
         done += k
     return cnt / n

@@ -1,9 +1,9 @@
-"""The saddle point's check of the Gamma-matched link-point rows (AdaptationConfig.tail 'auto',
-max_level_corrections): the check is the saddle-point law of the same moments, the corrected
-levels follow their closed form, and a solve whose Gamma rows violate under the saddle point
-ends with every checked row within its level under both laws, confirmed by sampling; a warm
-start carries the levels the check implied (SolverState.levels) and, for a nearby problem, needs
-no re-solve of its own."""
+"""The saddle point's check of the Gamma-matched link-point rows (AdaptationConfig.tail
+'auto', max_level_corrections, check_law 'saddlepoint'): the check is the saddle-point law of
+the same moments, the corrected levels follow their closed form, and a solve whose Gamma rows
+violate under the saddle point ends with every checked row within its level under both laws,
+confirmed by sampling; a warm start carries the levels the check implied (SolverState.levels)
+and, for a nearby problem, needs no re-solve of its own."""
 import dataclasses
 
 import numpy as np
@@ -28,7 +28,10 @@ def chain():
 
 
 def _problem(chain, seed=1, n_spheres=3):
-    return panda_problem(chain, np.random.default_rng(seed), n_spheres=n_spheres)
+    """The Panda problem with the saddle point's check (``check_law``; the importance-sampled
+    check, the default, has its tests in test_core_tail_sampling.py)."""
+    prior, cons, cfg = panda_problem(chain, np.random.default_rng(seed), n_spheres=n_spheres)
+    return prior, cons, dataclasses.replace(cfg, check_law='saddlepoint')
 
 
 def test_corrected_levels_closed_form():

@@ -18,7 +18,7 @@ confidence bound (one-sided Clopper-Pearson), and the overall trajectory-level v
 "trajectory_violation_upper95", "constraints": [{"name", "per_step_max", "trajectory",
 "upper95", ...}]}. Each constraint's optimiser figures (JSON ``constraints``) name the law of
 its probability (``law``: ``gaussian`` for linear forms, the tail of the quadratic forms, or
-``gamma, saddle-point checked`` for link points under the default tail), and
+``gamma, importance-sampled check`` for link points under the default tail and check), and
 ``n_level_corrections`` counts the re-solves that check tightened.
 
 Exit status: 0 when every constraint holds at its confidence (converged: under the

@@ -17,7 +17,7 @@ streamer follows the adapted mean. From the bag:
   fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
 - ``adapted_laws``: per probability law, the constraints of the last adaptation that used it
   (its report's ``ConstraintReport.law``: 'gaussian' for the joint limits, under the default
-  tail 'gamma, saddle-point checked' for the end effector and the links);
+  tail 'gamma, importance-sampled check' for the end effector and the links);
 - ``adaptation_latency_ms``: per obstacle message answered, the streamer's own figure (the
   stamp of its first reference computed from the first adapted primitive answering it minus
   the stamp of that message), from its diagnostics in the bag;

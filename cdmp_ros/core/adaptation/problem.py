@@ -9,14 +9,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdmp_ros.core.adaptation.batched import BatchedLagrangian
-from cdmp_ros.core.adaptation.config import CHECKED_LAW, AdaptationConfig
+from cdmp_ros.core.adaptation.config import (CHECKED_LAW, SAMPLED_CHECK_FRACTION,
+                                             SAMPLED_CHECK_LAW, AdaptationConfig)
 from cdmp_ros.core.adaptation.constraints.base import Constraint, WeightConstraint
 from cdmp_ros.core.adaptation.constraints.points import (ChainPoint, DifferencePoint, DofPoint,
                                                          StackedChainPoints,
                                                          StackedDifferencePoints)
+from cdmp_ros.core.adaptation.tail_sampling import sphere_violation
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.promp.gaussian import UnscentedTransform
 from cdmp_ros.core.promp.promp import ProMP
+
+#: Seed of the 'sampled' check's draws (plus the number of joints of the point).
+CHECK_SEED = 20261207
 
 
 def _contiguous_dofs(point):
@@ -251,6 +256,7 @@ class Problem:
             if self.constraints else np.zeros(0)
         self._build_batches()
         self._glo, self._ghi = self.gamma_limits()
+        self._normals = {}   # k -> the 'sampled' check's standard normal draws
         self._last = None
         self.n_evaluations = 0
         self.evaluator = evaluator
@@ -301,8 +307,10 @@ class Problem:
             self.check_params.append(
                 dict(params, tail='saddlepoint', state={})
                 if self.config.tail == 'auto' and params['tail'] == 'gamma' else None)
+            checked_law = (SAMPLED_CHECK_LAW if self.config.check_law == 'sampled'
+                           else CHECKED_LAW)
             law = ('gaussian' if cls.batch_kind != 'sphere' else
-                   CHECKED_LAW if self.check_params[-1] is not None else params['tail'])
+                   checked_law if self.check_params[-1] is not None else params['tail'])
             for i in members:
                 self.laws[i] = law
             # members with one multiplier per row: their rows' multipliers in batch order,
@@ -487,11 +495,49 @@ class Problem:
             ms = [self._moments_of(i) for i in members]
             Fs = fn(np.concatenate([v[0] for v in ms]), np.concatenate([v[1] for v in ms]),
                     check)[0]
+            sphere = getattr(self.constraints[members[0]], 'batch_kind', None) == 'sphere'
             for i, (a, b) in zip(members, offsets):
                 sl, Ft = self.slices[i], Fs[a:b]
+                if self.config.check_law == 'sampled' and sphere:
+                    Ft = self._sampled_check(i, Ft, check, a, b)
                 F[sl] = Ft.max() if self.constraints[i].reduce == 'max' else Ft
                 checked[sl] = True
         return F, checked
+
+    def _sampled_check(self, i, Ft, check, a, b):
+        """The 'sampled' check of constraint ``i``'s rows (``AdaptationConfig.check_law``):
+        at the repeller rows where the saddle point's satisfaction ``Ft`` leaves a violation
+        of at least SAMPLED_CHECK_FRACTION (1 - alpha), one minus the importance-sampled
+        violation of the point's true law plus one standard error; ``Ft`` elsewhere.
+        ``check[a:b]``: the rows' centres, squared radii and sides."""
+        c = self.constraints[i]
+        # repeller rows (the proposal's shift covers a ball to be avoided, not the outside
+        # of a ball to be reached, which surrounds the mean)
+        near = ((1.0 - Ft) >= SAMPLED_CHECK_FRACTION * (1.0 - c.alpha)) & \
+            ~np.asarray(check['inside'][a:b], bool)
+        if not near.any():
+            return Ft
+        pm, _ = self.bound[i]
+        rows = np.flatnonzero(near)
+        dofs = np.asarray(c.point.dofs)
+        g = pm.group
+        m = g.m[rows][:, dofs]
+        S = g.S[rows][:, dofs][:, :, dofs]
+        est = sphere_violation(c.point, m, S, check['center'][a:b][rows],
+                               check['r2'][a:b][rows], check['inside'][a:b][rows],
+                               self._check_normals(dofs.size))
+        out = Ft.copy()
+        out[rows] = 1.0 - np.minimum(est.p + est.se, 1.0)
+        return out
+
+    def _check_normals(self, k):
+        """The standard normal draws of the 'sampled' check for points of ``k`` joints: the
+        same at every check of this problem (the check is a function of theta)."""
+        draws = self._normals.get(k)
+        if draws is None:
+            rng = np.random.default_rng(CHECK_SEED + k)
+            draws = self._normals[k] = rng.standard_normal((self.config.check_samples, k))
+        return draws
 
     def _store(self, i, Ft, dm, dS, F, parts):
         sl = self.slices[i]

@@ -93,6 +93,10 @@ class ChainPoint(Point):
         ax = _axes_index(self.axes)
         return X[..., 0, ax], J[..., 0, ax, :]
 
+    def forward(self, Z):
+        X = self.chain.forward(Z, [self.point])[..., 0, :]
+        return X if self.axes == (0, 1, 2) else X[..., _axes_index(self.axes)]
+
 
 class DifferencePoint(Point):
     """x_t = a(z_t) - b(z_t): relative position of two points (mutual avoidance, Eq. 22).
