@@ -194,3 +194,20 @@ def test_the_check_draws_have_the_configured_size(chain):
     draws = prob._check_normals(7)
     assert draws.shape == (64, 7) and prob._check_normals(7) is draws
     assert int(round(NOMINAL_FRACTION * 64)) == 16
+
+
+def test_a_solve_left_over_its_level_by_the_check_is_not_converged(chain):
+    """A warm solve whose evaluation budget leaves no re-solve for the check's correction
+    (the adapter's warm starts run with one) ends ``level_check_failed``, not converged, and
+    the constraint the check found over its level is reported violated; with the check off
+    (``max_level_corrections`` 0) the same point is an answer of the Gamma match."""
+    prior, cons, cfg = panda_problem(chain, np.random.default_rng(1), n_spheres=3)
+    _, rep0 = solve_levels(prior, cons, dataclasses.replace(cfg, max_level_corrections=0))
+    assert rep0.converged and rep0.status == 'converged'
+    start = dataclasses.replace(rep0.state, levels=())
+    _, rep = solve_levels(prior, cons, dataclasses.replace(cfg, max_evaluations=1), start=start)
+    assert not rep.converged and rep.status == 'level_check_failed'
+    assert rep.n_level_corrections == 0
+    over = [c for c in rep.constraints if c.checked and not c.satisfied]
+    assert over and all(c.kind == 'repeller' for c in over)
+    assert 'VIOLATED' in rep.to_text()
