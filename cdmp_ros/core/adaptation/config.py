@@ -389,8 +389,9 @@ class AdaptationReport:
         ``converged``, ``converged_without_margin``, ``max_outer_reached``,
         ``stalled_infeasible``, ``infeasible_or_unconverged``, ``evaluation_budget_exhausted``,
         ``level_check_failed`` (feasible under the Gamma match, but the check of its rows
-        still finds one over its level when no re-solve is left: ``max_level_corrections``
-        or the evaluation budget ran out) or ``verification_failed``.
+        still finds one over its level, strictly, when no re-solve is left:
+        ``max_level_corrections`` or the evaluation budget ran out) or
+        ``verification_failed``.
     kl, kl_per_basis : float
         KL(adapted || prior), and divided by the number of weights D * M.
     n_outer, n_inner, n_evaluations : int

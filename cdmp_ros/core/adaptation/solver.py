@@ -261,9 +261,11 @@ def solve_levels(prior: ProMP, constraints: Sequence, config: Optional[Adaptatio
                                         p >= c.alpha - config.feasibility_tol,
                                         float(np.max(lam[sl])), law))
     if (feasible and config.max_level_corrections > 0
-            and not all(r.satisfied for r in reports if r.checked)):
-        # the check still finds a checked row over its level, and no re-solve is left (the
-        # corrections or the evaluation budget ran out): not an answer at its confidence
+            and any(r.checked and r.probability < r.alpha for r in reports)):
+        # the check still finds a checked row over its level (strictly: the stopping rule's
+        # feasibility_tol is a tolerance of the optimiser's law, not of the check's), and no
+        # re-solve is left (the corrections or the evaluation budget ran out): not an answer
+        # at its confidence
         feasible, status = False, 'level_check_failed'
     if not feasible and all(r.satisfied for r in reports):
         # the stricter margin level was not reached, the constraints' own alpha was
