@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from cdmp_ros.core.adaptation.config import CHECKED_LAW
+from cdmp_ros.core.adaptation.config import SAMPLED_CHECK_LAW
 from conftest import ros_env, module_domain
 
 pytestmark = pytest.mark.ros
@@ -63,7 +63,7 @@ def test_cdmp_demo_promp_adapts_to_the_obstacle(tmp_path):
     assert s['messages_by_topic'].get('/goal', 0) == 0  # no goal change in this demo
     # which law each constraint used (issue 29 item 4)
     laws = {n: law for law, names in p['adapted_laws'].items() for n in names}
-    assert {laws[n] for n in laws if n.startswith('obstacle')} == {CHECKED_LAW}, laws
+    assert {laws[n] for n in laws if n.startswith('obstacle')} == {SAMPLED_CHECK_LAW}, laws
     assert 'probability laws of the last adaptation' in (out / 'summary.md').read_text()
     for path in s['plots']:
         assert os.path.getsize(path) > 1000, path
