@@ -45,7 +45,9 @@ CENTRE_ITERATIONS = 8
 #: Bisection steps of :func:`ray_points`.
 RAY_STEPS = 30
 #: The proposal's centre sits this many standard deviations beyond where the ray enters the
-#: violation region (the violating draws of a Panda link point lie 0.3-0.8 beyond it).
+#: violation region. At the entry itself: most of the probability lies just beyond it, and a
+#: centre 0.5 deeper sampled that part too rarely (estimates 10-30 % low on the Panda's end
+#: effector, standard error ~17 % at 512 draws).
 RAY_DEPTH = 0.0
 #: Shifts stay within this many standard deviations of the mean.
 MAX_SHIFT = 8.0
