@@ -521,10 +521,10 @@ class Problem:
         rows = np.flatnonzero(near)
         dofs = np.asarray(c.point.dofs)
         g = pm.group
-        m = g.m[rows][:, dofs]
-        S = g.S[rows][:, dofs][:, :, dofs]
-        est = sphere_violation(c.point, m, S, check['center'][a:b][rows],
-                               check['r2'][a:b][rows], check['inside'][a:b][rows],
+        at = a + rows   # the rows in the batch's parameters
+        est = sphere_violation(c.point, g.m[np.ix_(rows, dofs)],
+                               g.S[np.ix_(rows, dofs, dofs)], check['center'][at],
+                               check['r2'][at], check['inside'][at],
                                self._check_normals(dofs.size))
         out = Ft.copy()
         out[rows] = 1.0 - np.minimum(est.p + est.se, 1.0)

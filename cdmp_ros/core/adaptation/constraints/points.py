@@ -126,6 +126,9 @@ class DifferencePoint(Point):
         J[..., self._ib] -= Jb
         return Xa - Xb, J
 
+    def forward(self, Z):
+        return self.a.forward(Z[..., self._ia]) - self.b.forward(Z[..., self._ib])
+
 
 class StackedChainPoints(Point):
     """Several ChainPoints of one chain (same ``dofs`` and ``axes``) evaluated together: one
