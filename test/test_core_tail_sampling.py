@@ -14,8 +14,8 @@ from cdmp_ros.core.adaptation.config import SAMPLED_CHECK_FRACTION, SAMPLED_CHEC
 from cdmp_ros.core.adaptation.constraints import ChainPoint, DofPoint
 from cdmp_ros.core.adaptation.problem import Problem
 from cdmp_ros.core.adaptation.solver import monte_carlo_satisfaction, solve_levels
-from cdmp_ros.core.adaptation.tail_sampling import (NOMINAL_FRACTION, centre_points,
-                                                    sphere_violation)
+from cdmp_ros.core.adaptation.tail_sampling import (NOMINAL_FRACTION, RAY_BITS, centre_points,
+                                                    ray_points, sphere_violation)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
 from cdmp_ros.core.promp.gaussian import batched_cholesky
@@ -106,6 +106,36 @@ def test_a_panda_link_points_estimate_agrees_with_plain_sampling(chain, rng, lin
     uc = centre_points(point, m[None], batched_cholesky(S[None]), c[None])[0]
     cos = est.u[0] @ uc / (np.linalg.norm(est.u[0]) * np.linalg.norm(uc))
     assert cos == pytest.approx(1.0)
+
+
+def test_the_ray_enters_the_ball_where_the_closed_form_says(rng):
+    """A linear point (x = z): the most probable u at the centre is C^-1 (c - m), the ray
+    m + t (c - m) enters the ball |x - c| < r at t = 1 - r / |c - m| (closed form). The
+    multisection brackets it from inside within 2^-RAY_BITS; rows whose mean is in the ball
+    stay at u = 0; several rows at once (different radii and Cholesky factors)."""
+    n = 6
+    ms, Ss, cs, r2 = [], [], [], []
+    for i in range(n):   # nearly isotropic: the centre within MAX_SHIFT standard deviations
+        A = 0.1 * rng.standard_normal((3, 3))
+        m, S = rng.standard_normal(3), 0.02 * (np.eye(3) + A @ A.T)
+        e = rng.standard_normal(3)
+        dist = (1.0 + 0.5 * i) * np.sqrt(np.trace(S))
+        r = (0.1 + 0.15 * i) * dist if i < n - 1 else 1.5 * dist   # last row: mean inside
+        ms.append(m), Ss.append(S), cs.append(m + dist * e / np.linalg.norm(e))
+        r2.append(r * r)
+    m, S, c, r2 = np.array(ms), np.array(Ss), np.array(cs), np.array(r2)
+    C = batched_cholesky(S)
+    point = DofPoint((0, 1, 2))
+    u = ray_points(point, m, C, c, r2, np.ones(n))
+    uc = centre_points(point, m, C, c)
+    assert np.allclose(np.einsum('nij,nj->ni', C, uc), c - m, atol=1e-9)
+    for i in range(n - 1):
+        dist = np.linalg.norm(c[i] - m[i])
+        t_entry = 1.0 - np.sqrt(r2[i]) / dist
+        t = (u[i] @ uc[i]) / (uc[i] @ uc[i])
+        assert t_entry < t <= t_entry + 2.0 ** -RAY_BITS + 1e-12, (i, t, t_entry)
+        assert np.allclose(u[i], t * uc[i])
+    assert np.all(u[n - 1] == 0.0)
 
 
 def test_a_mean_inside_the_repeller_is_sampled_without_a_shift(rng):
