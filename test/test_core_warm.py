@@ -109,7 +109,7 @@ def test_a_moved_obstacle_starts_warm_and_keeps_its_plan(chain, prior, centre):
         assert np.abs(path - prev).max() < 0.01
         prev = path
     # from the third request on the sphere moves as it did before: the predictor's start
-    assert ws.counts == {'warm': 3, 'predicted': 2, 'cold': 1, 'warm_then_cold': 0,
+    assert ws.counts == {'warm': 3, 'predicted': 2, 'continued': 0, 'cold': 1, 'warm_then_cold': 0,
                          'cold_then_warm': 0, 'over_guard': 0, 'refined': 0,
                          'refine_kept_warm': 0}
 
@@ -178,6 +178,39 @@ def test_a_warm_solve_over_the_guard_or_budget(chain, prior, centre):
     assert 'warm start replaced: evaluation_budget_exhausted after' in res.report.start_note, \
         res.report.start_note
     assert ws.counts['warm_then_cold'] == 1
+
+
+def test_a_warm_solve_out_of_evaluations_is_continued_before_a_cold_solve(chain, prior, centre):
+    """A sphere moved 6 cm with a warm budget of 5 evaluations: the first warm solve runs out,
+    a second continues from where it ended and converges (verified, within the guard); the
+    request is not solved cold, and the report counts the evaluations of both."""
+    cfg = dataclasses.replace(CFG, warm_start_max_evaluations=5)
+    ws = WarmStarts()
+    first = run_request(_request(prior, centre), chain, cfg, warm=ws)
+    assert first.outcome == 'converged'
+    req = _request(prior, centre + [0.0, 0.06, 0.0])
+    alone = solve_levels(*_built(chain, req, cfg), start=ws._memory.state)[1]
+    assert alone.status == 'evaluation_budget_exhausted'     # the first warm solve alone
+    res = run_request(req, chain, cfg, warm=ws)
+    rep = res.report
+    assert res.outcome == 'converged' and rep.start == 'warm', rep.start_note
+    assert ('continued where the first warm solve ended (evaluation_budget_exhausted after '
+            f'{alone.n_evaluations} evaluations)') in rep.start_note, rep.start_note
+    assert rep.verification.holds
+    assert alone.n_evaluations < rep.n_evaluations
+    assert ws.counts['continued'] == 1 and ws.counts['warm'] == 1
+    assert ws.counts['warm_then_cold'] == 0 and ws.counts['cold'] == 1
+    assert rep.kl <= cfg.warm_start_kl_ratio * first.report.kl + KL_SLACK
+    path = ee_path(chain, res.adapted.mean(np.linspace(0.0, 1.0, 101)))
+    assert np.linalg.norm(path - req.obstacles[0].center, axis=1).min() > 0.05
+
+
+def _built(chain, req, cfg):
+    """(prior, constraints, config) of the warm solve of ``req``: the built problem with the
+    warm budget."""
+    built = build_problem(req, chain, cfg)
+    return built.prior, built.constraints, dataclasses.replace(
+        built.config, max_evaluations=int(cfg.warm_start_max_evaluations))
 
 
 def test_a_refinement_replaces_a_warm_solution_only_when_it_is_better(chain, prior, centre):
@@ -468,11 +501,14 @@ def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkey
     starts, verified, fail = [], [], []
     real_solve, real_verify = warm.solve_levels, guarantee.verify
 
+    ends = []
+
     def solve(*args):
         starts.append(args[4])
         adapted, rep = real_solve(*args)
         if fail:     # as if out of evaluations (the control flow, whatever the numerics)
             rep.converged, rep.status = False, 'evaluation_budget_exhausted'
+        ends.append(rep.state)
         return adapted, rep
 
     def verify(*args, **kwargs):
@@ -500,8 +536,9 @@ def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkey
     assert turned.outcome == 'converged' and turned.report.start == 'warm'
     np.testing.assert_array_equal(starts[2].theta, res[2].report.state.theta)
     assert turned.report.start_note == '' and ws.counts['predicted'] == 1
-    # a predicted solve that does not converge: the cold solve, and one verification (the
-    # cold solve's: the replaced attempt is not verified)
+    # a predicted solve that does not converge: a second warm solve from where it ended, which
+    # fails too, then the cold solve, and one verification (the cold solve's: the replaced
+    # attempts are not verified)
     ahead = centre + 2 * step + [0.01, 0.0, 0.0]
     n_starts, n_verified = len(starts), len(verified)
     fail.append(1)
@@ -510,9 +547,10 @@ def test_a_steady_motion_starts_from_the_prediction(chain, prior, centre, monkey
     assert last.report.start == 'cold' and last.outcome == 'converged'
     assert last.report.start_note.startswith(
         'predicted start replaced: evaluation_budget_exhausted after'), last.report.start_note
-    assert len(starts) == n_starts + 1 and len(verified) == n_verified + 1
-    np.testing.assert_allclose(starts[-1].theta, 2.0 * turned.report.state.theta
+    assert len(starts) == n_starts + 2 and len(verified) == n_verified + 1
+    np.testing.assert_allclose(starts[-2].theta, 2.0 * turned.report.state.theta
                                - res[2].report.state.theta)
+    assert starts[-1] is ends[-2]
     assert ws.counts['warm_then_cold'] == 1 and ws.counts['predicted'] == 1
     # switched off: never predicted
     ws2 = WarmStarts()

@@ -391,7 +391,7 @@ class AdapterNode(Node):
 
     def _publish_now(self) -> None:
         counts = dict(self.warm.counts)   # (refinements: the node's own counters)
-        starts = {f'starts_{k}': counts[k] for k in ('warm', 'predicted', 'cold',
+        starts = {f'starts_{k}': counts[k] for k in ('warm', 'predicted', 'continued', 'cold',
                                                      'warm_then_cold', 'cold_then_warm',
                                                      'over_guard')}
         self.reporter.set_state(self.reporter.level, self.reporter.message,
