@@ -7,7 +7,11 @@ Two problems:
   limits, three sphere repellers on the end effector and panda_link4 through the unscented
   transform, 50 steps, Gamma tail);
 - ``table2``: a paper 003 Table II problem (``--obstacles`` repellers on a 2-D ProMP, 101
-  steps, saddle-point tail; ``cdmp_ros.experiments.promp_problems.make_problem``).
+  steps, saddle-point tail; ``cdmp_ros.experiments.promp_problems.make_problem``);
+- ``demo``: the first obstacle request of a ``cdmp demo --kind promp`` run (``--demo-dir``,
+  an output directory of ``benchmarks/bench_demo_promp.py``): the learner's primitive and the
+  dropped sphere, built as the adapter builds it (end effector, panda_link4 and panda_hand,
+  50 steps, Gamma tail with the importance-sampled check).
 
 Each problem is solved cold once with the reference evaluation, recording the (theta, lambda)
 of every evaluation the solver makes; each evaluation (``Problem(evaluator=...)``) then replays
@@ -18,7 +22,8 @@ reference over the sequence (value: relative; gradient: |g - g_ref| over |g_KL| 
 |g_ref - g_KL|, the scale of the two parts that cancel near an optimum).
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_lagrangian.py [--problems
-        panda,table2] [--seed 0] [--obstacles 3] [--repeats 5]
+        panda,table2,demo] [--seed 0] [--obstacles 3] [--repeats 5]
+        [--demo-dir /tmp/bench_demo_promp/run1]
 """
 import argparse
 import cProfile
@@ -50,6 +55,24 @@ def table2_problem(seed, obstacles):
     from cdmp_ros.experiments.promp_problems import make_problem
     p = make_problem('table2', obstacles, np.random.default_rng(seed))
     return p.prior, p.constraints, p.config
+
+
+def demo_problem(out):
+    """(prior, constraints, config) of the first obstacle request of the demo run in ``out``."""
+    import json
+    import cdmp_ros.core.adaptation.requests as requests
+    from cdmp_ros.cli.demo_promp import _primitives, _promp
+    from cdmp_ros.core.adaptation.config import AdaptRequestConfig
+    from cdmp_ros.core.kinematics import Sphere, panda_chain
+    from cdmp_ros.sim.robot_specs import panda_urdf_path
+    chain = panda_chain(panda_urdf_path())
+    with open(os.path.join(out, 'driver.json')) as f:
+        obs = json.load(f)['obstacle']
+    prior = _promp(_primitives(os.path.join(out, 'bag'), '/primitive')[0][1], chain)
+    req = requests.AdaptRequest(prior, (Sphere(tuple(obs['center']), float(obs['radius'])),),
+                                continues=True)
+    built = requests.build_problem(req, chain, AdaptRequestConfig())
+    return built.prior, built.constraints, built.config
 
 
 def record(prior, cons, config):
@@ -119,7 +142,9 @@ def agreement(make, seq):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--problems', default='panda,table2',
-                    help='comma-separated subset of panda,table2 (default both)')
+                    help='comma-separated subset of panda,table2,demo (default panda,table2)')
+    ap.add_argument('--demo-dir', default='/tmp/bench_demo_promp/run1',
+                    help='the demo run of the demo problem (default %(default)s)')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--obstacles', type=int, default=3, help='Table II repellers (1-3)')
     ap.add_argument('--repeats', type=int, default=5, help='timed replays of the sequence')
@@ -132,6 +157,12 @@ def main():
         elif name == 'table2':
             problems.append((f'Table II ({args.obstacles} obstacles)',
                              table2_problem(args.seed, args.obstacles)))
+        elif name == 'demo':
+            if not os.path.isfile(os.path.join(args.demo_dir, 'driver.json')):
+                ap.error(f'--demo-dir: no driver.json in {args.demo_dir!r} (an output '
+                         'directory of benchmarks/bench_demo_promp.py)')
+            problems.append((f'demo ({os.path.basename(args.demo_dir)}, first obstacle)',
+                             demo_problem(args.demo_dir)))
         else:
             ap.error(f'--problems: unknown problem {name!r}')
     print(f'machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, '

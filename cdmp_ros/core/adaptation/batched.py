@@ -34,9 +34,8 @@ The gain is modest (``benchmarks/bench_lagrangian.py``): the reference was batch
 constraint kind already, and what remains is vectorised numerical work (BLAS products of the
 70 x 70 factors and of the group marginals, LAPACK on 50 small matrices, the kinematics of 700
 sigma points, the incomplete gamma function; on Table II the saddle-point tail), not Python
-overhead. So this evaluation is opt-in
-(``Problem(..., evaluator='batched')``; :data:`~cdmp_ros.core.adaptation.problem.
-DEFAULT_EVALUATOR`).
+overhead. It is the default (:data:`~cdmp_ros.core.adaptation.problem.DEFAULT_EVALUATOR`):
+1.26-1.36x per evaluation on the Panda problems.
 """
 from typing import List, Optional, Tuple
 
