@@ -337,11 +337,11 @@ class WarmStarts:
                     self.counts['over_guard'] += 1
                     over = (f'KL {rep.kl:.4g} > {cfg.warm_start_kl_ratio:g} x {anchor:.4g} + '
                             f'{KL_SLACK:g} (last cold solve): ')
-                    if cfg.warm_start_refine:   # off the request path
-                        rep.start_note = over + 'the refinement checks it'
-                    else:
+                    over += ('the refinement checks it' if cfg.warm_start_refine   # off the path
+                             else 'the next request starts cold')
+                    if not cfg.warm_start_refine:
                         self._memory.cold_next = True
-                        rep.start_note = over + 'the next request starts cold'
+                    rep.start_note = (rep.start_note + '; ' if rep.start_note else '') + over
                 return adapted, rep
             self.counts['warm_then_cold'] += 1
             note = (f'{"predicted" if predicted is not None else "warm"} start replaced: '
