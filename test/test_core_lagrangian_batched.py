@@ -258,6 +258,7 @@ def _solver_problems():
 @pytest.mark.parametrize('name', sorted(_solver_problems()))
 def test_solver_gives_the_same_solution_with_either_evaluation(name, monkeypatch):
     prior, cons, cfg = _solver_problems()[name]
+    monkeypatch.setattr(solver, 'Problem', functools.partial(Problem, evaluator='reference'))
     _, ref = solver.solve_levels(prior, cons, cfg)
     monkeypatch.setattr(solver, 'Problem', functools.partial(Problem, evaluator='batched'))
     _, rep = solver.solve_levels(prior, cons, cfg)
@@ -266,10 +267,10 @@ def test_solver_gives_the_same_solution_with_either_evaluation(name, monkeypatch
     assert rep.kl == pytest.approx(ref.kl, rel=1e-8)
 
 
-def test_the_reference_is_the_default_evaluation(rng):
-    """benchmarks/RESULTS.md, "Lagrangian evaluation batched": the batched evaluation is
-    opt-in (evaluator='batched')."""
-    assert Problem(_prior(rng), [], AdaptationConfig()).evaluator == 'reference'
+def test_the_batched_evaluation_is_the_default(rng):
+    """The batched evaluation is the default (1.26-1.36x per evaluation on the Panda
+    problems); the reference stays the oracle of these tests."""
+    assert Problem(_prior(rng), [], AdaptationConfig()).evaluator == 'batched'
 
 
 def test_unknown_evaluator_is_refused(rng):
