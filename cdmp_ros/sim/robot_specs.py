@@ -32,7 +32,7 @@ import numpy as np
 import pybullet_data
 
 from cdmp_ros.core.errors import ValidationError
-from cdmp_ros.core.kinematics import PANDA_EE_OFFSET
+from cdmp_ros.core.kinematics import DUAL_PANDA_DISTANCE, PANDA_EE_OFFSET
 from cdmp_ros.core.resources import data_path
 from cdmp_ros.core.validation import as_array, check_limits, check_positive
 
@@ -40,8 +40,6 @@ PANDA_URDF = os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.ur
 PANDA_JOINTS = tuple(f'panda_joint{i}' for i in range(1, 8))
 # The "ready" pose of the Panda (all joints well inside their limits).
 PANDA_HOME = (0.0, -math.pi / 4, 0.0, -3 * math.pi / 4, 0.0, math.pi / 2, math.pi / 4)
-# Distance between the two Panda bases of paper 003, III-C [m].
-DUAL_PANDA_DISTANCE = 1.13
 #: The URDF of the sim's robot ``planar4`` in the package (``planar_arm_urdf()`` written out;
 #: test/test_core_robot_model.py keeps the two equal).
 PLANAR4_URDF = 'urdf/planar4.urdf'
