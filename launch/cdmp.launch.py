@@ -2,6 +2,7 @@
 
     ros2 launch cdmp_ros cdmp.launch.py robot:=panda rate:=500.0 use_sim:=true
     ros2 launch cdmp_ros cdmp.launch.py robot:=planar4   # the planar 4-link arm, nothing else
+    ros2 launch cdmp_ros cdmp.launch.py robot:=dual_panda   # two Pandas (paper 003, III-C)
     ros2 launch cdmp_ros cdmp.launch.py use_sim:=false namespace:=/arm   # a real robot
 
 Every node reads its parameter file from ``share/cdmp_ros/config`` (override one with
@@ -11,9 +12,12 @@ from. The files of ``config/`` are the Panda's; for ``robot:=planar4`` every nod
 ``config/robots/planar4/<node>.yaml`` after its own file (a later file wins): the joint
 names, ``urdf_path: package://cdmp_ros/urdf/planar4.urdf`` (the file the sim loads),
 ``tip_link``, ``tcp_offset``, base frame, coupling links, initial pose and demonstration bags
-of the planar arm. With ``use_sim:=false`` the sim node is not started: the streamer, the
+of the planar arm. ``robot:=dual_panda`` likewise gets ``config/robots/dual_panda/``: 14
+joints, ``urdf/dual_panda.urdf`` (the sim's cell as one URDF), ``tip_links`` (one chain per
+arm), base frame ``world``, both arms' coupling links and ``bags/dual_panda``. With
+``use_sim:=false`` the sim node is not started: the streamer, the
 adapter and the learner read the measured state from the robot's own ``joint_states``. The
-graph without ROS is ``cdmp bringup`` (``config/graphs/planar4.yaml`` is ``robot:=planar4``);
+graph without ROS is ``cdmp bringup`` (``config/graphs/<robot>.yaml`` is ``robot:=<robot>``);
 ``demo.launch.py`` is the graph of ``cdmp demo``.
 """
 import os
@@ -32,7 +36,7 @@ PARAMS = {'sim': 'sim.yaml', 'streamer': 'streamer.yaml', 'adapter': 'adapter.ya
           'learner': 'learner.yaml'}
 #: Robots with parameter files in config/robots/<robot>/, applied after each node's own file
 #: (the files of config/ are the Panda's).
-ROBOT_OVERLAYS = ('planar4',)
+ROBOT_OVERLAYS = ('planar4', 'dual_panda')
 
 
 def generate_launch_description():
@@ -41,12 +45,9 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'robot', default_value='panda', choices=['panda', 'dual_panda', 'planar4'],
             description="Robot simulated by the sim node (its 'robot' parameter). The files "
-                        'in config/ are written for the Panda; planar4 adds '
-                        "config/robots/planar4/<node>.yaml after every node's file (its joints, "
-                        'URDF, tip link, frames, initial pose, bags). dual_panda has no such '
-                        'files: give sim_params with its initial_positions, and '
-                        'streamer_params, adapter_params and learner_params with its '
-                        'joint_names and urdf_path.'),
+                        'in config/ are written for the Panda; planar4 and dual_panda add '
+                        "config/robots/<robot>/<node>.yaml after every node's file (its joints, "
+                        'URDF, tip links, frames, initial pose, bags).'),
         DeclareLaunchArgument(
             'rate', default_value='500.0',
             description='Hz at which the streamer publishes joint_reference (1 kHz supported).'),

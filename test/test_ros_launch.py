@@ -466,19 +466,18 @@ def test_cdmp_launch_arguments(monkeypatch):
         evaluate('cdmp.launch.py', monkeypatch, {'use_sim': 'maybe'})
 
 
-def test_cdmp_launch_robot_planar4_layers_its_files_over_the_nodes_files(monkeypatch):
-    """robot:=planar4: every node gets config/<node>.yaml, then
-    config/robots/planar4/<node>.yaml (ROS applies them in order, the later wins); the other
-    robots get their node's file alone (the Panda's, or the user's <node>_params)."""
-    nodes = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': 'planar4'}))
+@pytest.mark.parametrize('robot', ['planar4', 'dual_panda'])
+def test_cdmp_launch_robot_layers_its_files_over_the_nodes_files(monkeypatch, robot):
+    """robot:=planar4 or dual_panda: every node gets config/<node>.yaml, then
+    config/robots/<robot>/<node>.yaml (ROS applies them in order, the later wins); the Panda
+    gets its node's file alone (or the user's <node>_params)."""
+    nodes = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': robot}))
     assert set(nodes) == {'sim', 'streamer', 'adapter', 'learner'}
     for name, n in nodes.items():
-        assert n['params_files'] == [f'{name}.yaml', f'robots/planar4/{name}.yaml'], name
-    assert nodes['sim']['parameters']['robot'] == 'planar4'
-    for robot in ('panda', 'dual_panda'):
-        for name, n in by_name(evaluate('cdmp.launch.py', monkeypatch,
-                                        {'robot': robot})).items():
-            assert n['params_files'] == [f'{name}.yaml'], (robot, name)
+        assert n['params_files'] == [f'{name}.yaml', f'robots/{robot}/{name}.yaml'], name
+    assert nodes['sim']['parameters']['robot'] == robot
+    for name, n in by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': 'panda'})).items():
+        assert n['params_files'] == [f'{name}.yaml'], name
     # the robots the launch file layers are those with a directory in config/robots, and each
     # has a file for every node the launch file starts
     launch = launch_module(os.path.join(LAUNCH_DIR, 'cdmp.launch.py'), monkeypatch)
@@ -489,11 +488,12 @@ def test_cdmp_launch_robot_planar4_layers_its_files_over_the_nodes_files(monkeyp
             launch['PARAMS'].values()), robot
 
 
-def test_the_planar4_graph_is_cdmp_launch_with_robot_planar4(monkeypatch):
-    """config/graphs/planar4.yaml (``cdmp bringup planar4``) starts the nodes of
-    ``cdmp.launch.py robot:=planar4`` with the same parameter files in the same order."""
-    graph = graph_nodes(os.path.join(ROOT, 'config', 'graphs', 'planar4.yaml'))
-    launched = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': 'planar4'}))
+@pytest.mark.parametrize('robot', ['planar4', 'dual_panda'])
+def test_the_robots_graph_is_cdmp_launch_with_that_robot(monkeypatch, robot):
+    """config/graphs/<robot>.yaml (``cdmp bringup <robot>``) starts the nodes of
+    ``cdmp.launch.py robot:=<robot>`` with the same parameter files in the same order."""
+    graph = graph_nodes(os.path.join(ROOT, 'config', 'graphs', f'{robot}.yaml'))
+    launched = by_name(evaluate('cdmp.launch.py', monkeypatch, {'robot': robot}))
     assert set(graph) == set(launched)
     for name, n in launched.items():
         for key in ('executable', 'namespace', 'params_files', 'remappings'):

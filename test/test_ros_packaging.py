@@ -76,7 +76,12 @@ def test_colcon_build_installs_package(tmp_path, monkeypatch):
               'urdf/planar4.urdf', 'config/graphs/planar4.yaml',
               'bags/planar4_reach/demo_02/metadata.yaml',
               *[f'config/robots/planar4/{n}.yaml' for n in ('sim', 'streamer', 'adapter',
-                                                            'learner')]]:
+                                                            'learner')],
+              # and robot:=dual_panda
+              'urdf/dual_panda.urdf', 'config/graphs/dual_panda.yaml',
+              'bags/dual_panda/demo_00/metadata.yaml',
+              *[f'config/robots/dual_panda/{n}.yaml' for n in ('sim', 'streamer', 'adapter',
+                                                               'learner')]]:
         assert (share / f).is_file(), f'{f} not installed under share/cdmp_ros'
     # the nodes' urdf_path package://cdmp_ros/urdf/planar4.urdf names the installed file
     from cdmp_ros.ros.robot_model import resolve_urdf_path

@@ -11,7 +11,7 @@ __all__ = ['param', 'check_fields', 'check_names', 'stamp_age_param', 'stamp_lea
            'accept_unstamped_param', 'max_obstacles_param', 'obstacle_size_param',
            'obstacle_distance_param', 'max_json_bytes_param', 'robot_description_param',
            'robot_description_timeout_param', 'urdf_path_param', 'tip_link_param',
-           'tcp_offset_param', 'check_chain_fields']
+           'tip_links_param', 'tcp_offset_param', 'check_chain_fields', 'chain_tips']
 
 
 def param(default, description, lo=None, hi=None, read_only=False, choices=None, step=None):
@@ -129,6 +129,19 @@ def tip_link_param():
                  read_only=True)
 
 
+def tip_links_param():
+    return param((), 'A robot of several arms (two or more links): the link at the end of each '
+                 "arm, each arm a chain from the URDF's root link to it; joint_names are the "
+                 'joints of the arms in any order, tcp_offset is in each of these frames, and '
+                 'tip_link is not used. Empty: one chain to tip_link.', read_only=True)
+
+
+def chain_tips(cfg):
+    """The tip link (``tip_link``) or, for a robot of several arms, the tip links
+    (``tip_links``) that :func:`cdmp_ros.ros.robot_model.load_chain` takes."""
+    return cfg.tip_links if cfg.tip_links else cfg.tip_link
+
+
 def tcp_offset_param(read_only: bool = True, use: str = 'the end-effector point of the '
                      'kinematics (constraints, IK, planned path)'):
     return param(PANDA_EE_OFFSET, 'Tool centre point: 3 coordinates [m] in the frame of '
@@ -137,10 +150,15 @@ def tcp_offset_param(read_only: bool = True, use: str = 'the end-effector point 
 
 
 def check_chain_fields(cfg) -> None:
-    """``tip_link`` is a link name and ``tcp_offset`` 3 finite coordinates within 10 m
-    (normalised to a tuple of floats); the message names the parameter."""
+    """``tip_link`` is a link name, ``tip_links`` empty or two or more unique link names,
+    and ``tcp_offset`` 3 finite coordinates within 10 m (normalised to a tuple of floats); the
+    message names the parameter."""
     if not isinstance(cfg.tip_link, str) or not cfg.tip_link.strip():
         raise ValidationError(f'tip_link: expected a link name, got {cfg.tip_link!r}')
+    check_names('tip_links', cfg.tip_links, allow_empty=True)
+    if len(cfg.tip_links) == 1:
+        raise ValidationError(f'tip_links: expected two or more links (one arm: tip_link), '
+                              f'got {list(cfg.tip_links)}')
     try:
         tcp = tuple(float(v) for v in cfg.tcp_offset)
     except (TypeError, ValueError):

@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike
 
 from cdmp_ros.core.config_fields import (check_chain_fields, check_fields, check_names, param,
                                          robot_description_param, tcp_offset_param,
-                                         tip_link_param, urdf_path_param)
+                                         tip_link_param, tip_links_param, urdf_path_param)
 from cdmp_ros.core.dmp.dmp import CDMP, DMP, DmpConfig
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -43,6 +43,7 @@ class LearnerConfig:
     urdf_path: str = urdf_path_param('joint limits, which limits.lower/upper when set only '
                                      'tighten; kinematics of the ~/improve cost')
     tip_link: str = tip_link_param()
+    tip_links: Tuple[str, ...] = tip_links_param()
     tcp_offset: Tuple[float, ...] = tcp_offset_param(use='the end-effector point of the '
                                                      '~/improve cost')
     robot_description: str = robot_description_param(topic=False)

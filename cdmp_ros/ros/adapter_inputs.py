@@ -85,8 +85,7 @@ def parse_constraints(text: str, promp, chain, max_bytes: int) -> Optional[dict]
     doc = decode_json('constraints', text, max_bytes)
     validate_constraint_set(doc)
     if promp is not None:
-        n = chain.n_dofs
-        parse_constraint_set(doc, promp, RobotContext(n, [(chain, range(n))]))
+        parse_constraint_set(doc, promp, RobotContext.of_robot(chain))
     return doc if doc['constraints'] or doc.get('optimizer') else None
 
 

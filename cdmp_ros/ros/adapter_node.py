@@ -50,6 +50,7 @@ from visualization_msgs.msg import MarkerArray
 from cdmp_ros.core.adaptation.requests import rollout_path, solve_goal_point
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.adaptation.warm import WarmStarts
+from cdmp_ros.core.config_fields import chain_tips
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.primitive_io import primitive_from_dict
@@ -98,7 +99,7 @@ class AdapterNode(Node):
         # robot_description topic (robot_description_timeout), else urdf_path
         self.robot = RobotDescriptionInput(self, RobotModelSelector(
             cfg.urdf_path, cfg.joint_names, cfg.robot_description,
-            cfg.robot_description_timeout, tip_link=cfg.tip_link, tcp_offset=cfg.tcp_offset))
+            cfg.robot_description_timeout, tip_link=chain_tips(cfg), tcp_offset=cfg.tcp_offset))
         model = self.robot.load(self.create_subscription(
             String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
         self.urdf_path = model.source

@@ -19,6 +19,7 @@ from cdmp_ros.core.demonstrations import Demo, map_demonstration
 from cdmp_ros.core.errors import Cancelled, CdmpError, ValidationError
 from cdmp_ros.core.dmp.improve import (CostConfig, ImproveConfig, ImproveResult, Improver,
                                        ScriptedCost, UpdateReport)
+from cdmp_ros.core.kinematics.arms import arms_of
 from cdmp_ros.core.resources import share_dirs
 
 
@@ -98,6 +99,9 @@ class ImproveWorker(threading.Thread):
         if chain is None:
             raise ValidationError('improve: the cost needs the robot kinematics (urdf_path) '
                                   'for the joints of the primitive')
+        if len(arms_of(chain)) > 1:
+            raise ValidationError('improve: the scripted cost is of one end effector; a robot '
+                                  'of several arms (tip_links) has none')
         self.config = config
         self.scripted = ScriptedCost(chain, cost_config, prim.goal_y_, config.dt)
         self.cost_config = cost_config

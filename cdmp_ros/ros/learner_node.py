@@ -45,6 +45,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from cdmp_ros.core.demonstrations import DemonstrationSegmenter
+from cdmp_ros.core.config_fields import chain_tips
 from cdmp_ros.core.dmp.dmp import DmpConfig
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import describe_mismatches, merge_limits
@@ -146,7 +147,7 @@ class LearnerNode(Node):
         chain, chain_error = None, None
         try:
             path = self.limits_source = limits_source(cfg.urdf_path, cfg.robot_description)
-            chain = load_chain(cfg.urdf_path, cfg.joint_names, cfg.tip_link, cfg.tcp_offset,
+            chain = load_chain(cfg.urdf_path, cfg.joint_names, chain_tips(cfg), cfg.tcp_offset,
                                cfg.robot_description)
         except CdmpError as exc:
             chain, chain_error = None, f'cannot use {path!r}: {exc}'

@@ -15,13 +15,14 @@ by :class:`RobotModelSelector` (the ROS side: :mod:`cdmp_ros.ros.robot_descripti
 """
 import dataclasses
 import os
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.core.joint_limits import LIMIT_TOLERANCE
 from cdmp_ros.core.kinematics import PANDA_EE_OFFSET, PANDA_TIP_LINK, chain_from_urdf
+from cdmp_ros.core.kinematics.arms import arms_from_urdf, arms_of, has_link
 from cdmp_ros.core.kinematics.urdf import parse_urdf, parse_urdf_string
 from cdmp_ros.core.resources import data_path
 
@@ -97,20 +98,25 @@ def limits_source(urdf_path: str, robot_description: str = '') -> str:
     return resolve_urdf_path(urdf_path)
 
 
-def load_chain(urdf_path: str, joint_names: Sequence[str], tip_link: str = PANDA_TIP_LINK,
+def load_chain(urdf_path: str, joint_names: Sequence[str],
+               tip_link: Union[str, Sequence[str]] = PANDA_TIP_LINK,
                tcp_offset: Sequence[float] = PANDA_EE_OFFSET, robot_description: str = ''):
     """The serial chain of ``robot_description`` or ``urdf_path`` (see :func:`limits_source`)
     from the URDF's root link to ``tip_link``: joint limits, velocity limits and kinematics,
     with ``PointOfInterest('ee')`` at ``tcp_offset`` in ``tip_link``. The defaults are the
     Panda's (:func:`~cdmp_ros.core.kinematics.panda_chain`).
 
+    ``tip_link`` a sequence of two or more links (a node's ``tip_links``): the
+    :class:`~cdmp_ros.core.kinematics.arms.Arms` of one chain to each, ``joint_names`` their
+    joints in any order.
+
     Raises
     ------
     ValidationError
         Naming the parameter: ``urdf_path`` (or ``robot_description``) when it cannot be read
-        as a URDF, ``tip_link`` when it is not a link of it below a movable joint,
-        ``tcp_offset`` when it is not 3 coordinates, ``joint_names`` when they are not the
-        chain's movable joints in order.
+        as a URDF, ``tip_link`` (``tip_links``) when it is not a link of it below a movable
+        joint, ``tcp_offset`` when it is not 3 coordinates, ``joint_names`` when they are not
+        the chain's movable joints in order (the arms' joints).
     """
     source = limits_source(urdf_path, robot_description)
     text = robot_description if source == ROBOT_DESCRIPTION else None
@@ -120,9 +126,13 @@ def load_chain(urdf_path: str, joint_names: Sequence[str], tip_link: str = PANDA
     except (OSError, CdmpError) as exc:
         raise ValidationError(f'{name}: cannot load a robot from {source!r}: '
                               f'{_strip(exc, source)}') from None
+    tips = [tip_link] if isinstance(tip_link, str) else list(tip_link)
     try:
-        return chain_from_urdf(source, tip_link, ee_offset=tcp_offset, urdf_text=text,
-                               joint_names=joint_names)
+        if len(tips) > 1:
+            return arms_from_urdf(source, tips, joint_names, ee_offset=tcp_offset,
+                                  urdf_text=text)
+        return chain_from_urdf(source, tips[0] if tips else '', ee_offset=tcp_offset,
+                               urdf_text=text, joint_names=joint_names)
     except ValidationError as exc:  # 'tip_link: ...', 'joint_names: ...' or 'ee_offset: ...'
         msg = str(exc)
         if msg.startswith('joint_names'):
@@ -151,7 +161,7 @@ def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_descript
         return []
     if chain is not None:
         for i, link in enumerate(links):
-            if link not in chain.attachments:
+            if not has_link(chain, link):
                 raise ValidationError(f'coupling_capsule_links[{i}]: {link!r} is not a link of '
                                       f'the chain {list(chain.link_names)}')
     from cdmp_ros.core.kinematics.capsules import collision_capsules
@@ -249,6 +259,23 @@ def model_differences(used: RobotModel, other: RobotModel) -> List[str]:
                             ('velocity', a.velocity_limits[j], b.velocity_limits[j])):
             if not _same(float(x), float(y), LIMIT_TOLERANCE):
                 out.append(f'{name} {label} {x:.6g} -> {y:.6g}')
+    arms_a, arms_b = arms_of(a), arms_of(b)
+    if len(arms_a) != len(arms_b):
+        out.append(f'{len(arms_a)} -> {len(arms_b)} arms')
+    for (ca, _), (cb, _) in zip(arms_a, arms_b):
+        out += _kinematic_differences(ca, cb)
+    for ca, cb in zip(used.capsules, other.capsules):
+        tol = KINEMATICS_TOLERANCE
+        if not (np.allclose(ca.start, cb.start, rtol=0.0, atol=tol)
+                and np.allclose(ca.end, cb.end, rtol=0.0, atol=tol)
+                and _same(ca.radius, cb.radius, tol)):
+            out.append(f'collision capsule of {ca.link}')
+    return out
+
+
+def _kinematic_differences(a, b) -> List[str]:
+    """The joints of chain ``a`` whose origin or axis differ in ``b``, and 'link frames'."""
+    out = []
     tol = KINEMATICS_TOLERANCE
     moved = [name for j, name in enumerate(a.joint_names)
              if not np.allclose(a.B[j], b.B[j], rtol=0.0, atol=tol)]
@@ -262,11 +289,6 @@ def model_differences(used: RobotModel, other: RobotModel) -> List[str]:
                                         atol=tol) for k in a.attachments))
     if frames and not moved:
         out.append('link frames')
-    for ca, cb in zip(used.capsules, other.capsules):
-        if not (np.allclose(ca.start, cb.start, rtol=0.0, atol=tol)
-                and np.allclose(ca.end, cb.end, rtol=0.0, atol=tol)
-                and _same(ca.radius, cb.radius, tol)):
-            out.append(f'collision capsule of {ca.link}')
     return out
 
 

@@ -41,6 +41,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from cdmp_ros.core.coupling.braking import influence_warning, primitive_braking_distance
+from cdmp_ros.core.config_fields import chain_tips
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.core.joint_limits import describe_mismatches
 from cdmp_ros.core.coupling.obstacle import ObstacleCoupling
@@ -88,7 +89,7 @@ class StreamerNode(Node):
         # else the robot_description topic (robot_description_timeout), else urdf_path
         self.robot = RobotDescriptionInput(self, RobotModelSelector(
             cfg.urdf_path, cfg.joint_names, cfg.robot_description,
-            cfg.robot_description_timeout, cfg.coupling_capsule_links, cfg.tip_link,
+            cfg.robot_description_timeout, cfg.coupling_capsule_links, chain_tips(cfg),
             cfg.tcp_offset))
         model = self.robot.load(self.create_subscription(
             String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))

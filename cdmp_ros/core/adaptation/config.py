@@ -21,6 +21,7 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_chain_fie
                                          robot_description_param,
                                          robot_description_timeout_param, stamp_age_param,
                                          stamp_lead_param, tcp_offset_param, tip_link_param,
+                                         tip_links_param,
                                          urdf_path_param)
 from cdmp_ros.core.adaptation.verification_report import GUARANTEES, Verification
 from cdmp_ros.core.errors import ValidationError
@@ -503,6 +504,7 @@ class AdapterConfig:
     urdf_path: str = urdf_path_param('limits, kinematics of the points of interest and of '
                                      'the IK')
     tip_link: str = tip_link_param()
+    tip_links: Tuple[str, ...] = tip_links_param()
     tcp_offset: Tuple[float, ...] = tcp_offset_param()
     robot_description: str = robot_description_param()
     robot_description_timeout: float = robot_description_timeout_param()

@@ -29,6 +29,7 @@ from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
 from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.kinematics.arms import arms_of, split_by_arm
 from cdmp_ros.core.kinematics.ik import IkResult, solve_position_ik
 from cdmp_ros.core.kinematics import Box, OrientedBox, PointOfInterest, Sphere
 from cdmp_ros.core.kinematics.closest import box_signed_distance
@@ -92,6 +93,9 @@ def solve_goal_point(chain, target: ArrayLike, seeds: Sequence[ArrayLike], tol: 
         ``target`` is not 3 finite numbers, or no seed reaches it; the message gives the
         smallest residual [m].
     """
+    if len(arms_of(chain)) > 1:
+        raise ValidationError('goal_point: a robot of several arms has no one end effector to '
+                              'place; give the joint goal on goal')
     target = as_array('goal_point.point', target, (3,))
     best: Optional[IkResult] = None
     for seed in seeds:
@@ -274,9 +278,15 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         if link not in chain.link_names:
             raise ValidationError(f'adaptation.avoid_links: {link!r} is not a link of the '
                                   f'robot {list(chain.link_names)}')
-    pois = [EE] + [PointOfInterest(link) for link in cfg.avoid_links]
-    names = ['ee'] + list(cfg.avoid_links)
-    points = [ChainPoint(chain, p) for p in pois]  # shared: one FK / UT per time step
+    arms = arms_of(chain)
+    links = split_by_arm(chain, cfg.avoid_links, 'adaptation.avoid_links')
+    # per arm its tool centre point ('ee'; of several arms: '<tip link>_tcp') and its links of
+    # avoid_links; each point shared by its constraints: one FK / UT per time step
+    points, names = [], []
+    for (arm, idx), arm_links in zip(arms, links):
+        points += [ChainPoint(arm, p, idx)
+                   for p in [EE] + [PointOfInterest(link) for link in arm_links]]
+        names += ['ee' if len(arms) == 1 else f'{arm.ee_link}_tcp'] + arm_links
     constraints: list = []
     if cfg.joint_limits:  # Eq. (12), paper 003
         lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
@@ -284,7 +294,8 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
                                    alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
                         for j in range(n)]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
-    X = chain.forward(prior.mean(grid), pois)          # (n_steps, n_points, 3)
+    mean = prior.mean(grid)
+    X = np.stack([pt.forward(mean[:, list(pt.dofs)]) for pt in points], axis=1)
     # phases pinned by the conditioning: an obstacle there makes the problem infeasible
     pinned = [(i, label) for i, label, on in ((0, 'start', 0.0 in s_obs),
                                               (-1, 'goal', 1.0 in s_obs)) if on]
@@ -310,7 +321,7 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
                            f'conditioned {label}' for j, label in pinned if clear[j] <= 0.0]
     overrides: Dict[str, Any] = {}
     if req.constraint_doc is not None:
-        ctx = RobotContext(n, [(chain, range(n))])
+        ctx = RobotContext.of_robot(chain)
         user, overrides = parse_constraint_set(req.constraint_doc, prior, ctx)
         constraints += user
     opt = dict(n_steps=int(cfg.n_steps), max_outer=int(cfg.max_outer),
@@ -403,13 +414,16 @@ def promp_message(promp: ProMP) -> str:
 
 # -- visualisation -----------------------------------------------------------------------------
 def ee_path(chain, Y: ArrayLike) -> NDArray[np.float64]:
-    """End-effector positions (n, 3) of joint positions Y (n, n_dofs)."""
-    return chain.forward(np.asarray(Y, dtype=float), [EE])[:, 0]
+    """End-effector positions (n, 3) of joint positions Y (n, n_dofs); of several arms
+    (:class:`~cdmp_ros.core.kinematics.arms.Arms`), the first arm's."""
+    arm, idx = arms_of(chain)[0]
+    return arm.forward(np.asarray(Y, dtype=float)[:, idx], [EE])[:, 0]
 
 
 def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
             ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """End-effector mean and an uncertainty radius at phases ``s`` (n,).
+    """End-effector mean and an uncertainty radius at phases ``s`` (n,); of several arms
+    (:class:`~cdmp_ros.core.kinematics.arms.Arms`), the first arm's.
 
     Linearised: Cov[x_t] ~ J(E[z_t]) Cov[z_t] J(E[z_t])^T (paper 003 Eq. 2 through the
     kinematics Jacobian); radius = ``n_sigma`` * sqrt(largest eigenvalue).
@@ -419,10 +433,12 @@ def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
     centres : (n, 3); radii : (n,)
     """
     s = np.atleast_1d(np.asarray(s, dtype=float))
-    m = promp.mean(s)
-    X, J = chain.forward_and_jacobian(m, [EE])
-    J = J[:, 0]                                            # (n, 3, D)
-    C = J @ promp.cov(s) @ np.swapaxes(J, 1, 2)            # (n, 3, 3)
+    arm, idx = arms_of(chain)[0]
+    m = promp.mean(s)[:, idx]
+    X, J = arm.forward_and_jacobian(m, [EE])
+    J = J[:, 0]                                            # (n, 3, d)
+    S = promp.cov(s)[:, idx[:, None], idx[None, :]]        # the arm's joints
+    C = J @ S @ np.swapaxes(J, 1, 2)                       # (n, 3, 3)
     lam = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, -1]
     return X[:, 0], n_sigma * np.sqrt(np.maximum(lam, 0.0))
 

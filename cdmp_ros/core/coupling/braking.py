@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdmp_ros.core.kinematics.arms import arms_of
 from cdmp_ros.core.kinematics.chain import Chain, PointOfInterest
 from cdmp_ros.core.streaming.output_stage import brake_excursion
 from cdmp_ros.core.validation import as_array
@@ -77,9 +78,14 @@ def primitive_braking_distance(prim, chain: Chain, max_acceleration: ArrayLike,
                                max_jerk: ArrayLike, dt: float = 0.02) -> float:
     """The largest braking distance [m] of the end effector along a primitive's nominal
     motion (its open-loop rollout every ``dt``): an obstacle must be noticed at least this far
-    from the hand for the arm to stop within its limits."""
+    from the hand for the arm to stop within its limits. ``chain`` an
+    :class:`~cdmp_ros.core.kinematics.arms.Arms`: the largest of its arms' hands."""
     traj = prim.rollout(dt=dt)
-    return float(np.max(braking_distance(chain, traj.Y, traj.Yd, max_acceleration, max_jerk)))
+    A = np.broadcast_to(np.asarray(max_acceleration, dtype=float), (traj.Y.shape[1],))
+    J = np.broadcast_to(np.asarray(max_jerk, dtype=float), (traj.Y.shape[1],))
+    return max(float(np.max(braking_distance(arm, traj.Y[:, idx], traj.Yd[:, idx], A[idx],
+                                             J[idx])))
+               for arm, idx in arms_of(chain))
 
 
 def influence_warning(braking_m: float, influence_distance: float) -> str:

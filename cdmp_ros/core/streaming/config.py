@@ -10,6 +10,7 @@ from cdmp_ros.core.config_fields import (accept_unstamped_param, check_chain_fie
                                          robot_description_param,
                                          robot_description_timeout_param, stamp_age_param,
                                          stamp_lead_param, tcp_offset_param, tip_link_param,
+                                         tip_links_param,
                                          urdf_path_param)
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.builders import PANDA_JOINTS
@@ -63,6 +64,7 @@ class StreamerConfig:
         PANDA_JOINTS, 'Joints of the reference, in the published order.', read_only=True)
     urdf_path: str = urdf_path_param('limits, kinematics for the coupling')
     tip_link: str = tip_link_param()
+    tip_links: Tuple[str, ...] = tip_links_param()
     robot_description: str = robot_description_param()
     robot_description_timeout: float = robot_description_timeout_param()
     base_frame: str = _param(

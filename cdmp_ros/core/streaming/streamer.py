@@ -39,10 +39,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdmp_ros.core.errors import ValidationError
+from cdmp_ros.core.coupling.arms import ArmsCoupling
 from cdmp_ros.core.coupling.contract import Coupling
 from cdmp_ros.core.coupling.obstacle import CouplingConfig, DampingConfig, ObstacleCoupling
 from cdmp_ros.core.coupling.potential_fields import BoardField, ConstantField, RepellerField
 from cdmp_ros.core.kinematics import Chain
+from cdmp_ros.core.kinematics.arms import Arms, split_by_arm
 from cdmp_ros.core.kinematics.capsules import Capsule
 from cdmp_ros.core.dmp.stepper import CouplingResult
 from cdmp_ros.core.streaming.primitives import PreparedPrimitive
@@ -68,7 +70,7 @@ PARAMETER_SECTIONS = (('', StreamerConfig), ('coupling', CouplingConfig),
                       ('box_field', ConstantField), ('board_field', BoardField))
 
 
-def coupling_of(chain: Chain, configs, capsules: Sequence[Capsule] = ()) -> ObstacleCoupling:
+def coupling_of(chain: Chain, configs, capsules: Sequence[Capsule] = ()) -> Coupling:
     """:func:`streamer_coupling` from the configs of every :data:`PARAMETER_SECTIONS`
     (``configs[section]``)."""
     return streamer_coupling(chain, configs[''], configs['coupling'], configs['damping'],
@@ -82,7 +84,7 @@ def streamer_coupling(chain: Chain, config: StreamerConfig,
                       repeller: RepellerField = RepellerField(),
                       box_field: ConstantField = ConstantField(),
                       board_field: BoardField = BoardField(),
-                      capsules: Sequence[Capsule] = ()) -> ObstacleCoupling:
+                      capsules: Sequence[Capsule] = ()) -> Coupling:
     """The streamer's obstacle coupling from its parameters (the ``coupling.*``,
     ``damping.*``, ``repeller.*``, ``box_field.*`` and ``board_field.*`` sections):
     Eq. (7) on the tool centre point ``config.tcp_offset``, Eq. (12) on
@@ -92,16 +94,30 @@ def streamer_coupling(chain: Chain, config: StreamerConfig,
     ``repeller``, boxes ``box_field`` (IV-B) or, with ``config.box_field_kind == 'board'``,
     ``board_field`` (Eq. 30-31).
 
+    ``chain`` an :class:`~cdmp_ros.core.kinematics.arms.Arms`: an
+    :class:`~cdmp_ros.core.coupling.arms.ArmsCoupling`, each arm's coupling on the links of
+    ``coupling_links`` and ``capsules`` that are of that arm, Eq. (7) on each arm's tool
+    centre point.
+
     Raises
     ------
     ValidationError
         Unknown link names.
     """
     boxes = board_field if config.box_field_kind == 'board' else box_field
-    return ObstacleCoupling(chain, list(config.coupling_links) + list(capsules),
-                            sphere_field=repeller, box_field=boxes,
-                            config=dataclasses.replace(coupling, damping=damping),
-                            tcp_offset=config.tcp_offset)
+    coupling = dataclasses.replace(coupling, damping=damping)
+    if not isinstance(chain, Arms):
+        return ObstacleCoupling(chain, list(config.coupling_links) + list(capsules),
+                                sphere_field=repeller, box_field=boxes, config=coupling,
+                                tcp_offset=config.tcp_offset)
+    # several arms: each its own coupling on the links and capsules that are of that arm
+    links = split_by_arm(chain, config.coupling_links, 'coupling_links')
+    by_link = {c.link: c for c in capsules}
+    caps = split_by_arm(chain, list(by_link), 'coupling_capsule_links')
+    return ArmsCoupling(chain, [
+        ObstacleCoupling(arm, links[k] + [by_link[n] for n in caps[k]], sphere_field=repeller,
+                         box_field=boxes, config=coupling, tcp_offset=config.tcp_offset)
+        for k, arm in enumerate(chain.chains)])
 
 
 def bound_into(dq_dd, limit: float, out: List[float]) -> float:

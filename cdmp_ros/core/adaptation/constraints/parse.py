@@ -103,6 +103,13 @@ class RobotContext:
         self.axes = tuple(axes)
         self._cache = {}
 
+    @classmethod
+    def of_robot(cls, model) -> 'RobotContext':
+        """The context of a node's robot model (a Chain, or an Arms: each arm a chain over
+        its joints), the ProMP's dimensions in the model's joint order."""
+        from cdmp_ros.core.kinematics.arms import arms_of
+        return cls(model.n_dofs, [(c, idx.tolist()) for c, idx in arms_of(model)])
+
 
 def _point(spec: dict, ctx: RobotContext, where: str, tag: str = '') -> Point:
     if 'joint' in spec:
