@@ -136,8 +136,19 @@ def test_requests_that_differ_by_more_than_a_move_start_cold(chain, prior, centr
     assert start_of(dataclasses.replace(_request(prior, centre), limits=limits)) is None
     doc = {'constraints': [{'type': 'joint_limit', 'joint': 0, 'lower': -2.0, 'upper': 2.0}]}
     assert start_of(dataclasses.replace(_request(prior, centre), constraint_doc=doc)) is None
+    # the report says why a request started cold
+    res = run_request(dataclasses.replace(_request(prior, centre), continues=False,
+                                          start_y=prior.mean([0.0])[0]), chain, CFG, warm=ws)
+    assert res.report.start == 'cold' and res.report.start_note == (
+        'not warm: the prior (conditioned anew, or another primitive) changed since the last '
+        'solve'), res.report.start_note
+    ws = WarmStarts()
+    assert run_request(_request(prior, centre), chain, CFG, warm=ws).report.start_note == ''
     res = run_request(_request(prior, far), chain, CFG, warm=ws)
     assert res.report.start == 'cold' and ws.counts['cold'] == 2
+    assert res.report.start_note == (f'not warm: an obstacle moved '
+                                     f'{CFG.warm_start_distance + 0.01:.3g} m > '
+                                     f'warm_start_distance {CFG.warm_start_distance:g} m')
 
 
 def test_a_warm_solve_over_the_guard_or_budget(chain, prior, centre):

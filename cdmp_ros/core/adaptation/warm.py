@@ -282,17 +282,34 @@ class WarmStarts:
                   ) -> Optional[SolverState]:
         """The state a solve of ``built`` (the problem of request ``req``) may start from, or
         None (cold); ``guard=False``: also when the KL guard asks for a cold solve."""
+        return self._start(req, built, cfg, guard)[0]
+
+    def _start(self, req, built, cfg: AdaptRequestConfig, guard: bool = True
+               ) -> Tuple[Optional[SolverState], str]:
+        """(:meth:`start_for`, why it is None: '' when there is no earlier solve, or warm
+        starts are off, else the reason, for the report's ``start_note``)."""
         m = self._memory
-        if (m is None or (guard and m.cold_next) or not cfg.warm_start
-                or built.config.guarantee != 'per_step' or built.infeasible):
-            return None
-        if (m.config != built.config or m.constraint_doc != req.constraint_doc
-                or not _same_limits(m.limits, req.limits)
-                or not _same_prior(m.prior, built.prior)):
-            return None
+        if m is None or not cfg.warm_start:
+            return None, ''
+        if guard and m.cold_next:
+            return None, 'the KL guard asked for a cold solve'
+        if built.config.guarantee != 'per_step':
+            return None, f'not warm: guarantee {built.config.guarantee}'
+        if built.infeasible:
+            return None, 'not warm: the request is known infeasible'
+        for differs, what in ((m.config != built.config, 'the solver settings'),
+                              (m.constraint_doc != req.constraint_doc, 'the constraint set'),
+                              (not _same_limits(m.limits, req.limits), 'the joint limits'),
+                              (not _same_prior(m.prior, built.prior),
+                               'the prior (conditioned anew, or another primitive)')):
+            if differs:
+                return None, f'not warm: {what} changed since the last solve'
         shift = max((obstacle_shift(a, b) for a, b in zip(m.obstacles, req.obstacles)),
                     default=0.0)
-        return m.state if shift <= cfg.warm_start_distance else None
+        if shift > cfg.warm_start_distance:
+            return None, (f'not warm: an obstacle moved {shift:.3g} m > warm_start_distance '
+                          f'{cfg.warm_start_distance:g} m')
+        return m.state, ''
 
     def predicted_start(self, req) -> Optional[SolverState]:
         """The predictor's start for ``req`` (module docstring), or None when it does not
@@ -311,10 +328,11 @@ class WarmStarts:
         """Adapt ``built`` (the problem of ``req``), warm when :meth:`start_for` allows it
         (from the predictor's start first when it applies); remembers the outcome. Returns
         ``(adapted, report)`` as :func:`~cdmp_ros.core.adaptation.guarantee.adapt`."""
-        usable = self.start_for(req, built, cfg, guard=False)
+        usable, note = self._start(req, built, cfg, guard=False)
         guarded = usable is not None and self._memory.cold_next
         start, withheld = (None, usable) if guarded else (usable, None)
-        note = ''
+        if guarded:
+            note = 'the KL guard checks the last warm solve cold (its KL was over the guard)'
         if start is not None:
             predicted = self.predicted_start(req) if cfg.warm_start_predict else None
             adapted, rep, first = _warm_attempt(built, cfg, should_stop,
