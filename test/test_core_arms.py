@@ -204,3 +204,33 @@ def test_the_node_configs_refuse_bad_tip_links(tips, match):
         with pytest.raises(ValidationError, match=match):
             cls(tip_links=tips)
     assert StreamerConfig(tip_links=TIPS, joint_names=tuple(LEFT + RIGHT)).tip_links == TIPS
+
+
+def test_arm_clearance_keeps_the_arms_apart(arms, single, dual_prior):
+    """adaptation.arm_clearance: Eq. 22 between every point of one arm and every point of the
+    other; the demonstrations' hand-over brings the hands within 10 cm, the adapted
+    distribution keeps them 15 cm apart (its mean at every step; the sampled verification
+    holds at alpha)."""
+    from cdmp_ros.core.adaptation.config import AdaptRequestConfig
+    from cdmp_ros.core.adaptation.requests import AdaptRequest, build_problem, run_request
+    cfg = AdaptRequestConfig(n_steps=41, arm_clearance=0.15,
+                             avoid_links=('left_panda_link4', 'right_panda_link4'))
+    req = AdaptRequest(dual_prior, ())
+    pairs = [c for c in build_problem(req, arms, cfg).constraints if c.name.startswith('arms_')]
+    assert sorted(c.name for c in pairs) == sorted(
+        f'arms_{a}_{b}' for a in ('left_panda_hand_tcp', 'left_panda_link4')
+        for b in ('right_panda_hand_tcp', 'right_panda_link4'))
+    grid = np.linspace(0.0, 1.0, 41)
+
+    def hands(promp):
+        m = promp.mean(grid)
+        return np.linalg.norm(
+            single[0].forward(m[:, :7], [PointOfInterest('ee')])[:, 0]
+            - single[1].forward(m[:, 7:], [PointOfInterest('ee')])[:, 0], axis=1)
+    assert hands(dual_prior).min() < 0.1
+    res = run_request(req, arms, cfg)
+    assert res.outcome == 'converged', res.report.status
+    assert res.report.verification is not None and res.report.verification.holds
+    assert hands(res.adapted).min() > 0.15
+    off = build_problem(req, arms, dataclasses.replace(cfg, arm_clearance=0.0))
+    assert not [c for c in off.constraints if c.name.startswith('arms_')]

@@ -571,6 +571,12 @@ class AdaptRequestConfig:
     avoid_links: Tuple[str, ...] = _param(
         ('panda_link4', 'panda_hand'), 'Links whose frame origin gets the obstacle constraints '
         'besides the end effector (the Panda elbow and the flange of its hand by default).')
+    arm_clearance: float = _param(
+        0.0, 'A robot of several arms (tip_links): every point of one arm (its tool centre '
+        'point and its avoid_links) keeps at least this distance [m] from every point of '
+        'another arm, with probability alpha at every step (paper 003 Eq. 22, mutual '
+        'avoidance; distances between the points, not the link surfaces). 0: no constraint '
+        'between the arms.', 0.0, 10.0)
     joint_limits: bool = _param(
         True, 'Constrain every joint to the robot limits (paper 003 Eq. 12).')
     condition_start: bool = _param(

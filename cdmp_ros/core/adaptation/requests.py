@@ -26,7 +26,8 @@ from numpy.typing import ArrayLike, NDArray
 from cdmp_ros.core.adaptation.guarantee import adapt
 from cdmp_ros.core.adaptation.solver import AdaptationConfig, AdaptationReport
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
-from cdmp_ros.core.adaptation.constraints import ChainPoint, Hyperplane, JointLimit, Repeller
+from cdmp_ros.core.adaptation.constraints import (ChainPoint, Hyperplane, JointLimit,
+                                                  MutualAvoidance, Repeller)
 from cdmp_ros.core.adaptation.warm import Suspended, WarmStarts
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.arms import arms_of, split_by_arm
@@ -282,17 +283,23 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     links = split_by_arm(chain, cfg.avoid_links, 'adaptation.avoid_links')
     # per arm its tool centre point ('ee'; of several arms: '<tip link>_tcp') and its links of
     # avoid_links; each point shared by its constraints: one FK / UT per time step
-    points, names = [], []
-    for (arm, idx), arm_links in zip(arms, links):
+    points, names, of_arm = [], [], []
+    for k, ((arm, idx), arm_links) in enumerate(zip(arms, links)):
         points += [ChainPoint(arm, p, idx)
                    for p in [EE] + [PointOfInterest(link) for link in arm_links]]
         names += ['ee' if len(arms) == 1 else f'{arm.ee_link}_tcp'] + arm_links
+        of_arm += [k] * (1 + len(arm_links))
     constraints: list = []
     if cfg.joint_limits:  # Eq. (12), paper 003
         lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
         constraints += [JointLimit(j, float(lower[j]), float(upper[j]),
                                    alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
                         for j in range(n)]
+    if cfg.arm_clearance > 0.0:  # Eq. 22 between every two points of different arms
+        constraints += [MutualAvoidance(points[i], points[j], float(cfg.arm_clearance),
+                                        alpha=cfg.alpha, name=f'arms_{names[i]}_{names[j]}')
+                        for i in range(len(points)) for j in range(i + 1, len(points))
+                        if of_arm[i] != of_arm[j]]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
     mean = prior.mean(grid)
     X = np.stack([pt.forward(mean[:, list(pt.dofs)]) for pt in points], axis=1)
