@@ -105,6 +105,18 @@ class Harness(NodeHarness):
         with self.lock:
             return self.adapted[-1][1] if self.adapted else None
 
+    def history(self, n: int = 6) -> list:
+        """The last ``n`` adapted primitives in brief, for a failing assertion's message:
+        (request id, trigger, continues, start, start note, status)."""
+        with self.lock:
+            out = []
+            for _, d in self.adapted[-n:]:
+                meta = d.get('metadata', {})
+                a, r = meta.get('adapter', {}), meta.get('adaptation', {})
+                out.append((a.get('request_id'), a.get('trigger'), a.get('continues'),
+                            r.get('start'), r.get('start_note'), r.get('status')))
+            return out
+
     def wait_adapted(self, n0, timeout=30.0, trigger=None, source=None, pred=None):
         """Wait for an adapted primitive after the first ``n0`` (caused by ``trigger``,
         adapted from the primitive JSON text ``source``, with ``pred(dict)`` true, if given);
