@@ -283,12 +283,16 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     links = split_by_arm(chain, cfg.avoid_links, 'adaptation.avoid_links')
     # per arm its tool centre point ('ee'; of several arms: '<tip link>_tcp') and its links of
     # avoid_links; each point shared by its constraints: one FK / UT per time step
-    points, names, of_arm = [], [], []
+    grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
+    mean = prior.mean(grid)
+    points, names, of_arm, X = [], [], [], []
     for k, ((arm, idx), arm_links) in enumerate(zip(arms, links)):
-        points += [ChainPoint(arm, p, idx)
-                   for p in [EE] + [PointOfInterest(link) for link in arm_links]]
+        pois = [EE] + [PointOfInterest(link) for link in arm_links]
+        points += [ChainPoint(arm, p, idx) for p in pois]
         names += ['ee' if len(arms) == 1 else f'{arm.ee_link}_tcp'] + arm_links
-        of_arm += [k] * (1 + len(arm_links))
+        of_arm += [k] * len(pois)
+        X.append(arm.forward(mean[:, idx], pois))      # (n_steps, the arm's points, 3)
+    X = np.concatenate(X, axis=1)                      # (n_steps, n_points, 3)
     constraints: list = []
     if cfg.joint_limits:  # Eq. (12), paper 003
         lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
@@ -300,9 +304,6 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
                                         alpha=cfg.alpha, name=f'arms_{names[i]}_{names[j]}')
                         for i in range(len(points)) for j in range(i + 1, len(points))
                         if of_arm[i] != of_arm[j]]
-    grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
-    mean = prior.mean(grid)
-    X = np.stack([pt.forward(mean[:, list(pt.dofs)]) for pt in points], axis=1)
     # phases pinned by the conditioning: an obstacle there makes the problem infeasible
     pinned = [(i, label) for i, label, on in ((0, 'start', 0.0 in s_obs),
                                               (-1, 'goal', 1.0 in s_obs)) if on]

@@ -84,11 +84,11 @@ class Arms:
     def arm_of(self, link: str) -> int:
         """The arm whose chain moves ``link`` (a link of several arms, a shared fixed base,
         moves with none of them: the first is returned)."""
-        for k, c in enumerate(self.chains):
-            if link in c.attachments:
-                return k
-        raise ValidationError(f'link {link!r} is in none of the arms (links '
-                              f'{self.link_names})')
+        k = _arm_index(self, link)
+        if k is None:
+            raise ValidationError(f'link {link!r} is in none of the arms (links '
+                                  f'{self.link_names})')
+        return k
 
 
 def arms_of(model) -> List[Tuple[Chain, NDArray]]:
@@ -99,24 +99,26 @@ def arms_of(model) -> List[Tuple[Chain, NDArray]]:
     return [(model, np.arange(model.n_dofs))]
 
 
+def _arm_index(model, link: str) -> Optional[int]:
+    """The first arm of ``model`` (a Chain: arm 0) that has ``link``, or None."""
+    return next((k for k, (c, _) in enumerate(arms_of(model)) if link in c.attachments), None)
+
+
 def has_link(model, link: str) -> bool:
     """``link`` is a link of the chain or of one of the arms."""
-    return any(link in c.attachments for c, _ in arms_of(model))
+    return _arm_index(model, link) is not None
 
 
 def split_by_arm(model, names: Sequence[str], what: str) -> List[List[str]]:
     """Per arm of ``model``, the names of ``names`` that are links of it (in their order);
     ValidationError naming ``what[i]`` for a name in no arm."""
-    arms = arms_of(model)
-    out: List[List[str]] = [[] for _ in arms]
+    out: List[List[str]] = [[] for _ in arms_of(model)]
     for i, name in enumerate(names):
-        for k, (c, _) in enumerate(arms):
-            if name in c.attachments:
-                out[k].append(name)
-                break
-        else:
+        k = _arm_index(model, name)
+        if k is None:
             raise ValidationError(f'{what}[{i}]: {name!r} is not a link of the robot '
                                   f'{list(model.link_names)}')
+        out[k].append(name)
     return out
 
 
