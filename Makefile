@@ -30,6 +30,7 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/cdmp demo --out $(OUT)
 	$(VENV)/bin/cdmp demo --kind promp --out $(OUT)_promp
+	$(VENV)/bin/cdmp demo --kind dual --out $(OUT)_dual
 
 test: $(STAMP)
 	$(PY) -m pytest test $(PYTEST_ARGS)

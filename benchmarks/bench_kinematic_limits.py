@@ -147,13 +147,11 @@ ARM_RADIUS = 0.11
 CLEARANCE = 0.03
 
 
-def arm_capsules(chain):
+def arm_capsules():
     """The arm as the demo driver sees it: capsules fitted to the collision geometry of its
     links, and the fingers' capsule."""
-    from cdmp_ros.core.kinematics.capsules import ArmCapsules
-    from cdmp_ros.ros.demo_driver import ARM_LINKS, FINGER_RADIUS
-    from cdmp_ros.ros.robot_model import default_urdf_path
-    return ArmCapsules.from_urdf(chain, default_urdf_path(), ARM_LINKS, FINGER_RADIUS)
+    from cdmp_ros.core.demo_robot import DemoRobot
+    return DemoRobot('panda').capsules[0]
 
 
 def place_sphere(rng, arm, state, limits, radius, near=None, tries=50):
@@ -193,7 +191,7 @@ def run_storm(args, rate, chain, limits):
     from cdmp_ros.ros import qos
 
     rng = np.random.default_rng(args.seed)
-    arm = arm_capsules(chain)
+    arm = arm_capsules()
     logdir = tempfile.mkdtemp(prefix='bench_kinematic_limits_')
     streamer = {'rate': float(rate), 'output_stage': str(args.stage == 'on').lower(),
                 'diagnostics_period': 0.5}

@@ -17,13 +17,18 @@ def add_arguments(parser):
     parser.add_argument('--out', default='out/demo', help='output directory (default out/demo)')
     parser.add_argument('--timeout', type=float, default=45.0,
                         help='seconds allowed for the scripted run (default 45)')
-    parser.add_argument('--kind', choices=('cdmp', 'promp'), default='cdmp',
+    parser.add_argument('--kind', choices=('cdmp', 'promp', 'dual'), default='cdmp',
                         help='cdmp (default): the learner fits a CDMP; a sphere dropped into '
                              'the path is avoided by the coupling terms, then the goal changes. '
                              'promp: the learner fits a ProMP; the arm starts with the '
                              "adapter's answer to it (streamer stream_unadapted false), and "
                              'every obstacle message triggers a constrained adaptation (paper '
-                             '003) that the streamer follows; exits non-zero if none happened')
+                             '003) that the streamer follows; exits non-zero if none happened. '
+                             'dual: as promp on two Pandas (config/graphs/dual_demo.yaml, a '
+                             'hand-over learnt from bags/dual_panda): the sphere lands between '
+                             'the hands, and every adaptation also keeps the arms '
+                             'adaptation.arm_clearance apart (mutual avoidance); exits non-zero '
+                             'if the arms touched')
     parser.add_argument('--motion', choices=('drop', 'cross'), default='drop',
                         help='drop (default): the sphere falls onto the path; cross: it moves '
                              'horizontally across the path at 0.2 m/s, published at 30 Hz '
@@ -60,10 +65,13 @@ def run(args):
         bad.append(f'the sim counted {s["reflex_errors"]:.0f} reflex errors')
     if math.isnan(s['min_obstacle_distance_m']) or s['min_obstacle_distance_m'] <= 0.0:
         bad.append('the robot touched the obstacle (or the distance is unknown)')
-    if args.kind == 'promp' and not s['promp']['adaptations']:
+    adapted = 'promp' in s
+    if adapted and not s['promp']['adaptations']:
         bad.append('no constrained adaptation was published after the obstacle appeared')
-    if args.kind == 'promp' and s['promp'].get('adapter_current') is False:
+    if adapted and s['promp'].get('adapter_current') is False:
         bad.append("the adapter's last adaptation does not answer the last obstacle message")
+    if 'min_robot_distance_m' in s and not s['min_robot_distance_m'] > 0.0:
+        bad.append('the arms touched each other (or their distance is unknown)')
     if bad:
         print('demo: FAILED: ' + '; '.join(bad))
         print(json.dumps({k: s[k] for k in ('min_obstacle_distance_m', 'max_limit_usage',

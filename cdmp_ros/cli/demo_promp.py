@@ -1,10 +1,11 @@
-"""The constrained-ProMP part of ``cdmp demo --kind promp``: what the adaptations did, read
-back from the recorded bag and checked by sampling.
+"""The constrained-ProMP part of ``cdmp demo --kind promp`` and ``--kind dual``: what the
+adaptations did, read back from the recorded bag and checked by sampling.
 
-In this demo the learner fits a ProMP (paper 003) to the five demonstrations; the adapter
-adapts it to every obstacle message (repellers on the end effector and on the links of
-``adaptation.avoid_links``, two-sided joint limits; ``config/adapter.yaml``), and the
-streamer follows the adapted mean. From the bag:
+In these demos the learner fits a ProMP (paper 003) to the demonstrations; the adapter
+adapts it to every obstacle message (repellers on each hand and on the links of
+``adaptation.avoid_links``, two-sided joint limits; ``config/adapter.yaml``; of two arms also
+``adaptation.arm_clearance`` between them), and the streamer follows the adapted mean. The
+robot is a :class:`~cdmp_ros.core.demo_robot.DemoRobot` (one Panda or two). From the bag:
 
 - ``adaptations``: the ``adapted_primitive`` messages published after the drop started;
   ``adapter_current``: whether the last of them answers the last obstacle message (its
@@ -12,27 +13,32 @@ streamer follows the adapted mean. From the bag:
   neither solved nor dropped at the end: the latest request wins, none waits in a queue);
 - ``adapted_violation``: for the last of them and for the prior, the fraction of 2,000
   trajectories sampled from the distribution (independently of the adapter's own check) in
-  which the end effector or an avoided link origin comes within the sphere's radius plus the
+  which a hand or an avoided link origin comes within the sphere's radius plus the
   adapter's ``obstacle_margin`` at any of 100 phases (``trajectory``), and the largest such
   fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
+- ``arm_violation`` (two arms, ``arm_clearance`` > 0): the same for two points of different
+  arms (each arm's hand and avoided links) closer than ``arm_clearance``, and
+  ``min_arm_distance_mean_path_m`` the least such distance along the mean;
 - ``adapted_laws``: per probability law, the constraints of the last adaptation that used it
   (its report's ``ConstraintReport.law``: 'gaussian' for the joint limits, under the default
   tail 'gamma, importance-sampled check' for the end effector and the links);
 - ``adaptation_latency_ms``: per obstacle message answered, the streamer's own figure (the
   stamp of its first reference computed from the first adapted primitive answering it minus
   the stamp of that message), from its diagnostics in the bag;
-- ``promp_paths.png``: the prior's and the last adaptation's mean end-effector paths with
+- ``promp_paths.png``: the prior's and the last adaptation's mean paths of each hand with
   their 2-sigma bands (linearised through the kinematics Jacobian), and the obstacle.
 """
 import json
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.cdr import decode_string
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
 from cdmp_ros.core.adaptation.requests import ee_band
+from cdmp_ros.core.demo_robot import EE
 from cdmp_ros.core.kinematics import PointOfInterest
 from cdmp_ros.core.primitive_io import promp_from_dict, validate_primitive_dict
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
@@ -58,27 +64,69 @@ def upper95(k: int, n: int) -> float:
     return float(clopper_pearson_upper(k, n))
 
 
-def sphere_violation(promp, chain, links: Sequence[str], center, radius: float,
+def _points(robot, links: Sequence[str]) -> List[List[PointOfInterest]]:
+    """Per arm, its hand and the links of ``links`` that belong to it."""
+    return [[EE] + [PointOfInterest(link) for link in own]
+            for own in robot.split(links, 'avoid_links')]
+
+
+def _point_positions(robot, Y, points) -> List[NDArray]:
+    """Per arm, the positions ``(..., P_arm, 3)`` of its ``points`` at joint positions
+    ``Y (..., n_dofs)`` (in the robot's joint order)."""
+    flat = Y.reshape(-1, Y.shape[-1])
+    return [chain.forward(flat[:, idx], pts).reshape(Y.shape[:-1] + (len(pts), 3))
+            for (chain, idx), pts in zip(robot.arms, points)]
+
+
+def _rates(inside: NDArray, n_samples: int) -> Dict[str, float]:
+    """Trajectory and worst per-step fractions of ``inside (K, n)`` with 95 % bounds."""
+    k_traj = int(inside.any(axis=1).sum())
+    k_step = int(inside.sum(axis=0).max())
+    return {'trajectory': k_traj / n_samples, 'trajectory_upper95': upper95(k_traj, n_samples),
+            'per_step_max': k_step / n_samples,
+            'per_step_max_upper95': upper95(k_step, n_samples)}
+
+
+def sphere_violation(promp, robot, links: Sequence[str], center, radius: float,
                      rng: np.random.Generator, n_samples: int = N_SAMPLES,
                      n_phases: int = N_PHASES) -> Dict[str, float]:
-    """Sampled probability that the end effector or a link origin enters the ball
-    ``|x - center| < radius`` (see the module docstring)."""
+    """Sampled probability that a hand or a link origin of ``links`` enters the ball
+    ``|x - center| < radius`` (see the module docstring); ``promp`` in the robot's joint
+    order."""
     s = np.linspace(0.0, 1.0, n_phases)
-    Y = promp.sample_trajectories(s, n_samples, rng)                  # (K, n, D)
-    pois = [PointOfInterest('ee')] + [PointOfInterest(link) for link in links]
-    X = chain.forward(Y.reshape(-1, Y.shape[-1]), pois)               # (K n, P, 3)
-    d = np.linalg.norm(X - np.asarray(center, dtype=float), axis=-1).reshape(
-        n_samples, n_phases, len(pois))
-    inside = (d < radius).any(axis=2)                                 # (K, n)
-    per_step = inside.sum(axis=0)
-    k_traj = int(inside.any(axis=1).sum())
-    k_step = int(per_step.max())
-    return {'n_samples': n_samples, 'n_phases': n_phases,
-            'trajectory': k_traj / n_samples, 'trajectory_upper95': upper95(k_traj, n_samples),
-            'per_step_max': k_step / n_samples,
-            'per_step_max_upper95': upper95(k_step, n_samples),
-            'min_distance_mean_path_m': float(np.linalg.norm(
-                chain.forward(promp.mean(s), pois) - np.asarray(center), axis=-1).min())}
+    points = _points(robot, links)
+    c = np.asarray(center, dtype=float)
+    X = np.concatenate(_point_positions(robot, promp.sample_trajectories(s, n_samples, rng),
+                                        points), axis=-2)            # (K, n, P, 3)
+    inside = (np.linalg.norm(X - c, axis=-1) < radius).any(axis=2)    # (K, n)
+    mean = np.concatenate(_point_positions(robot, promp.mean(s), points), axis=-2)
+    return {'n_samples': n_samples, 'n_phases': n_phases, **_rates(inside, n_samples),
+            'min_distance_mean_path_m': float(np.linalg.norm(mean - c, axis=-1).min())}
+
+
+def arm_distances(robot, Y, links: Sequence[str]) -> NDArray:
+    """Least distance between two points of different arms (each arm's hand and its links of
+    ``links``) at joint positions ``Y (..., n_dofs)``: shape ``Y.shape[:-1]``."""
+    X = _point_positions(robot, np.asarray(Y, dtype=float), _points(robot, links))
+    best = np.full(np.shape(Y)[:-1], np.inf)
+    for a in range(len(X)):
+        for b in range(a + 1, len(X)):
+            d = np.linalg.norm(X[a][..., :, None, :] - X[b][..., None, :, :], axis=-1)
+            best = np.minimum(best, d.min(axis=(-2, -1)))
+    return best
+
+
+def arm_violation(promp, robot, links: Sequence[str], clearance: float,
+                  rng: np.random.Generator, n_samples: int = N_SAMPLES,
+                  n_phases: int = N_PHASES) -> Dict[str, float]:
+    """Sampled probability that two points of different arms come closer than ``clearance``
+    (the adapter's ``arm_clearance``; see the module docstring)."""
+    s = np.linspace(0.0, 1.0, n_phases)
+    inside = arm_distances(robot, promp.sample_trajectories(s, n_samples, rng),
+                           links) < clearance
+    return {'n_samples': n_samples, 'n_phases': n_phases, **_rates(inside, n_samples),
+            'min_arm_distance_mean_path_m': float(arm_distances(robot, promp.mean(s),
+                                                                links).min())}
 
 
 def _diagnostic_values(bag: str, prefix: str) -> List[Dict[str, str]]:
@@ -113,7 +161,7 @@ def adaptation_latencies(bag: str) -> List[float]:
     return out
 
 
-def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
+def promp_summary(bag: str, driver: Dict, robot, adapter_params: Dict,
                   rng: Optional[np.random.Generator] = None) -> Dict:
     """The ProMP figures of the summary (see the module docstring)."""
     rng = rng or np.random.default_rng(0)
@@ -150,12 +198,19 @@ def promp_summary(bag: str, driver: Dict, chain, adapter_params: Dict,
                                  - counts.get('requests_dropped', 0))
     if prior and obs.get('center') is not None:
         out['prior_violation'] = sphere_violation(
-            _promp(prior[0][1], chain), chain, links, obs['center'], radius, rng)
+            _promp(prior[0][1], robot), robot, links, obs['center'], radius, rng)
     # the last adaptation answers the sphere's last position (a crossing sphere moved on)
     last = driver['crossing'][-1] if driver.get('crossing') else obs.get('center')
     if after and last is not None:
         out['adapted_violation'] = sphere_violation(
-            _promp(after[-1], chain), chain, links, last, radius, rng)
+            _promp(after[-1], robot), robot, links, last, radius, rng)
+    clearance = float(ad.get('arm_clearance', 0.0))
+    if robot.n_arms > 1 and clearance > 0.0:
+        out['arm_clearance_m'] = clearance
+        for key, d in (('prior_arm_violation', prior[0][1] if prior else None),
+                       ('adapted_arm_violation', after[-1] if after else None)):
+            if d is not None:
+                out[key] = arm_violation(_promp(d, robot), robot, links, clearance, rng)
     if after:
         out['adapted_laws'] = constraint_laws(after[-1])
     return out
@@ -171,12 +226,12 @@ def constraint_laws(d: Dict) -> Dict[str, List[str]]:
     return out
 
 
-def _promp(d: Dict, chain):
-    """The ProMP of a primitive dict, in the chain's joint order."""
+def _promp(d: Dict, robot):
+    """The ProMP of a primitive dict, in the robot's joint order."""
     from cdmp_ros.core.adaptation.requests import reorder_promp
     p = promp_from_dict(d)
     p.joint_names = list(d['joint_names'])
-    return reorder_promp(p, chain.joint_names)
+    return reorder_promp(p, robot.joint_names)
 
 
 def adapter_parameters(spec) -> Dict:
@@ -185,8 +240,8 @@ def adapter_parameters(spec) -> Dict:
     return spec.effective_parameters()
 
 
-def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:
-    """``promp_paths.png``: prior and adapted mean end-effector paths with 2-sigma bands."""
+def plot_promp_paths(path: str, bag: str, driver: Dict, robot) -> None:
+    """``promp_paths.png``: prior and adapted mean paths of each hand with 2-sigma bands."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -201,12 +256,16 @@ def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:
                             ('adapted (last)', adapted[-1] if adapted else None, 'tab:orange')):
         if d is None:
             continue
-        X, r = ee_band(_promp(d, chain), chain, s)
-        for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
-            ax.plot(X[:, i], X[:, j], color=color, label=f'{label} mean')
-            for k in range(0, len(s), 3):
-                ax.add_patch(plt.Circle((X[k, i], X[k, j]), r[k], color=color, alpha=0.06,
-                                        lw=0))
+        p = _promp(d, robot)
+        for arm in range(robot.n_arms):
+            X, r = ee_band(p, robot.model, s, arm=arm)
+            which = f', hand {arm + 1}' if robot.n_arms > 1 else ''
+            for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
+                ax.plot(X[:, i], X[:, j], color=color, ls=('-', '--')[arm % 2],
+                        label=f'{label} mean{which}')
+                for k in range(0, len(s), 3):
+                    ax.add_patch(plt.Circle((X[k, i], X[k, j]), r[k], color=color,
+                                            alpha=0.06, lw=0))
     names = 'xyz'
     for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
         if obs.get('center') is not None:
@@ -217,7 +276,7 @@ def plot_promp_paths(path: str, bag: str, driver: Dict, chain) -> None:
         ax.set_ylabel(f'{names[j]} [m]')
         ax.set_aspect('equal', adjustable='datalim')
     axes[0].legend(fontsize=7)
-    fig.suptitle('end-effector mean paths with 2-sigma bands (shaded), prior and adapted')
+    fig.suptitle('mean hand paths with 2-sigma bands (shaded), prior and adapted')
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -1,7 +1,9 @@
 """``cdmp demo``: the node graph end to end, and its summary read back from the recorded bag.
 
 1. start ``config/graphs/demo.yaml`` (sim, streamer at 500 Hz, adapter, learner fitting a CDMP
-   from ``bags/panda_reach``, recorder) as processes;
+   from ``bags/panda_reach``, recorder) as processes; ``--kind dual``:
+   ``config/graphs/dual_demo.yaml`` (two Pandas, a ProMP of both arms from ``bags/dual_panda``,
+   the adapter keeping the arms ``arm_clearance`` apart);
 2. run the scripted user :mod:`cdmp_ros.ros.demo_driver` (an obstacle dropped into the path
    mid-motion, then a goal change, then a sim snapshot);
 3. stop the graph, read the bag, and write ``summary.json``, ``summary.md``, ``joints.png``,
@@ -11,7 +13,10 @@ Figures and where they come from:
 
 - ``min_obstacle_distance_m``: the sim's ``min_obstacle_distance_since_start_m`` (pybullet
   closest points between every robot link and the obstacle), from its last diagnostics, and
-  ``closest_pair`` the ``link/obstacle`` it was measured on;
+  ``closest_pair`` the ``link/obstacle`` it was measured on; of two arms,
+  ``min_robot_distance_m`` the sim's ``min_robot_distance_since_start_m`` (closest points
+  between the links of the two arms) and ``min_hand_distance_m`` the least distance between
+  the hands (tool centre points) at the measured ``joint_states``;
 - ``max_limit_usage``: max over joints and samples of ``|q - centre| / half_range`` of the
   measured ``joint_states`` in the bag (``reference_limit_usage``: same for
   ``joint_reference``); above 1 is outside a limit. ``limit_violations``: the sim's count of
@@ -52,7 +57,11 @@ from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 
 #: What the learner fits: ``cdmp`` (obstacle drop and goal change) or ``promp`` (constrained
 #: adaptation on every obstacle message).
-KINDS = ('cdmp', 'promp')
+KINDS = ('cdmp', 'promp', 'dual')
+#: The robot, graph and learner of each kind.
+ROBOT = {'cdmp': 'panda', 'promp': 'panda', 'dual': 'dual_panda'}
+GRAPH = {'cdmp': 'demo.yaml', 'promp': 'demo.yaml', 'dual': 'dual_demo.yaml'}
+LEARNER = {'cdmp': 'cdmp', 'promp': 'promp', 'dual': 'promp'}
 #: Topics the demo records.
 RECORDED = ['/joint_reference', '/joint_states', '/obstacles', '/goal', '/primitive',
             '/adapted_primitive', '/ee_pose', DIAGNOSTICS_TOPIC, '/visualization']
@@ -95,9 +104,10 @@ def _status(diag: Dict, prefix: str) -> Dict[str, str]:
     return {}
 
 
-def summarise(out: str, bag: str, driver: Dict, lower, upper, limits) -> Dict:
+def summarise(out: str, bag: str, driver: Dict, limits, robot=None) -> Dict:
     """The summary dict (see the module docstring); ``limits`` the robot's
-    :class:`~cdmp_ros.core.joint_limits.KinematicLimits`."""
+    :class:`~cdmp_ros.core.joint_limits.KinematicLimits`; ``robot`` its
+    :class:`~cdmp_ros.core.demo_robot.DemoRobot` (two arms: the distances between them)."""
     lower, upper = limits.lower, limits.upper
     info = bag_info(bag)
     T_ref, Q_ref, _ = _joint_arrays(bag, '/joint_reference')
@@ -109,7 +119,13 @@ def summarise(out: str, bag: str, driver: Dict, lower, upper, limits) -> Dict:
     # the references as the robot's controller sees them: differenced on their own stamps
     S_ref, Q_stamped, ref_names = _joint_arrays(bag, '/joint_reference', header_stamps=True)
     kin = kinematic_report(S_ref, Q_stamped, limits.subset(ref_names))
+    arms = {}
+    if robot is not None and robot.n_arms > 1:
+        H = robot.hands(_in_order(Q, names, robot.joint_names))
+        arms = {'min_robot_distance_m': _float(sim, 'min_robot_distance_since_start_m'),
+                'min_hand_distance_m': float(np.linalg.norm(H[:, 0] - H[:, 1], axis=-1).min())}
     return {
+        **arms,
         'kinematic_limits': kin,
         'reflex_errors': _float(sim, 'reflex_errors'),
         'min_obstacle_distance_m': _float(sim, 'min_obstacle_distance_since_start_m'),
@@ -138,11 +154,15 @@ def summarise(out: str, bag: str, driver: Dict, lower, upper, limits) -> Dict:
     }
 
 
-def plot(out: str, bag: str, driver: Dict, lower, upper, chain) -> None:
+def _in_order(Q, names: List[str], order: List[str]):
+    """Columns of ``Q`` (named ``names``) in the order ``order``."""
+    return np.asarray(Q)[:, [list(names).index(n) for n in order]]
+
+
+def plot(out: str, bag: str, driver: Dict, lower, upper, robot) -> None:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    from cdmp_ros.core.kinematics import PointOfInterest
 
     T_ref, Q_ref, _ = _joint_arrays(bag, '/joint_reference')
     T, Q, names = _joint_arrays(bag, '/joint_states')
@@ -163,13 +183,16 @@ def plot(out: str, bag: str, driver: Dict, lower, upper, chain) -> None:
     fig.savefig(os.path.join(out, 'joints.png'), dpi=90)
     plt.close(fig)
 
-    X = chain.forward(Q, [PointOfInterest('ee')])[:, 0, :]
+    H = robot.hands(_in_order(Q, names, robot.joint_names))            # (n, arms, 3)
     fig = plt.figure(figsize=(6, 5))
     ax = fig.add_subplot(projection='3d')
-    ax.plot(*X.T, label='end effector (measured)')
-    planned = driver.get('planned_path')
-    if planned:
-        ax.plot(*np.asarray(planned).T, ':', label='planned (no obstacle)')
+    planned = driver.get('planned_hand_paths') or [driver.get('planned_path')]
+    for arm in range(robot.n_arms):
+        which = f' {arm + 1}' if robot.n_arms > 1 else ''
+        ax.plot(*H[:, arm].T, label=f'hand{which} (measured)')
+        if arm < len(planned) and planned[arm]:
+            ax.plot(*np.asarray(planned[arm]).T, ':', label=f'hand{which} planned (no '
+                    'obstacle)')
     obs = driver.get('obstacle', {})
     if obs.get('center'):
         c, r = np.asarray(obs['center']), obs['radius']
@@ -189,6 +212,9 @@ def markdown(s: Dict) -> str:
     rows = [('minimum robot-obstacle distance', f'{s["min_obstacle_distance_m"] * 100:.2f} cm'
              f' ({s.get("closest_pair") or "no obstacle"})'),
             ('contacts', f'{s["contacts"]:.0f}'),
+            *([('minimum distance between the arms (links, sim) / hands (measured)',
+                f'{s["min_robot_distance_m"] * 100:.2f} / {s["min_hand_distance_m"] * 100:.2f}'
+                ' cm')] if 'min_hand_distance_m' in s else []),
             ('largest joint-limit usage (measured)', f'{s["max_limit_usage"]:.3f}'),
             ('largest joint-limit usage (reference)', f'{s["reference_limit_usage"]:.3f}'),
             ('limit violations (sim, beyond 1e-4 rad)', f'{s["limit_violations"]:.0f}'),
@@ -214,14 +240,19 @@ def markdown(s: Dict) -> str:
             ('obstacle -> first adapted reference', (
                 f'{np.median(lat):.1f} ms median, {max(lat):.1f} ms max ({len(lat)} '
                 'adaptations switched in)') if lat else 'not reported')]
-        for key, label in (('prior_violation', 'prior'), ('adapted_violation', 'adapted')):
-            v = p.get(key)
-            if v:
-                rows[-1:-1] = [(f'P(hand or link within {p["violation_radius_m"] * 100:.0f} cm '
-                                f'of the sphere), {label}, sampled',
-                                f'trajectory {v["trajectory"]:.4f} (95 % bound '
-                                f'{v["trajectory_upper95"]:.4f}), per step max '
-                                f'{v["per_step_max"]:.4f}; {v["n_samples"]} samples')]
+        for prefix, what, tail in (
+                ('', f'P(hand or link within {p["violation_radius_m"] * 100:.0f} cm of the '
+                 'sphere)', lambda v: f'{v["n_samples"]} samples'),
+                ('arm_', f'P(two points of different arms within '
+                 f'{p.get("arm_clearance_m", 0.0) * 100:.0f} cm)',
+                 lambda v: f'mean path {v["min_arm_distance_mean_path_m"] * 100:.1f} cm apart')):
+            for label in ('prior', 'adapted'):
+                v = p.get(f'{label}_{prefix}violation')
+                if v:
+                    rows[-1:-1] = [(f'{what}, {label}, sampled',
+                                    f'trajectory {v["trajectory"]:.4f} (95 % bound '
+                                    f'{v["trajectory_upper95"]:.4f}), per step max '
+                                    f'{v["per_step_max"]:.4f}; {tail(v)}')]
         laws = p.get('adapted_laws')
         if laws:
             rows[-1:-1] = [('probability laws of the last adaptation', '; '.join(
@@ -245,14 +276,15 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
              streamer_parameters: Dict = None) -> Dict:
     """Run the demo; return the summary (also written to ``out``).
 
-    ``kind``: ``cdmp`` (the learner fits a CDMP; obstacle drop, then a goal change) or
+    ``kind``: ``cdmp`` (the learner fits a CDMP; obstacle drop, then a goal change),
     ``promp`` (the learner fits a ProMP, every obstacle message triggers a constrained
-    adaptation that the streamer follows; :mod:`cdmp_ros.cli.demo_promp`).
+    adaptation that the streamer follows; :mod:`cdmp_ros.cli.demo_promp`) or ``dual`` (as
+    ``promp`` on two Pandas: the sphere lands between the hands, and each adaptation also
+    keeps the arms apart).
     ``streamer_parameters``: more parameters of the streamer (e.g. ``{'rate': 1000.0}``)."""
     if kind not in KINDS:
         raise CdmpError(f'demo: kind: expected one of {list(KINDS)}, got {kind!r}')
-    from cdmp_ros.core.kinematics import panda_chain
-    import pybullet_data
+    from cdmp_ros.core.demo_robot import DemoRobot
 
     log = log if log is not None else sys.stdout
     out = os.path.abspath(out)
@@ -261,11 +293,15 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
     if os.path.exists(bag):
         import shutil
         shutil.rmtree(bag)
-    graph = load_graph(graph_file or os.path.join(package_config_dir(), 'graphs', 'demo.yaml'))
+    robot = DemoRobot(ROBOT[kind])
+    graph = load_graph(graph_file or os.path.join(package_config_dir(), 'graphs', GRAPH[kind]))
     overrides = {'recorder': {'output': bag, 'topics': RECORDED},
                  'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')},
-                 'learner': {'kind': kind}}
-    if kind == 'promp':
+                 'learner': {'kind': LEARNER[kind]}}
+    if kind == 'dual':
+        # the sphere lands on the point midway between the hands, where both come close
+        driver_args = ['--robot', robot.name, '--lateral', '0', *driver_args]
+    if LEARNER[kind] == 'promp':
         driver_args = ['--no-goal-change', '--wait-adapter', *driver_args]
         # the robot executes only adapted trajectories: it starts with the adapter's answer
         # to the primitive, not with the raw prior (which ignores the constraints)
@@ -322,20 +358,20 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
                         'the log above')
     with open(os.path.join(out, 'driver.json')) as f:
         drv = json.load(f)
-    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf'))
-    limits = shipped_limits(chain.joint_names, chain.lower, chain.upper,
-                            chain.velocity_limits, 'urdf panda.urdf')
-    summary = summarise(out, bag, drv, chain.lower, chain.upper, limits)
+    m = robot.model
+    limits = shipped_limits(m.joint_names, m.lower, m.upper, m.velocity_limits,
+                            f'urdf {os.path.basename(robot.urdf)}')
+    summary = summarise(out, bag, drv, limits, robot)
     summary['kind'] = kind
     summary['wall_time_s'] = time.monotonic() - t_start
     summary['node_exit_codes'] = codes
-    plot(out, bag, drv, chain.lower, chain.upper, chain)
-    if kind == 'promp':
+    plot(out, bag, drv, m.lower, m.upper, robot)
+    if LEARNER[kind] == 'promp':
         from cdmp_ros.cli.demo_promp import adapter_parameters, plot_promp_paths, promp_summary
         params = adapter_parameters(adapter_spec) if adapter_spec else {}
-        summary['promp'] = promp_summary(bag, drv, chain, params)
+        summary['promp'] = promp_summary(bag, drv, robot, params)
         summary['plots'].append(os.path.join(out, 'promp_paths.png'))
-        plot_promp_paths(summary['plots'][-1], bag, drv, chain)
+        plot_promp_paths(summary['plots'][-1], bag, drv, robot)
     with open(os.path.join(out, 'summary.json'), 'w') as f:
         json.dump(summary, f, indent=1, default=float)
     with open(os.path.join(out, 'summary.md'), 'w') as f:

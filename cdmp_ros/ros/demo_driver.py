@@ -2,10 +2,13 @@
 the goal, asks the sim for a snapshot, and writes what it saw to ``driver.json``.
 
 Run by ``cdmp demo`` as ``python -m cdmp_ros.ros.demo_driver --out DIR`` next to the node
-graph of ``config/graphs/demo.yaml`` (it is not a product executable). Timeline:
+graph of ``config/graphs/demo.yaml`` (``--robot dual_panda``: ``config/graphs/dual_demo.yaml``;
+it is not a product executable). The robot's geometry is a :class:`~cdmp_ros.core.demo_robot.
+DemoRobot`; of two arms, "the hand" below is the point midway between the two hands, and the
+arm under the sphere either arm. Timeline:
 
 1. wait until every node of the graph is up and connected (the recorder too), call
-   ``/learner/refit``, wait for the latched ``primitive``; plan the end-effector path of the
+   ``/learner/refit``, wait for the latched ``primitive``; plan the hand's path of the
    primitive from the current reference (core kinematics) and pick the point at
    ``--obstacle-at`` of its arc length;
 2. with ``--wait-adapter`` (``cdmp demo --kind promp``), wait until the adapter has answered
@@ -45,28 +48,22 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
-from cdmp_ros.core.kinematics.capsules import ArmCapsules
+from cdmp_ros.core.demo_robot import ROBOTS, DemoRobot, between_hands
 from cdmp_ros.core.run_metrics import drop_positions, path_progress, point_at_progress
 from cdmp_ros.core.streaming.primitives import prepare_primitive
 from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called, take_newest
-from cdmp_ros.ros.robot_model import default_urdf_path
 
 #: A reference whose velocity stays below this for REST_TIME is at rest (rad/s).
 REST_SPEED = 0.01
 REST_TIME = 0.3
 #: Period of the falling obstacle's messages (s): below the adapter's input rate limit.
 DROP_PERIOD = 0.06
-#: Least distance (m) from the arm to the sphere's surface where it appears: from the capsules
-#: around the collision geometry of ARM_LINKS (core.kinematics.capsules), and from the
-#: wrist-to-fingertips axis less FINGER_RADIUS.
+#: Least distance (m) from the arm to the sphere's surface where it appears
+#: (:meth:`DemoRobot.clearance`).
 SPAWN_CLEARANCE = 0.02
-ARM_LINKS = tuple(f'panda_link{i}' for i in range(1, 8)) + ('panda_hand',)
-#: Radius (m) around the wrist-to-fingertips axis that holds the fingers.
-FINGER_RADIUS = 0.06
 #: Fraction of the path the drop may wait beyond --drop-at for the arm to clear.
 SPAWN_WAIT = 0.15
 
@@ -75,6 +72,9 @@ def parse_args(argv):
     ap = argparse.ArgumentParser(prog='python -m cdmp_ros.ros.demo_driver',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', required=True, help='directory for driver.json and the snapshot')
+    ap.add_argument('--robot', choices=ROBOTS, default='panda',
+                    help='panda (default) or dual_panda (the sphere lands midway between the '
+                         'two hands)')
     ap.add_argument('--obstacle-at', type=float, default=0.65,
                     help='fraction of the planned path where the sphere lands (default 0.65)')
     ap.add_argument('--drop-at', type=float, default=0.1,
@@ -107,7 +107,9 @@ def parse_args(argv):
     ap.add_argument('--wait-adapter', action='store_true',
                     help='drop only after the adapter answered the primitive with an '
                          'adapted_primitive (cdmp demo --kind promp)')
-    ap.add_argument('--frame', default='panda_link0')
+    ap.add_argument('--frame', default=None,
+                    help="the obstacles' frame (default: the robot's root, panda_link0 or "
+                         'world)')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     return ap.parse_args(argv)
 
@@ -116,10 +118,8 @@ class DemoDriver(Node):
     def __init__(self, args):
         super().__init__('demo_driver')
         self.args = args
-        self.chain = panda_chain(default_urdf_path())
-        self.arm = ArmCapsules.from_urdf(self.chain, default_urdf_path(), ARM_LINKS,
-                                         FINGER_RADIUS)
-        self.ee = [PointOfInterest('ee')]
+        self.robot = DemoRobot(args.robot)
+        self.frame = args.frame or self.robot.frame
         self.events = {}
         self.diagnostics = {}
         self.prim = None
@@ -160,7 +160,7 @@ class DemoDriver(Node):
     def _on_primitive(self, msg):
         if self.prim is not None:
             return
-        c = self.chain
+        c = self.robot.model
         try:
             prepared = prepare_primitive(msg.data, c.joint_names, 0.01, c.lower, c.upper)
         except Exception as exc:  # noqa: BLE001 -- the demo reports any failure
@@ -195,16 +195,17 @@ class DemoDriver(Node):
         return self.adapter_ready
 
     def _clear_of_arm(self, p) -> bool:
-        """A sphere appearing at ``p`` would be clear of the arm: farther than
-        SPAWN_CLEARANCE from the capsules around the collision meshes of ARM_LINKS and around
-        the fingers. The first drop position lies above the path, where the arm may still be;
-        a sphere appearing inside the arm is not this demo's scenario (and made the streamer's
-        coupling jump the reference, a defect of its own)."""
-        return self.arm.sphere_clearance(self.ref[0], p, self.args.radius) > SPAWN_CLEARANCE
+        """A sphere appearing at ``p`` would be clear of the arms: farther than
+        SPAWN_CLEARANCE from them (:meth:`DemoRobot.clearance`). The first drop position lies
+        above the path, where the arm may still be; a sphere appearing inside the arm is not
+        this demo's scenario (and made the streamer's coupling jump the reference, a defect of
+        its own)."""
+        return self.robot.clearance(self.ref[0], p, self.args.radius) > SPAWN_CLEARANCE
 
     def _plan(self, start_y):
         traj = self.prim.rollout(0.01, start_y=start_y)
-        self.path = self.chain.forward(traj.Y, self.ee)[:, 0, :]
+        self.hand_paths = self.robot.hands(traj.Y)                       # (n, arms, 3)
+        self.path = between_hands(np.swapaxes(self.hand_paths, 0, 1))
         a = self.args
         p = point_at_progress(self.path, a.obstacle_at)
         p2 = point_at_progress(self.path, min(1.0, a.obstacle_at + 0.05))
@@ -222,11 +223,11 @@ class DemoDriver(Node):
     def _on_ref(self, msg):
         q = np.array(msg.position)
         qd = np.array(msg.velocity)
-        if q.shape != (7,):
+        if q.shape != (self.robot.n_dofs,):
             return
         self.ref = (q, qd)
         now = time.monotonic()
-        moving = qd.shape == (7,) and np.abs(qd).max() > REST_SPEED
+        moving = qd.shape == q.shape and np.abs(qd).max() > REST_SPEED
         if moving:
             self.still_since = None
         elif self.still_since is None:
@@ -244,7 +245,7 @@ class DemoDriver(Node):
 
     def _publish_sphere(self, p, i):
         m = Marker(ns='demo', id=0, type=Marker.SPHERE, action=Marker.ADD)
-        m.header.frame_id = self.args.frame
+        m.header.frame_id = self.frame
         now = self.get_clock().now()
         m.header.stamp = now.to_msg()
         self.events['last_obstacle_stamp'] = now.nanoseconds
@@ -294,8 +295,7 @@ class DemoDriver(Node):
                 self._plan(self.ref[0])
                 self.phase = 'wait_motion'
         elif self.phase == 'wait_motion':
-            ee = self.chain.forward(self.ref[0], self.ee)[0]
-            progress = path_progress(self.path, ee)
+            progress = path_progress(self.path, between_hands(self.robot.hands(self.ref[0])))
             start = progress >= a.drop_at
             if start and a.motion == 'drop' and not self._clear_of_arm(self.drop[0]):
                 if self._clear_of_arm(self.obstacle):
@@ -336,7 +336,7 @@ class DemoDriver(Node):
             elif self._rested():
                 self._event('first_motion_rest')
                 goal = np.asarray(self.prim.goal_y_) + np.asarray(a.goal_offset)
-                msg = JointState(name=list(self.chain.joint_names),
+                msg = JointState(name=self.robot.joint_names,
                                  position=[float(v) for v in goal])
                 msg.header.stamp = self.get_clock().now().to_msg()
                 self.goal_pub.publish(msg)
@@ -373,8 +373,11 @@ class DemoDriver(Node):
         out = {'events_ns': self.events,
                'obstacle': {'center': None if self.obstacle is None else
                             [float(v) for v in self.obstacle], 'radius': self.args.radius,
-                            'frame': self.args.frame},
+                            'frame': self.frame},
+               'robot': self.robot.name,
                'planned_path': None if self.path is None else self.path[::5].tolist(),
+               'planned_hand_paths': None if self.path is None else
+               np.swapaxes(self.hand_paths[::5], 0, 1).tolist(),
                'crossing': getattr(self, 'crossed', []),
                'obstacle_messages': getattr(self, 'n_obstacle_messages', 0),
                'snapshot': self.snapshot, 'diagnostics': self.diagnostics}

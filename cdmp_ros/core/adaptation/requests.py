@@ -428,10 +428,10 @@ def ee_path(chain, Y: ArrayLike) -> NDArray[np.float64]:
     return arm.forward(np.asarray(Y, dtype=float)[:, idx], [EE])[:, 0]
 
 
-def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
+def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0, arm: int = 0
             ) -> Tuple[NDArray[np.float64], NDArray[np.float64]]:
     """End-effector mean and an uncertainty radius at phases ``s`` (n,); of several arms
-    (:class:`~cdmp_ros.core.kinematics.arms.Arms`), the first arm's.
+    (:class:`~cdmp_ros.core.kinematics.arms.Arms`), arm ``arm``'s (default the first).
 
     Linearised: Cov[x_t] ~ J(E[z_t]) Cov[z_t] J(E[z_t])^T (paper 003 Eq. 2 through the
     kinematics Jacobian); radius = ``n_sigma`` * sqrt(largest eigenvalue).
@@ -441,9 +441,9 @@ def ee_band(promp: ProMP, chain, s: ArrayLike, n_sigma: float = 2.0
     centres : (n, 3); radii : (n,)
     """
     s = np.atleast_1d(np.asarray(s, dtype=float))
-    arm, idx = arms_of(chain)[0]
+    arm_chain, idx = arms_of(chain)[arm]
     m = promp.mean(s)[:, idx]
-    X, J = arm.forward_and_jacobian(m, [EE])
+    X, J = arm_chain.forward_and_jacobian(m, [EE])
     J = J[:, 0]                                            # (n, 3, d)
     S = promp.cov(s)[:, idx[:, None], idx[None, :]]        # the arm's joints
     C = J @ S @ np.swapaxes(J, 1, 2)                       # (n, 3, 3)
