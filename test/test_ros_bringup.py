@@ -57,6 +57,46 @@ def test_commands_carry_params_remaps_and_namespace(tmp_path):
         assert piece in cmd
 
 
+PARAMETER_PROBE = '''
+import sys, rclpy
+from rclpy.node import Node
+rclpy.init(args=sys.argv)
+node = Node('adapter')
+node.declare_parameter('adaptation.avoid_links', ['none'])
+node.declare_parameter('adaptation.alpha', 0.0)
+print(list(node.get_parameter('adaptation.avoid_links').value),
+      node.get_parameter('adaptation.alpha').value)
+'''
+
+
+def test_inline_parameters_win_over_every_parameter_file(tmp_path):
+    """A graph's inline ``parameters`` win over every ``params_file``, as the graph file
+    promises, in a real ROS process: rclpy applies ``-p`` over the first parameter file only
+    (a later file's value won, and the dual demo's adapter kept the robot file's
+    avoid_links), so with two or more files they also come as a last file."""
+    for name, links in (('one.yaml', ['aa', 'bb']), ('two.yaml', ['cc', 'dd'])):
+        (tmp_path / name).write_text(yaml.safe_dump({'/**': {'ros__parameters': {
+            'adaptation': {'avoid_links': links, 'alpha': 0.9}}}}))
+    spec, = parse_graph({'nodes': [{'name': 'adapter', 'executable': 'adapter',
+                                    'params_file': ['one.yaml', 'two.yaml'],
+                                    'parameters': {'adaptation.avoid_links': ['ee', 'ff'],
+                                                   'adaptation.alpha': 0.99}}]},
+                        str(tmp_path)).nodes
+    cmd = spec.command()
+    ros_args = cmd[cmd.index('--ros-args'):]
+    r = subprocess.run([sys.executable, '-c', PARAMETER_PROBE, *ros_args],
+                       env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["['ee',", "'ff']", '0.99'], r.stdout
+    # the same without the inline file: the defect it works around
+    plain = [a for a in ros_args if 'cdmp_bringup_parameters' not in a]
+    plain = [a for i, a in enumerate(plain) if not (a == '--params-file' and i + 1 < len(plain)
+                                                    and plain[i + 1] == '-p')]
+    r = subprocess.run([sys.executable, '-c', PARAMETER_PROBE, *plain],
+                       env=ros_env(), capture_output=True, text=True, timeout=60)
+    assert r.stdout.split()[:2] == ["['cc',", "'dd']"], r.stdout
+
+
 def test_a_node_takes_several_parameter_files_in_order(tmp_path):
     """``params_file`` as a list: one ``--params-file`` each, in the given order (ROS applies
     them so, a later file wins; config/graphs/planar4.yaml layers the robot's files so), and
@@ -70,8 +110,9 @@ def test_a_node_takes_several_parameter_files_in_order(tmp_path):
                         str(tmp_path)).nodes
     cmd = spec.command()
     files = [cmd[i + 1] for i, a in enumerate(cmd) if a == '--params-file']
-    assert files == [os.path.join(package_config_dir(), 'adapter.yaml'),
-                     str(tmp_path / 'mine.yaml')]
+    assert files[:2] == [os.path.join(package_config_dir(), 'adapter.yaml'),
+                         str(tmp_path / 'mine.yaml')]
+    assert len(files) == 3  # then the inline parameters (see the next test)
     params = adapter_parameters(spec)
     assert params['base_frame'] == 'base' and params['joint_names'][0] == 'panda_joint1'
     assert params['adaptation']['alpha'] == 0.99                  # the later file

@@ -44,10 +44,12 @@ and runs on; when they are not ready in time it names them, stops the graph and 
 code 3. A launch file waits on the same line with an ``OnProcessIO`` event handler.
 """
 import contextlib
+import hashlib
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -104,6 +106,29 @@ def _scalar(value) -> str:
     raise ValidationError(f'parameter value {value!r}: expected a scalar or a list')
 
 
+def inline_parameters_file(parameters: Dict[str, object]) -> str:
+    """A parameter file (``/**: ros__parameters``, one nesting level per dot of a name) with
+    ``parameters``, in a directory of the system's temporary directory, named by the hash of
+    its text (the same parameters, the same file; written once)."""
+    nested: Dict = {}
+    for name, value in parameters.items():
+        node = nested
+        *path, last = name.split('.')
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = list(value) if isinstance(value, tuple) else value
+    text = yaml.safe_dump({'/**': {'ros__parameters': nested}}, sort_keys=True)
+    folder = os.path.join(tempfile.gettempdir(), 'cdmp_bringup_parameters')
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml')
+    if not os.path.exists(path):
+        tmp = f'{path}.{os.getpid()}'
+        with open(tmp, 'w') as f:
+            f.write(text)
+        os.replace(tmp, path)
+    return path
+
+
 @dataclass(frozen=True)
 class NodeSpec:
     """One process of a graph (see the module docstring)."""
@@ -142,11 +167,16 @@ class NodeSpec:
         return params
 
     def command(self) -> List[str]:
-        """The argv of the process."""
+        """The argv of the process: the parameter files in order, the inline parameters as
+        ``-p`` and, with two or more files, also as a last parameter file
+        (:func:`inline_parameters_file`): rclpy (Jazzy) applies ``-p`` over the first
+        ``--params-file`` only, so a later file's value of the same parameter won over it."""
         cmd = [sys.executable, '-m', f'cdmp_ros.nodes.{self.executable}', *self.arguments,
                '--ros-args']
         for path in self.params_files:
             cmd += ['--params-file', path]
+        if len(self.params_files) > 1 and self.parameters:
+            cmd += ['--params-file', inline_parameters_file(self.parameters)]
         for k, v in self.parameters.items():
             cmd += ['-p', f'{k}:={_scalar(v)}']
         for a, b in self.remappings.items():
