@@ -37,12 +37,12 @@ sys.path.insert(0, ROOT)
 
 from cdmp_ros.bag.cdr import decode_joint_state, decode_string  # noqa: E402
 from cdmp_ros.bag.reader import BagReader  # noqa: E402
-from cdmp_ros.core.kinematics import panda_chain  # noqa: E402
+from cdmp_ros.core.config_fields import chain_tips  # noqa: E402
 from cdmp_ros.core.streaming.primitives import prepare_primitive  # noqa: E402
 from cdmp_ros.core.streaming.selection import AdaptationSelector, read_provenance  # noqa: E402
 from cdmp_ros.core.streaming.streamer import ReferenceStreamer, coupling_of  # noqa: E402
 from cdmp_ros.cli.cmd_bringup import streamer_configs  # noqa: E402
-from cdmp_ros.ros.robot_model import default_urdf_path, load_collision_capsules  # noqa: E402
+from cdmp_ros.ros.robot_model import load_chain, load_collision_capsules  # noqa: E402
 
 TOPICS = ['/primitive', '/adapted_primitive', '/goal', '/obstacles', '/joint_reference']
 DT_NS = 2_000_000
@@ -57,7 +57,7 @@ def replay(msgs, chain, configs: dict, bound: float) -> dict:
     from cdmp_ros.ros.convert import ObstacleSet
     cfg = dataclasses.replace(configs[''], joint_states_timeout=0.0,
                               coupling_max_acceleration=bound)
-    capsules = load_collision_capsules('', cfg.coupling_capsule_links, chain=chain)
+    capsules = load_collision_capsules(cfg.urdf_path, cfg.coupling_capsule_links, chain=chain)
     coupling = coupling_of(chain, dict(configs, **{'': cfg}), capsules)
     rs = ReferenceStreamer(chain.lower, chain.upper, cfg, coupling)
     selection = AdaptationSelector(cfg.stream_unadapted)
@@ -106,21 +106,24 @@ def main(argv=None) -> int:
     ap.add_argument('--bound', type=float, nargs='+', default=[0.0, 500.0],
                     help='coupling_max_acceleration values [rad/s^2] (0 = unbounded)')
     ap.add_argument('--graph', default=os.path.join(ROOT, 'config', 'graphs', 'demo.yaml'),
-                    help='graph file whose streamer parameters are replayed (default the demo)')
+                    help='graph file whose streamer parameters are replayed (default the '
+                    'demo; config/graphs/dual_demo.yaml for a cdmp demo --kind dual run)')
     ap.add_argument('--stream-unadapted', choices=('auto', 'true', 'false'), default='auto',
-                    help='auto: false for a ProMP run, as cdmp demo --kind promp sets it since '
-                    '2026-11-26 (runs recorded before streamed the raw primitive: true)')
+                    help='auto: false for a ProMP run, as cdmp demo --kind promp and dual set '
+                    'it since 2026-11-26 (runs recorded before streamed the raw primitive: '
+                    'true)')
     a = ap.parse_args(argv)
     kind = 'cdmp'
     summary = os.path.join(a.run, 'summary.json')
     if os.path.exists(summary):
         with open(summary) as f:
             kind = json.load(f).get('kind', 'cdmp')
-    unadapted = {'auto': kind != 'promp', 'true': True, 'false': False}[a.stream_unadapted]
+    unadapted = {'auto': kind == 'cdmp', 'true': True, 'false': False}[a.stream_unadapted]
     configs = streamer_configs(a.graph, {'stream_unadapted': unadapted})
     bag = os.path.join(a.run, 'bag')
     msgs = sorted(BagReader(bag).messages(TOPICS), key=lambda m: m.log_time)
-    chain = panda_chain(default_urdf_path())
+    cfg = configs['']  # the graph's robot: one Panda, or the arms of tip_links
+    chain = load_chain(cfg.urdf_path, cfg.joint_names, chain_tips(cfg), cfg.tcp_offset)
     print(f'{bag}: {len(msgs)} messages\n')
     print('| bound [rad/s^2] | largest step in one 2 ms tick [rad] | largest velocity [rad/s] '
           '| largest coupling requested [rad/s^2] | smallest capsule distance [cm] '

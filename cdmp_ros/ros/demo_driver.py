@@ -27,8 +27,9 @@ arm under the sphere either arm. Timeline:
    (``--drop-height`` above it, ``--drop-messages`` stamped ``obstacles`` messages, one every
    ``DROP_PERIOD``), or with ``--motion cross`` move it horizontally across the path through
    the point (``--cross-length`` at ``--cross-speed``, ``--cross-rate`` messages per second);
-4. when the reference rests, publish ``goal`` (the primitive's goal + ``--goal-offset``;
-   skipped with ``--no-goal-change``);
+4. when the reference rests (with ``--wait-adapter``: once the streamer streams the adapter's
+   answer to the last obstacle message, and counted from then), publish ``goal`` (the
+   primitive's goal + ``--goal-offset``; skipped with ``--no-goal-change``);
 5. when it rests again (or ``--timeout``), call ``/sim/snapshot`` and write ``driver.json``
    with the event times, the obstacle, and the last ``/diagnostics`` status of every node.
 """
@@ -126,6 +127,7 @@ class DemoDriver(Node):
         self.prim_id = None
         self.answer = None              # provenance of the newest adapted_primitive
         self.adapter_ready = not args.wait_adapter
+        self.final_answer_at = None     # when the answer to the last obstacle streamed
         self.path = None
         self.obstacle = None
         self.ref = None
@@ -171,28 +173,44 @@ class DemoDriver(Node):
         self._event('primitive')
 
     def _on_adapted(self, msg):
-        # kept whatever arrives first: the adapter's answer may overtake the primitive here
-        if self.adapter_ready:
-            return
+        # the newest answer, kept whatever arrives first: it may overtake the primitive here
         try:
             self.answer = read_provenance(json.loads(msg.data).get('metadata'))
         except Exception as exc:  # noqa: BLE001 -- the demo reports any failure
             self.get_logger().error(f'cannot read the adapted_primitive: {exc}')
+
+    def _streams(self, prov) -> bool:
+        """The streamer streams the adaptation ``prov`` (its diagnostics'
+        ``adapted_generation``)."""
+        streamed = next((st['values'].get('adapted_generation')
+                         for name, st in self.diagnostics.items()
+                         if name.lstrip('/').startswith('streamer')
+                         and 'adapted_generation' in st['values']), None)
+        return prov is not None and streamed == str(prov.generation)
 
     def _check_adapter(self) -> bool:
         """``--wait-adapter``: the adapter answered the current primitive and the streamer
         streams that answer."""
         if not self.adapter_ready:
             prov = self.answer
-            if prov is not None and self.prim_id is not None and prov.source_id == self.prim_id:
-                streamed = next((st['values'].get('adapted_generation')
-                                 for name, st in self.diagnostics.items()
-                                 if name.lstrip('/').startswith('streamer')
-                                 and 'adapted_generation' in st['values']), None)
-                if streamed == str(prov.generation):
-                    self.adapter_ready = True
-                    self._event('adapter_ready')
+            if prov is not None and self.prim_id is not None and \
+                    prov.source_id == self.prim_id and self._streams(prov):
+                self.adapter_ready = True
+                self._event('adapter_ready')
         return self.adapter_ready
+
+    def _last_answer_streamed(self) -> bool:
+        """``--wait-adapter``: the newest adaptation answers the last obstacle message and the
+        streamer streams it (a solve may take longer than the rest of the motion: the run
+        ends only after the robot followed the answer to the last obstacle message)."""
+        if not self.args.wait_adapter:
+            return True
+        if self.final_answer_at is None:
+            prov, last = self.answer, self.events.get('last_obstacle_stamp')
+            if prov is not None and prov.trigger_stamp_ns == last and self._streams(prov):
+                self.final_answer_at = time.monotonic()
+                self._event('last_answer_streamed')
+        return self.final_answer_at is not None
 
     def _clear_of_arm(self, p) -> bool:
         """A sphere appearing at ``p`` would be clear of the arms: farther than
@@ -240,8 +258,11 @@ class DemoDriver(Node):
                                          'message': st.message,
                                          'values': {kv.key: kv.value for kv in st.values}}
 
-    def _rested(self):
-        return self.still_since is not None and time.monotonic() - self.still_since > REST_TIME
+    def _rested(self, since: float = 0.0):
+        """The reference has been at rest for REST_TIME, counted from ``since`` at the
+        earliest (time.monotonic())."""
+        return self.still_since is not None and \
+            time.monotonic() - max(self.still_since, since) > REST_TIME
 
     def _publish_sphere(self, p, i):
         m = Marker(ns='demo', id=0, type=Marker.SPHERE, action=Marker.ADD)
@@ -261,9 +282,11 @@ class DemoDriver(Node):
         a = self.args
         if (time.monotonic() - self.t0 > a.timeout and 'timeout_phase' not in self.events
                 and self.phase not in ('finish', 'snapshot', 'diagnostics')):
-            waiting = ('' if self.phase != 'wait_adapter' else
-                       ' (the adapter has not answered the primitive, or the streamer does not '
-                       'stream its answer)')
+            waiting = {'wait_adapter': ' (the adapter has not answered the primitive, or the '
+                                       'streamer does not stream its answer)',
+                       'wait_rest_1': '' if self.final_answer_at or not a.wait_adapter else
+                       ' (the adapter has not answered the last obstacle message, or the '
+                       'streamer does not stream its answer)'}.get(self.phase, '')
             self.get_logger().error(f'timeout in phase {self.phase}{waiting}')
             self.events['timeout_phase'] = self.phase
             self.phase = 'finish'
@@ -330,7 +353,9 @@ class DemoDriver(Node):
                 self._event('drop_end')
                 self.phase = 'wait_rest_1'
         elif self.phase == 'wait_rest_1':
-            if self._rested() and a.no_goal_change:
+            if not self._last_answer_streamed():
+                return
+            if self._rested(self.final_answer_at or 0.0) and a.no_goal_change:
                 self._event('first_motion_rest')
                 self.phase = 'finish'
             elif self._rested():
