@@ -121,7 +121,8 @@ def test_cdmp_demo_dual_adapts_both_arms_jointly(tmp_path):
         assert any(n.startswith(prefix) for n in names), (prefix, names)
     md = (out / 'summary.md').read_text()
     assert 'minimum distance between the arms' in md
-    assert 'P(two points of different arms within 15 cm), adapted' in md
+    assert (f'P(two points of different arms within {p["arm_clearance_m"] * 100:.0f} cm), '
+            'adapted') in md
     for path in s['plots'] + [s['snapshot']]:
         assert os.path.getsize(path) > 1000, path
 

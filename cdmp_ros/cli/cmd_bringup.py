@@ -16,7 +16,8 @@ package needs. A graph file::
         params_file: sim.yaml    # relative to the graph file, else to config/ of the package;
                                  # or a list, applied in order (a later file wins), e.g.
                                  # [sim.yaml, robots/planar4/sim.yaml]
-        parameters: {publish_rate: 250.0}   # -p name:=value (YAML scalars or lists)
+        parameters: {publish_rate: 250.0}   # -p name:=value (YAML scalars or lists); they
+                                 # win over every params_file
         remappings: {joint_reference: /arm/joint_reference}   # -r from:=to
         namespace: /arm          # -r __ns:=/arm
         arguments: []            # command-line arguments before --ros-args
