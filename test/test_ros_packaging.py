@@ -79,6 +79,7 @@ def test_colcon_build_installs_package(tmp_path, monkeypatch):
                                                             'learner')],
               # and robot:=dual_panda
               'urdf/dual_panda.urdf', 'config/graphs/dual_panda.yaml',
+              'config/graphs/dual_demo.yaml',
               'bags/dual_panda/demo_00/metadata.yaml',
               *[f'config/robots/dual_panda/{n}.yaml' for n in ('sim', 'streamer', 'adapter',
                                                                'learner')]]:
