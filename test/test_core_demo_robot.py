@@ -59,11 +59,19 @@ def test_clearance_is_the_nearer_arm(dual, cell):
 
 
 def test_the_panda_is_the_nodes_default_robot():
-    from cdmp_ros.core.kinematics import panda_chain
+    """The Panda of the demo is the nodes' robot with their defaults (``urdf_path`` '', the
+    URDF read by the generic chain builder, ``tcp_offset`` of config/streamer.yaml)."""
+    import yaml
+    from conftest import REPO_ROOT
+    from cdmp_ros.core.kinematics import PANDA_JOINTS
+    from cdmp_ros.ros.robot_model import default_urdf_path, load_chain
+    with open(f'{REPO_ROOT}/config/streamer.yaml') as f:
+        tcp = yaml.safe_load(f)['/**']['ros__parameters']['tcp_offset']
     robot = DemoRobot('panda')
-    chain = panda_chain(PANDA)
+    assert robot.urdf == default_urdf_path()
+    chain = load_chain('', PANDA_JOINTS, 'panda_hand', tcp)
     q = _random_q(robot, np.random.default_rng(2), 5)
-    np.testing.assert_allclose(robot.hands(q)[:, 0], chain.forward(q, EE)[:, 0], atol=1e-12)
+    np.testing.assert_allclose(robot.hands(q)[:, 0], chain.forward(q, EE)[:, 0], atol=1e-9)
     assert robot.frame == 'panda_link0' and robot.n_arms == 1
 
 

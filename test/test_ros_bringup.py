@@ -79,7 +79,7 @@ def test_inline_parameters_win_over_every_parameter_file(tmp_path):
             'adaptation': {'avoid_links': links, 'alpha': 0.9}}}}))
     spec, = parse_graph({'nodes': [{'name': 'adapter', 'executable': 'adapter',
                                     'params_file': ['one.yaml', 'two.yaml'],
-                                    'parameters': {'adaptation.avoid_links': ['ee', 'ff'],
+                                    'parameters': {'adaptation.avoid_links': ['ee', 'y'],
                                                    'adaptation.alpha': 0.99}}]},
                         str(tmp_path)).nodes
     cmd = spec.command()
@@ -87,14 +87,23 @@ def test_inline_parameters_win_over_every_parameter_file(tmp_path):
     r = subprocess.run([sys.executable, '-c', PARAMETER_PROBE, *ros_args],
                        env=ros_env(), capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["['ee',", "'ff']", '0.99'], r.stdout
+    assert r.stdout.split() == ["['ee',", "'y']", '0.99'], r.stdout  # 'y' stays a string
     # the same without the inline file: the defect it works around
-    plain = [a for a in ros_args if 'cdmp_bringup_parameters' not in a]
-    plain = [a for i, a in enumerate(plain) if not (a == '--params-file' and i + 1 < len(plain)
-                                                    and plain[i + 1] == '-p')]
+    from cdmp_ros.cli.cmd_bringup import inline_parameters_file
+    k = ros_args.index(inline_parameters_file(spec.parameters))
+    assert ros_args[k - 1] == '--params-file' and ros_args[k + 1] == '-p'  # last, before -p
+    plain = ros_args[:k - 1] + ros_args[k + 1:]
     r = subprocess.run([sys.executable, '-c', PARAMETER_PROBE, *plain],
                        env=ros_env(), capture_output=True, text=True, timeout=60)
     assert r.stdout.split()[:2] == ["['cc',", "'dd']"], r.stdout
+
+
+def test_the_inline_parameter_file_refuses_a_name_under_another():
+    from cdmp_ros.cli.cmd_bringup import inline_parameters_file
+    for params in ({'a': 1.0, 'a.b': 2.0}, {'a.b': 2.0, 'a': 1.0}):
+        with pytest.raises(ValidationError, match="parameters: 'a"):
+            inline_parameters_file(params)
+    assert inline_parameters_file({'names': []}) is None  # rcl: [] in a file is unset
 
 
 def test_a_node_takes_several_parameter_files_in_order(tmp_path):

@@ -50,7 +50,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -107,20 +106,48 @@ def _scalar(value) -> str:
     raise ValidationError(f'parameter value {value!r}: expected a scalar or a list')
 
 
-def inline_parameters_file(parameters: Dict[str, object]) -> str:
+def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     """A parameter file (``/**: ros__parameters``, one nesting level per dot of a name) with
-    ``parameters``, in a directory of the system's temporary directory, named by the hash of
-    its text (the same parameters, the same file; written once)."""
+    ``parameters``, each value written as its ``-p`` form (:func:`_scalar`: the same type
+    whichever of the two rcl reads), in the user's cache
+    (``$XDG_CACHE_HOME/cdmp_ros/parameters``, default ``~/.cache``, mode 0700), named by the
+    hash of its text (the same parameters, the same file; written once). Empty lists stay
+    out of it (rcl reads ``[]`` in a file as a parameter without a value); None when nothing
+    else is left.
+
+    Raises
+    ------
+    ValidationError
+        A name that is also the prefix of another (``a`` and ``a.b``).
+    """
     nested: Dict = {}
     for name, value in parameters.items():
+        if isinstance(value, (list, tuple)) and not value:
+            continue
         node = nested
         *path, last = name.split('.')
         for part in path:
             node = node.setdefault(part, {})
-        node[last] = list(value) if isinstance(value, tuple) else value
-    text = yaml.safe_dump({'/**': {'ros__parameters': nested}}, sort_keys=True)
-    folder = os.path.join(tempfile.gettempdir(), 'cdmp_bringup_parameters')
-    os.makedirs(folder, exist_ok=True)
+            if not isinstance(node, dict):
+                raise ValidationError(f'parameters: {name!r} is below another parameter')
+        if isinstance(node.get(last), dict):
+            raise ValidationError(f'parameters: {name!r} is also the prefix of another')
+        node[last] = value
+
+    def lines(tree: Dict, indent: str) -> List[str]:
+        out = []
+        for key in sorted(tree):
+            if isinstance(tree[key], dict):
+                out += [f'{indent}{key}:'] + lines(tree[key], indent + '  ')
+            else:
+                out.append(f'{indent}{key}: {_scalar(tree[key])}')
+        return out
+    if not nested:
+        return None
+    text = '\n'.join(['/**:', '  ros__parameters:'] + lines(nested, '    ')) + '\n'
+    cache = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    folder = os.path.join(cache, 'cdmp_ros', 'parameters')
+    os.makedirs(folder, mode=0o700, exist_ok=True)
     path = os.path.join(folder, hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml')
     if not os.path.exists(path):
         tmp = f'{path}.{os.getpid()}'
@@ -176,8 +203,10 @@ class NodeSpec:
                '--ros-args']
         for path in self.params_files:
             cmd += ['--params-file', path]
-        if len(self.params_files) > 1 and self.parameters:
-            cmd += ['--params-file', inline_parameters_file(self.parameters)]
+        inline = inline_parameters_file(self.parameters) if len(self.params_files) > 1 \
+            else None
+        if inline is not None:
+            cmd += ['--params-file', inline]
         for k, v in self.parameters.items():
             cmd += ['-p', f'{k}:={_scalar(v)}']
         for a, b in self.remappings.items():
