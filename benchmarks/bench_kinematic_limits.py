@@ -151,7 +151,8 @@ def arm_capsules():
     """The arm as the demo driver sees it: capsules fitted to the collision geometry of its
     links, and the fingers' capsule."""
     from cdmp_ros.core.demo_robot import DemoRobot
-    return DemoRobot('panda').capsules[0]
+    from cdmp_ros.ros.robot_model import default_urdf_path
+    return DemoRobot('panda', default_urdf_path()).capsules[0]
 
 
 def place_sphere(rng, arm, state, limits, radius, near=None, tries=50):

@@ -67,8 +67,9 @@ def test_the_panda_is_the_nodes_default_robot():
     from cdmp_ros.ros.robot_model import default_urdf_path, load_chain
     with open(f'{REPO_ROOT}/config/streamer.yaml') as f:
         tcp = yaml.safe_load(f)['/**']['ros__parameters']['tcp_offset']
-    robot = DemoRobot('panda')
-    assert robot.urdf == default_urdf_path()
+    from cdmp_ros.sim.robot_specs import PANDA_URDF
+    assert PANDA_URDF == default_urdf_path()  # what cdmp demo passes, what the nodes load
+    robot = DemoRobot('panda', default_urdf_path())
     chain = load_chain('', PANDA_JOINTS, 'panda_hand', tcp)
     q = _random_q(robot, np.random.default_rng(2), 5)
     np.testing.assert_allclose(robot.hands(q)[:, 0], chain.forward(q, EE)[:, 0], atol=1e-9)
@@ -78,6 +79,8 @@ def test_the_panda_is_the_nodes_default_robot():
 def test_bad_input_is_refused_naming_it(dual):
     with pytest.raises(ValidationError, match='robot: expected one of'):
         DemoRobot('ur5')
+    with pytest.raises(ValidationError, match='give panda_urdf'):
+        DemoRobot('panda')
     with pytest.raises(ValidationError, match='14 joints'):
         dual.hands(np.zeros(7))
     with pytest.raises(ValidationError, match=r'avoid_links\[0\]'):

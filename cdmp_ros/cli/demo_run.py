@@ -285,6 +285,7 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
     if kind not in KINDS:
         raise CdmpError(f'demo: kind: expected one of {list(KINDS)}, got {kind!r}')
     from cdmp_ros.core.demo_robot import DemoRobot
+    from cdmp_ros.sim.robot_specs import PANDA_URDF
 
     log = log if log is not None else sys.stdout
     out = os.path.abspath(out)
@@ -293,7 +294,7 @@ def run_demo(out: str, timeout: float = 45.0, graph_file: str = None,
     if os.path.exists(bag):
         import shutil
         shutil.rmtree(bag)
-    robot = DemoRobot(ROBOT[kind])
+    robot = DemoRobot(ROBOT[kind], PANDA_URDF)
     graph = load_graph(graph_file or os.path.join(package_config_dir(), 'graphs', GRAPH[kind]))
     overrides = {'recorder': {'output': bag, 'topics': RECORDED},
                  'sim': {'snapshot_path': os.path.join(out, 'snapshot.png')},

@@ -3,7 +3,8 @@ sphere is from its arms (ROS-free; the demo driver places its sphere with it, th
 the recorded run with it).
 
 - ``panda``: one Franka Panda of pybullet_data (``cdmp demo --kind cdmp|promp``), frame
-  ``panda_link0``;
+  ``panda_link0``; its URDF comes from the caller (``panda_urdf``: the core does not look up
+  pybullet_data);
 - ``dual_panda``: the two Pandas of ``urdf/dual_panda.urdf`` (``cdmp demo --kind dual``), frame
   ``world``, joints of ``left_`` then ``right_`` (the sim's order).
 
@@ -13,7 +14,7 @@ is measured from capsules around the collision geometry of its links
 (:mod:`~cdmp_ros.core.kinematics.capsules`) and from a capsule of :data:`FINGER_RADIUS` around
 the wrist-to-fingertips axis (the fingers are not links of the chain).
 """
-from typing import List, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,7 +38,8 @@ def _panda_links(prefix: str = '') -> List[str]:
 
 
 class DemoRobot:
-    """One of :data:`ROBOTS` (see the module docstring).
+    """One of :data:`ROBOTS` (see the module docstring); ``panda_urdf`` the file of
+    ``panda`` (pybullet_data's ``franka_panda/panda.urdf``), unused by ``dual_panda``.
 
     Attributes
     ----------
@@ -52,13 +54,14 @@ class DemoRobot:
         Per arm, the links whose capsules count in :meth:`clearance`.
     """
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, panda_urdf: Optional[str] = None):
         from cdmp_ros.core.kinematics.builders import PANDA_EE_OFFSET, panda_chain
         from cdmp_ros.core.resources import data_path
         if name == 'panda':
-            import pybullet_data  # the pybullet_data Panda, as the nodes' urdf_path ''
-            import os
-            self.urdf = os.path.join(pybullet_data.getDataPath(), 'franka_panda', 'panda.urdf')
+            if not panda_urdf:
+                raise ValidationError('robot panda: give panda_urdf, the Panda URDF of '
+                                      'pybullet_data (what the nodes load for urdf_path "")')
+            self.urdf = panda_urdf
             self.model = panda_chain(self.urdf)
             self.frame = 'panda_link0'
             self.arm_links = [_panda_links()]

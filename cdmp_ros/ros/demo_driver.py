@@ -57,6 +57,7 @@ from cdmp_ros.core.streaming.selection import primitive_id, read_provenance
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from cdmp_ros.ros import qos
 from cdmp_ros.ros.recorder_take import ThreadTakenGroup, never_called, take_newest
+from cdmp_ros.ros.robot_model import default_urdf_path
 
 #: A reference whose velocity stays below this for REST_TIME is at rest (rad/s).
 REST_SPEED = 0.01
@@ -119,7 +120,7 @@ def parse_args(argv):
                          'world)')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     args = ap.parse_args(argv)
-    n = DemoRobot(args.robot).n_dofs
+    n = DemoRobot(args.robot, default_urdf_path()).n_dofs
     if not args.no_goal_change and len(args.goal_offset) != n:
         ap.error(f'--goal-offset: expected {n} values (one per joint of {args.robot}), got '
                  f'{len(args.goal_offset)}')
@@ -130,7 +131,7 @@ class DemoDriver(Node):
     def __init__(self, args):
         super().__init__('demo_driver')
         self.args = args
-        self.robot = DemoRobot(args.robot)
+        self.robot = DemoRobot(args.robot, default_urdf_path())
         self.frame = args.frame or self.robot.frame
         self.events = {}
         self.diagnostics = {}
