@@ -99,11 +99,13 @@ def test_the_learned_primitive_is_streamed_to_the_sim(graph):
 
 def test_an_obstacle_changes_the_reference_and_the_sim_reports_no_contact(graph):
     from visualization_msgs.msg import Marker, MarkerArray
-    import pybullet_data
-    from cdmp_ros.core.kinematics import PointOfInterest, panda_chain
+    from cdmp_ros.core.demo_robot import DemoRobot
+    from cdmp_ros.core.kinematics import PointOfInterest
+    from cdmp_ros.ros.robot_model import default_urdf_path
     h, b, _ = graph
     assert _rest(h)
-    chain = panda_chain(os.path.join(pybullet_data.getDataPath(), 'franka_panda/panda.urdf'))
+    arm = DemoRobot('panda', default_urdf_path())
+    chain = arm.model
     q0 = h.last_ref()[2]
     ee = chain.forward(q0, [PointOfInterest('ee')])[0]
     m = Marker(ns='test', id=1, type=Marker.SPHERE, action=Marker.ADD)
@@ -130,9 +132,11 @@ def test_an_obstacle_changes_the_reference_and_the_sim_reports_no_contact(graph)
         sim = status(h, 'sim')
         assert int(sim['contacts_since_start']) == contacts0, sim
         assert float(sim['min_obstacle_distance_m']) > 0.0, sim
-        x = chain.forward(h.last_ref()[2], [PointOfInterest('ee')])[0]
-        assert np.linalg.norm(x - [m.pose.position.x, m.pose.position.y, m.pose.position.z]) > \
-            np.linalg.norm(ee - [m.pose.position.x, m.pose.position.y, m.pose.position.z])
+        # the arm as the coupling sees it (capsules from the elbow to the fingers) moved away
+        # from the sphere; the hand alone need not (the links' repellers act too: a soak run
+        # ended with the hand 18.3 cm from the sphere, 20 cm before)
+        c = [m.pose.position.x, m.pose.position.y, m.pose.position.z]
+        assert arm.clearance(h.last_ref()[2], c, 0.04) > arm.clearance(q0, c, 0.04)
     finally:  # the next tests start without the sphere even when this one fails
         h.publish('obstacles', MarkerArray(markers=[Marker(ns='test', action=Marker.DELETEALL)]))
     assert h.wait(lambda: status(h, 'sim', 'obstacles') == '0', TIMEOUT)
