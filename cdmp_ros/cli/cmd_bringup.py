@@ -106,6 +106,23 @@ def _scalar(value) -> str:
     raise ValidationError(f'parameter value {value!r}: expected a scalar or a list')
 
 
+def _nest(parameters: Dict[str, object], into: Dict, strict: bool = False) -> Dict:
+    """``parameters`` (dotted names) put into the nested dict ``into``, one level per dot;
+    returns ``into``. ValidationError for a name below another parameter and, ``strict``, for
+    one that is also the prefix of another (``a`` and ``a.b``)."""
+    for name, value in parameters.items():
+        node = into
+        *path, last = name.split('.')
+        for part in path:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValidationError(f'parameters: {name!r} is below another parameter')
+        if strict and isinstance(node.get(last), dict):
+            raise ValidationError(f'parameters: {name!r} is also the prefix of another')
+        node[last] = value
+    return into
+
+
 def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     """A parameter file (``/**: ros__parameters``, one nesting level per dot of a name) with
     ``parameters``, each value written as its ``-p`` form (:func:`_scalar`: the same type
@@ -120,19 +137,8 @@ def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     ValidationError
         A name that is also the prefix of another (``a`` and ``a.b``).
     """
-    nested: Dict = {}
-    for name, value in parameters.items():
-        if isinstance(value, (list, tuple)) and not value:
-            continue
-        node = nested
-        *path, last = name.split('.')
-        for part in path:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ValidationError(f'parameters: {name!r} is below another parameter')
-        if isinstance(node.get(last), dict):
-            raise ValidationError(f'parameters: {name!r} is also the prefix of another')
-        node[last] = value
+    nested = _nest({k: v for k, v in parameters.items()
+                    if not (isinstance(v, (list, tuple)) and not v)}, {}, strict=True)
 
     def lines(tree: Dict, indent: str) -> List[str]:
         out = []
@@ -186,13 +192,7 @@ class NodeSpec:
             for key in dict.fromkeys(keys):
                 if isinstance(doc.get(key), dict):
                     _merge(params, doc[key].get('ros__parameters') or {})
-        for name, value in self.parameters.items():
-            node = params
-            *path, last = name.split('.')
-            for part in path:
-                node = node.setdefault(part, {})
-            node[last] = value
-        return params
+        return _nest(self.parameters, params)
 
     def command(self) -> List[str]:
         """The argv of the process: the parameter files in order, the inline parameters as

@@ -70,14 +70,6 @@ def _points(robot, links: Sequence[str]) -> List[List[PointOfInterest]]:
             for own in robot.split(links, 'avoid_links')]
 
 
-def _point_positions(robot, Y, points) -> List[NDArray]:
-    """Per arm, the positions ``(..., P_arm, 3)`` of its ``points`` at joint positions
-    ``Y (..., n_dofs)`` (in the robot's joint order)."""
-    flat = Y.reshape(-1, Y.shape[-1])
-    return [chain.forward(flat[:, idx], pts).reshape(Y.shape[:-1] + (len(pts), 3))
-            for (chain, idx), pts in zip(robot.arms, points)]
-
-
 def _rates(inside: NDArray, n_samples: int) -> Dict[str, float]:
     """Trajectory and worst per-step fractions of ``inside (K, n)`` with 95 % bounds."""
     k_traj = int(inside.any(axis=1).sum())
@@ -96,10 +88,10 @@ def sphere_violation(promp, robot, links: Sequence[str], center, radius: float,
     s = np.linspace(0.0, 1.0, n_phases)
     points = _points(robot, links)
     c = np.asarray(center, dtype=float)
-    X = np.concatenate(_point_positions(robot, promp.sample_trajectories(s, n_samples, rng),
-                                        points), axis=-2)            # (K, n, P, 3)
+    X = np.concatenate(robot.positions(promp.sample_trajectories(s, n_samples, rng), points),
+                       axis=-2)                                       # (K, n, P, 3)
     inside = (np.linalg.norm(X - c, axis=-1) < radius).any(axis=2)    # (K, n)
-    mean = np.concatenate(_point_positions(robot, promp.mean(s), points), axis=-2)
+    mean = np.concatenate(robot.positions(promp.mean(s), points), axis=-2)
     return {'n_samples': n_samples, 'n_phases': n_phases, **_rates(inside, n_samples),
             'min_distance_mean_path_m': float(np.linalg.norm(mean - c, axis=-1).min())}
 
@@ -107,7 +99,7 @@ def sphere_violation(promp, robot, links: Sequence[str], center, radius: float,
 def arm_distances(robot, Y, links: Sequence[str]) -> NDArray:
     """Least distance between two points of different arms (each arm's hand and its links of
     ``links``) at joint positions ``Y (..., n_dofs)``: shape ``Y.shape[:-1]``."""
-    X = _point_positions(robot, np.asarray(Y, dtype=float), _points(robot, links))
+    X = robot.positions(Y, _points(robot, links))
     best = np.full(np.shape(Y)[:-1], np.inf)
     for a in range(len(X)):
         for b in range(a + 1, len(X)):

@@ -92,16 +92,21 @@ class DemoRobot:
     def n_arms(self) -> int:
         return len(self.arms)
 
-    def hands(self, Q: ArrayLike) -> NDArray[np.float64]:
-        """Tool centre points ``(..., n_arms, 3)`` at joint positions ``Q`` ``(..., n_dofs)``."""
+    def positions(self, Q: ArrayLike, points: Sequence[Sequence[PointOfInterest]]
+                  ) -> List[NDArray[np.float64]]:
+        """Per arm, the positions ``(..., P_arm, 3)`` of its ``points[arm]`` at joint
+        positions ``Q (..., n_dofs)``."""
         Q = np.asarray(Q, dtype=np.float64)
         if Q.shape[-1] != self.n_dofs:
             raise ValidationError(f'{self.name}: expected joint positions of {self.n_dofs} '
                                   f'joints, got shape {Q.shape}')
         flat = Q.reshape(-1, self.n_dofs)
-        X = np.stack([chain.forward(flat[:, idx], [EE])[:, 0, :] for chain, idx in self.arms],
-                     axis=1)
-        return X.reshape(Q.shape[:-1] + (self.n_arms, 3))
+        return [chain.forward(flat[:, idx], list(pts)).reshape(Q.shape[:-1] + (len(pts), 3))
+                for (chain, idx), pts in zip(self.arms, points)]
+
+    def hands(self, Q: ArrayLike) -> NDArray[np.float64]:
+        """Tool centre points ``(..., n_arms, 3)`` at joint positions ``Q`` ``(..., n_dofs)``."""
+        return np.concatenate(self.positions(Q, [[EE]] * self.n_arms), axis=-2)
 
     def clearance(self, q: ArrayLike, center: ArrayLike, radius: float) -> float:
         """Least distance [m] between a sphere and the capsules of every arm at ``q``

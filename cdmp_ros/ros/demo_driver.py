@@ -35,6 +35,7 @@ arm under the sphere either arm. Timeline:
    with the event times, the obstacle, and the last ``/diagnostics`` status of every node.
 """
 import argparse
+import functools
 import json
 import os
 import sys
@@ -74,6 +75,12 @@ SPAWN_WAIT = 0.15
 #: sampled check failed) never comes: the run then ends, and the summary's adapter_current
 #: says so.
 LAST_ANSWER_WAIT = 15.0
+
+
+@functools.lru_cache(maxsize=None)
+def demo_robot(name: str) -> DemoRobot:
+    """The :class:`DemoRobot` ``name`` (read once: the arguments' check and the node share it)."""
+    return DemoRobot(name, default_urdf_path())
 
 
 def parse_args(argv):
@@ -120,7 +127,7 @@ def parse_args(argv):
                          'world)')
     ap.add_argument('--timeout', type=float, default=40.0, help='s for the whole script')
     args = ap.parse_args(argv)
-    n = DemoRobot(args.robot, default_urdf_path()).n_dofs
+    n = demo_robot(args.robot).n_dofs
     if not args.no_goal_change and len(args.goal_offset) != n:
         ap.error(f'--goal-offset: expected {n} values (one per joint of {args.robot}), got '
                  f'{len(args.goal_offset)}')
@@ -131,7 +138,7 @@ class DemoDriver(Node):
     def __init__(self, args):
         super().__init__('demo_driver')
         self.args = args
-        self.robot = DemoRobot(args.robot, default_urdf_path())
+        self.robot = demo_robot(args.robot)
         self.frame = args.frame or self.robot.frame
         self.events = {}
         self.diagnostics = {}
