@@ -85,6 +85,26 @@ def no_obstacles(d):
     return d['metadata']['adapter']['obstacles_used'] == 0
 
 
+def clear_obstacles(h, kind='promp'):
+    """Remove every obstacle and wait until the adapter took it in: for a ProMP (``kind``, the
+    adapter's primitive) the answer computed without obstacles (returned), for a DMP / CDMP
+    the diagnostics counting none. A test
+    that returned before would race the next test's primitive: the two topics are not ordered,
+    and a late obstacle request supersedes a primitive's pending one (a soak failure of
+    ``use``, which then waited for an answer with trigger 'primitive' that never came)."""
+    from visualization_msgs.msg import Marker, MarkerArray
+    t0 = time.monotonic()
+    n0 = h.n_adapted()
+    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    if kind == 'promp':
+        # (not a refinement of the last request, also triggered by 'obstacles')
+        d = h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles)
+        assert d is not None and d['metadata']['adapter']['obstacles_used'] == 0
+        return d
+    assert h.wait_state(lambda m, lv, kv: kv.get('obstacles') == '0', t0, TIMEOUT)
+    return None
+
+
 def promp_of(d):
     from cdmp_ros.core.primitive_io import promp_from_dict
     return promp_from_dict(d)
@@ -144,18 +164,14 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
     assert len(band) == 10 and all(mk.scale.x > 0 for mk in band)
     obs = [mk for mk in viz if mk.ns == 'obstacles']
     assert len(obs) == 1 and obs[0].scale.x == pytest.approx(0.1)
-    n0 = h.n_adapted()
-    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-    # (not a refinement of the last request, also triggered by 'obstacles')
-    d = h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles)
-    assert d is not None and d['metadata']['adapter']['obstacles_used'] == 0
+    clear_obstacles(h)
 
 
 def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
     """Warm starts (adaptation.warm_start): an obstacle that moved 1 cm is solved from the
     last solution (metadata and diagnostics say so), then refined cold while the solver is
     idle (published only if better); with the parameter off, cold."""
-    from visualization_msgs.msg import Marker, MarkerArray
+    from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     prior = promp_of(use(h, prims, 'promp'))
     centre = ee(chain, prior.mean([0.5]))[0]
@@ -209,9 +225,7 @@ def test_a_moved_obstacle_is_solved_from_the_last_solution(graph, prims, chain):
         assert rep['start'] == 'cold', rep
     finally:
         assert h.set_parameter('adaptation.warm_start', True).successful
-        n0 = h.n_adapted()
-        h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
-        assert h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles) is not None
+        clear_obstacles(h)
 
 
 def test_box_obstacle_becomes_a_wall(graph, prims, chain):
@@ -232,7 +246,7 @@ def test_box_obstacle_becomes_a_wall(graph, prims, chain):
     box = Box(tuple(centre - [0.15, 0.15, 0.05]), tuple(centre + [0.15, 0.15, 0.05]))
     path = ee(chain, promp_of(d).mean(np.linspace(0, 1, 201)))
     assert obstacle_distance(box, path).min() > 0.0
-    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    clear_obstacles(h)
 
 
 def test_goal_and_goal_point_condition_the_end(graph, prims, chain):
@@ -286,7 +300,7 @@ def test_user_constraint_set_is_applied(graph, prims):
 
 
 def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
-    from visualization_msgs.msg import Marker, MarkerArray
+    from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     use(h, prims, 'promp')
     # the robot is inside the sphere; the obstacle's own request continues the running motion
@@ -308,10 +322,8 @@ def test_infeasible_request_keeps_the_last_good_primitive(graph, prims, chain):
     assert 'obstacle 0 (with its margin) contains the ee at the conditioned start' in m
     assert 'p.obstacle_0_ee' in kv and float(kv['p.obstacle_0_ee'].split()[0]) < 0.99
     assert h.n_adapted() == n0
-    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
     # the goal's motion-starting request failed: the next request starts the motion too
-    d = h.wait_adapted(n0, trigger='obstacles', pred=no_obstacles)
-    assert d is not None and d['metadata']['adapter']['continues'] is False
+    assert clear_obstacles(h)['metadata']['adapter']['continues'] is False
     alive(h, proc)
 
 
@@ -372,7 +384,7 @@ def test_cdmp_joint_goals_can_be_left_to_the_streamer(graph, prims):
 
 
 def test_cdmp_obstacles_are_only_shown(graph, prims):
-    from visualization_msgs.msg import Marker, MarkerArray
+    from visualization_msgs.msg import MarkerArray
     h, proc, _ = graph
     use(h, prims, 'cdmp')
     n0 = h.n_adapted()
@@ -380,7 +392,7 @@ def test_cdmp_obstacles_are_only_shown(graph, prims):
     assert h.wait(lambda: any(mk.ns == 'obstacles' for mk in h.last_viz().markers)
                   and any(mk.ns == 'path' for mk in h.last_viz().markers), TIMEOUT)
     assert h.n_adapted() == n0
-    h.publish('obstacles', MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+    clear_obstacles(h, 'cdmp')
 
 
 # -- bad input: one test per case --------------------------------------------------------------
