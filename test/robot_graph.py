@@ -77,10 +77,15 @@ class ReferenceListener(NodeHarness):
         m.scale.x = m.scale.y = m.scale.z = float(diameter)
         self.publish('obstacles', MarkerArray(markers=[m]))
 
-    def clear_obstacles(self) -> None:
+    def clear_obstacles(self) -> bool:
+        """Remove every obstacle; True once the streamer and the sim report none (False after
+        the wait's timeout: callers in ``finally`` blocks do not mask the test's own failure).
+        Waiting keeps a late removal from reaching the next test's nodes."""
         from visualization_msgs.msg import Marker, MarkerArray
         self.publish('obstacles', MarkerArray(markers=[Marker(ns='test',
                                                               action=Marker.DELETEALL)]))
+        return self.wait(lambda: all(self.state(n).get('obstacles') == '0'
+                                     for n in ('streamer', 'sim')))
 
     def rests(self, near=None):
         """The reference rests (every joint velocity of the newest reference below 1e-3

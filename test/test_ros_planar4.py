@@ -102,5 +102,5 @@ def test_a_sphere_beside_the_end_effector_moves_the_reference_away(graph):
     finally:  # the next tests start without the sphere even when this one fails
         h.clear_obstacles()
     assert h.n_refs() > n0 and not h.violations, h.violations[:5]
-    assert h.wait(lambda: h.state('sim').get('obstacles') == '0', TIMEOUT)
+    assert h.state('sim').get('obstacles') == '0' == h.state('streamer').get('obstacles')
     assert h.state('sim')['reflex_errors'] == '0', h.state('sim')
