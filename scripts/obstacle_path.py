@@ -383,10 +383,13 @@ def measure(sphere: Sequence[float] = DEFAULT_SPHERE, marker: str = 'sphere',
         text = primitive if primitive is not None else reach_primitive(
             st.joint_names, st.lower, st.upper)
         _deliver(_subscription(node, 'primitive'), serialize_message(String(data=text)))
-        tick_until(lambda: st.active is not None,
-                   'the primitive to be prepared and switched in')
-        if st.state is not StreamState.RUNNING:
-            raise RuntimeError(f'the streamer is {st.state.value}: {st.reason}')
+        # running, not merely active: the tick thread sets ``active`` before it starts the
+        # stepper (a soak run read the state in between: "holding: waiting for a primitive")
+        try:
+            tick_until(lambda: st.active is not None and st.state is StreamState.RUNNING,
+                       'the primitive to be prepared and switched in')
+        except RuntimeError as exc:
+            raise RuntimeError(f'{exc}; the streamer is {st.state.value}: {st.reason}') from None
         n0 = len(published)
         tick_until(lambda: len(published) >= n0 + WARM_TICKS, 'references without obstacles')
         if node.counts['coupled'] or len(node.obstacles) or node._latency_pending_ns:
