@@ -88,10 +88,10 @@ def no_obstacles(d):
 def clear_obstacles(h, kind='promp'):
     """Remove every obstacle and wait until the adapter took it in: for a ProMP (``kind``, the
     adapter's primitive) the answer computed without obstacles (returned), for a DMP / CDMP
-    the diagnostics counting none. A test
-    that returned before would race the next test's primitive: the two topics are not ordered,
-    and a late obstacle request supersedes a primitive's pending one (a soak failure of
-    ``use``, which then waited for an answer with trigger 'primitive' that never came)."""
+    the diagnostics counting none. A test that returned before would race the next test's
+    primitive: the two topics are not ordered, and a late obstacle request supersedes a
+    primitive's pending one (a soak failure of ``use``, which then waited for an answer with
+    trigger 'primitive' that never came)."""
     from visualization_msgs.msg import Marker, MarkerArray
     t0 = time.monotonic()
     n0 = h.n_adapted()
