@@ -177,11 +177,16 @@ def test_stop_halts_refuses_and_reset_lets_references_through(graph):
         assert 'panda_joint2 velocity' in m and kv['state'] == 'reflex'
         assert int(kv['reflex_errors']) == errors0 + 1
         # every further reference is refused (counted), even a smooth one; the robot holds
+        # (at least half of the 50 handled: the sim's reader keeps the newest 10, so on a
+        # loaded machine a stalled executor finds some overwritten, as in received_after; a
+        # CI run failed waiting for all 50. None of them may be accepted.)
+        received0 = value(h, 'references_received')
         far = mid + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         t_ns = publish_stream(h, min_jerk(mid, far, 50), t_ns)
         _, _, kv = fresh_state(h, lambda m, kv: int(kv['references_refused_reflex'])
-                               >= refused0 + 50)
+                               >= refused0 + 25)
         assert kv['reflex_stopped'] == 'true'
+        assert int(kv['references_received']) == received0, (kv, received0)
         n0 = h.n_states()
         assert h.wait(lambda: h.n_states() >= n0 + 50, TIMEOUT)   # 0.2 s of robot time
         assert np.abs(h.q() - mid).max() < 2e-3, h.q() - mid       # held, never went to far
