@@ -16,10 +16,10 @@ as the streamer does (``prim.stepper(dt, velocity_limits=vmax)``), each in a fre
   path) and without them (the fast path);
 - the largest joint difference [rad] of the stepper's positions from the vectorised rollout
   (``prim.rollout``: the forcing evaluated exactly at every step, integrated by the equivalent
-  second-order recursion with ``lfilter``) over the whole movement. Over 1e5 steps the two
-  recursions' rounding alone differs by up to 1e-8 rad (the same with the earlier stepper); the
-  tests compare with the stepper's own scheme run with the exact forcing instead
-  (test/test_core_stepper_memory.py).
+  second-order recursion, ``cdmp_ros.core.dmp.recursion``) over the whole movement. Over 1e5
+  steps the two recursions' rounding alone differs by up to 1e-8 rad (the same with the
+  earlier stepper); the tests compare with the stepper's own scheme run with the exact forcing
+  instead (test/test_core_stepper_memory.py).
 
 With ``--reference FILE`` (another version of ``cdmp_ros/core/dmp/stepper.py``, e.g.
 ``git show <commit>:cdmp_ros/core/dmp/stepper.py > /tmp/old_stepper.py``) the per-step cost of

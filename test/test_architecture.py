@@ -234,3 +234,25 @@ def test_layer_importable_without_ros(module, banned):
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
+
+
+@pytest.mark.parametrize('module, banned', [
+    ('cdmp_ros.ros.streamer_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
+    ('cdmp_ros.ros.learner_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
+    ('cdmp_ros.ros.sim_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
+    ('cdmp_ros.ros.adapter_node', ('scipy.signal',)),
+    ('cdmp_ros.cli.main', ('scipy', 'rclpy', 'pybullet', 'matplotlib')),
+])
+def test_start_imports_stay_light(module, banned):
+    """What a process imports before it can work: scipy.signal alone costs about 1.1 s of CPU
+    (it pulls in scipy.stats, interpolate, ndimage), paid by every node start and ``cdmp``
+    command. The nodes import only what they use (the adapter needs optimize and stats), and
+    ``cdmp``'s subcommands import theirs inside ``run``."""
+    import subprocess
+    code = (f'import sys, {module}\n'
+            f'bad = [m for m in sys.modules if m in {banned!r} or m.split(".")[0] in {banned!r}]\n'
+            'assert not bad, bad\n')
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, AMENT_PREFIX_PATH=os.path.dirname(
+                              os.path.dirname(sys.executable))))
+    assert proc.returncode == 0, proc.stderr

@@ -33,7 +33,6 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
-from cdmp_ros.core.adaptation.verification import clopper_pearson_upper
 from cdmp_ros.experiments.results import row, write_results
 
 NAME = 'dual-arm'
@@ -353,6 +352,7 @@ def solve(seed: int = 0, n_basis: int = 8, n_steps: int = 50, n_samples: int = 1
     """Learn, adapt and check; returns (rows, artefacts for the figures and the tests)."""
     from tqdm import tqdm
     from cdmp_ros.core.adaptation.guarantee import adapt
+    from cdmp_ros.core.adaptation.verification import clopper_pearson_upper
     rng = np.random.default_rng(seed)
     prior = learn_prior(load_demonstrations(bags), n_basis)
     chains = cell_chains()

@@ -11,18 +11,19 @@ With the scaled velocity ``z = tau * dx/dt`` the transformation system (Eq. 13/2
 semi-implicit Euler with a fixed step ``dt``.
 
 Two integrators share these equations: :meth:`DMP.rollout` (vectorised over time when no
-state-dependent coupling is given, through the equivalent second-order linear recursion and
-``scipy.signal.lfilter``) and :class:`cdmp_ros.core.dmp.stepper.DmpStepper` (one step per call, for
-streaming). They agree to rounding (tested).
+state-dependent coupling is given, through the equivalent second-order linear recursion,
+:func:`cdmp_ros.core.dmp.recursion.second_order_recursion`) and
+:class:`cdmp_ros.core.dmp.stepper.DmpStepper` (one step per call, for streaming). They agree to
+rounding (tested).
 """
 from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.signal import lfilter
 
 from cdmp_ros.core.dmp.basis import PhaseBasis
+from cdmp_ros.core.dmp.recursion import second_order_recursion
 from cdmp_ros.core.config_fields import check_fields, param
 from cdmp_ros.core.coupling.contract import Coupling
 from cdmp_ros.core.errors import CdmpError, ValidationError
@@ -354,8 +355,7 @@ class DMP:
             # x_{k+1} = tr x_k - det x_{k-1} + h^2 u_k, the semi-implicit Euler recursion.
             tr = 2.0 - h * a - h * h * ab
             det = 1.0 - h * a
-            zi = np.stack([tr * X[1] - det * X[0], -det * X[1]])
-            X[2:], _ = lfilter([h * h, 0.0, 0.0], [1.0, -tr, det], U[1:-1], axis=0, zi=zi)
+            X[2:] = second_order_recursion(tr, det, h * h, U[1:-1], X[1], X[0])
             Z[2:] = (X[2:] - X[1:-1]) / h
         if not np.all(np.isfinite(X)) or np.max(np.abs(X)) > self.x_clamp:
             return None  # needs the clamps of the step-by-step integrator
