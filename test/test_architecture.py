@@ -240,13 +240,13 @@ def test_layer_importable_without_ros(module, banned):
     ('cdmp_ros.ros.streamer_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
     ('cdmp_ros.ros.learner_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
     ('cdmp_ros.ros.sim_node', ('scipy.signal', 'scipy.stats', 'scipy.optimize')),
-    ('cdmp_ros.ros.adapter_node', ('scipy.signal',)),
+    ('cdmp_ros.ros.adapter_node', ('scipy.signal', 'scipy.stats')),
     ('cdmp_ros.cli.main', ('scipy', 'rclpy', 'pybullet', 'matplotlib')),
 ])
 def test_start_imports_stay_light(module, banned):
     """What a process imports before it can work: scipy.signal alone costs about 1.1 s of CPU
     (it pulls in scipy.stats, interpolate, ndimage), paid by every node start and ``cdmp``
-    command. The nodes import only what they use (the adapter needs optimize and stats), and
+    command. The nodes import only what they use (the adapter needs scipy.optimize), and
     ``cdmp``'s subcommands import theirs inside ``run``."""
     import subprocess
     code = (f'import sys, {module}\n'

@@ -42,6 +42,28 @@ def test_clopper_pearson_and_critical_count_closed_forms():
     assert binom.sf(c, 20000, 1e-3) <= 1e-4 < binom.sf(c - 1, 20000, 1e-3)
 
 
+@pytest.mark.parametrize('n', [1, 2, 10, 100, 1000, 2000, 10000, 20000])
+def test_the_bounds_equal_scipy_stats(n):
+    """The three binomial quantities come from scipy.special (the adapter does not import
+    scipy.stats at its start); scipy.stats is their oracle, on a grid of counts and levels."""
+    from scipy.stats import beta, binom
+    k = np.unique(np.linspace(0, n, 12).astype(int))
+    for conf in (0.5, 0.95, 0.99):
+        np.testing.assert_allclose(clopper_pearson_upper(k, n, conf), np.where(
+            k < n, beta.ppf(conf, k + 1.0, np.maximum(n - k, 1)), 1.0), rtol=1e-10)
+    for p in (0.0, 1e-5, 1e-3, 0.05, 0.5, 1.0):
+        for level in (1e-6, 1e-4, 0.01, 0.05, 0.5, 0.999):
+            critical_count.cache_clear()
+            c, ref = critical_count(n, p, level), int(binom.isf(level, n, p))
+            # equal, or one apart where P(Bin > the smaller) equals the level to rounding
+            assert c == ref or (abs(c - ref) == 1 and binom.sf(min(c, ref), n, p)
+                                == pytest.approx(level, rel=1e-12)), (p, level, c, ref)
+    for accepted in {0, n // 3, n - 1}:
+        kk = accepted + 1
+        assert detectable_violation(n, accepted, 0.9) == pytest.approx(
+            beta.ppf(0.9, kk, n - kk + 1), rel=1e-10)
+
+
 def test_single_step_matches_the_gaussian_closed_form():
     """1-D, one time step: the violation probability is 1 - Phi((b - m) / s)."""
     p = _promp_1d()
