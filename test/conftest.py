@@ -25,11 +25,13 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('ROS_DOMAIN_ID', str(random.Random(os.getpid()).randint(100, 199)))
 os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
 os.environ.setdefault('MPLBACKEND', 'Agg')
-# Kernels generated at run time (cdmp_ros.core.generated) go into a directory of this session,
-# inherited by the node processes, removed at its end: the user's ~/.cache stays untouched.
-if 'CDMP_ROS_KERNEL_CACHE' not in os.environ:
-    os.environ['CDMP_ROS_KERNEL_CACHE'] = tempfile.mkdtemp(prefix='cdmp_ros_kernels_')
-    atexit.register(shutil.rmtree, os.environ['CDMP_ROS_KERNEL_CACHE'], True)
+# The caches (cdmp_ros.core.cache: kernels generated at run time, fitted capsules) go into a
+# directory of this session, inherited by the node processes, removed at its end: the user's
+# ~/.cache stays untouched.
+if 'CDMP_ROS_CACHE' not in os.environ:
+    os.environ['CDMP_ROS_CACHE'] = tempfile.mkdtemp(prefix='cdmp_ros_cache_')
+    atexit.register(shutil.rmtree, os.environ['CDMP_ROS_CACHE'], True)
+os.environ.pop('CDMP_ROS_KERNEL_CACHE', None)  # a kernel cache of the user's is not used
 
 
 def load_script(name: str):

@@ -224,3 +224,42 @@ def test_arm_capsules_sphere_clearance_against_the_link_frames(rng):
                                      PointOfInterest(cap.link, cap.end)])
             want = min(want, _segment_distance(c, a, b) - cap.radius - r)
         assert arm.sphere_clearance(q, c, r) == pytest.approx(want, abs=1e-12)
+
+
+def test_fitted_capsules_are_cached_checked_on_reading_and_refitted_when_wrong(
+        tmp_path, monkeypatch):
+    """A fit (0.1-0.3 s per link, and scipy.optimize's import) is done once per set of balls:
+    the second process reads it from the capsule cache. A cached capsule is used only if it
+    encloses every ball: one shrunk, malformed or not finite in the file is fitted again."""
+    import json
+
+    from cdmp_ros.core import cache
+    from cdmp_ros.core.kinematics import capsules
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path))
+    path = default_urdf_path()
+    fits = []
+    real_fit = capsules.fit_capsule
+    monkeypatch.setattr(capsules, 'fit_capsule', lambda *a: fits.append(1) or real_fit(*a))
+    first = collision_capsules(path, PANDA_LINKS[:3])
+    assert len(fits) == 3
+    files = sorted((tmp_path / 'capsules').glob('capsule_*.json'))
+    assert len(files) == 3
+    assert os.stat(tmp_path / 'capsules').st_mode & 0o777 == 0o700
+    again = collision_capsules(path, PANDA_LINKS[:3])
+    assert len(fits) == 3 and again == first  # read back, bit for bit
+    root = ET.parse(path).getroot()
+    links = {el.get('name'): el for el in root.findall('link')}
+    for cap in again:
+        centres, rho = collision_balls(links[cap.link], os.path.dirname(path), cap.link)
+        assert capsules.encloses(cap.start, cap.end, cap.radius, centres, rho)
+    # a wrong file: shrunk by 1 mm, malformed, not finite, huge: each is fitted again
+    for bad in (lambda d: dict(d, radius=d['radius'] - 1e-3), lambda d: {'start': 1},
+                lambda d: dict(d, radius=float('nan')), lambda d: dict(d, end=[0, 0])):
+        d = json.loads(files[0].read_text())
+        files[0].write_text(json.dumps(bad(d)))
+        n = len(fits)
+        assert collision_capsules(path, PANDA_LINKS[:3]) == first
+        assert len(fits) == n + 1
+    files[0].write_text('x' * 5000)  # longer than any capsule file: not read
+    n = len(fits)
+    assert collision_capsules(path, PANDA_LINKS[:3]) == first and len(fits) == n + 1

@@ -57,6 +57,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import yaml
 
+from cdmp_ros.core import cache
 from cdmp_ros.core.errors import CdmpError, ValidationError
 from cdmp_ros.common.node_signals import DUMP_SIGNAL
 from cdmp_ros.common.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
@@ -126,11 +127,10 @@ def _nest(parameters: Dict[str, object], into: Dict, strict: bool = False) -> Di
 def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     """A parameter file (``/**: ros__parameters``, one nesting level per dot of a name) with
     ``parameters``, each value written as its ``-p`` form (:func:`_scalar`: the same type
-    whichever of the two rcl reads), in the user's cache
-    (``$XDG_CACHE_HOME/cdmp_ros/parameters``, default ``~/.cache``, mode 0700), named by the
-    hash of its text (the same parameters, the same file; written once). Empty lists stay
-    out of it (rcl reads ``[]`` in a file as a parameter without a value); None when nothing
-    else is left.
+    whichever of the two rcl reads), in the user's cache (:mod:`cdmp_ros.core.cache`, kind
+    ``parameters``: ``~/.cache/cdmp_ros/parameters``, mode 0700), named by the hash of its
+    text (the same parameters, the same file; written once). Empty lists stay out of it (rcl
+    reads ``[]`` in a file as a parameter without a value); None when nothing else is left.
 
     Raises
     ------
@@ -151,15 +151,10 @@ def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     if not nested:
         return None
     text = '\n'.join(['/**:', '  ros__parameters:'] + lines(nested, '    ')) + '\n'
-    cache = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    folder = os.path.join(cache, 'cdmp_ros', 'parameters')
-    os.makedirs(folder, mode=0o700, exist_ok=True)
-    path = os.path.join(folder, hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml')
-    if not os.path.exists(path):
-        tmp = f'{path}.{os.getpid()}'
-        with open(tmp, 'w') as f:
-            f.write(text)
-        os.replace(tmp, path)
+    path, errors = cache.store(hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml', text,
+                               (cache.cache_dir('parameters'), cache.fallback_dir('parameters')))
+    if path is None:
+        raise ValidationError(f'cannot write a parameter file: {"; ".join(errors)}')
     return path
 
 

@@ -25,12 +25,12 @@ import hashlib
 import math
 import os
 import re
-import tempfile
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import pybullet_data
 
+from cdmp_ros.core import cache
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics import DUAL_PANDA_DISTANCE, PANDA_EE_OFFSET
 from cdmp_ros.core.resources import data_path
@@ -147,7 +147,7 @@ def panda_spec(home: Optional[Sequence[float]] = None, finger_opening: float = 0
         ``'fixed'``: finger joints fixed in a generated URDF copy (exact dynamics model);
         ``'held'``: stock URDF, fingers held by pybullet position motors.
     cache_dir : str, optional
-        Where the generated URDF is written (default ``$TMPDIR/cdmp_ros_urdf``).
+        Where the generated URDF is written (default: the URDF cache, :mod:`cdmp_ros.core.cache`).
     """
     o = _check_opening(finger_opening)
     home = PANDA_HOME if home is None else tuple(home)
@@ -258,21 +258,20 @@ def planar_arm_urdf_path(cache_dir: Optional[str] = None, **kwargs) -> str:
 
     The file name is the hash of its content, so equal arms share one file and concurrent
     writers cannot corrupt it (atomic rename). ``cache_dir`` defaults to
-    ``$TMPDIR/cdmp_ros_urdf``.
+    the URDF cache (:mod:`cdmp_ros.core.cache`).
     """
     return _cached_file(planar_arm_urdf(**kwargs), 'planar_arm', cache_dir)
 
 
 def _cached_file(text: str, prefix: str, cache_dir: Optional[str]) -> str:
-    cache_dir = cache_dir or os.path.join(tempfile.gettempdir(), 'cdmp_ros_urdf')
-    os.makedirs(cache_dir, exist_ok=True)
-    digest = hashlib.sha1(text.encode()).hexdigest()[:16]
-    path = os.path.join(cache_dir, f'{prefix}_{digest}.urdf')
-    if not os.path.isfile(path):
-        fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix='.urdf.tmp')
-        with os.fdopen(fd, 'w') as f:
-            f.write(text)
-        os.replace(tmp, path)
+    """``text`` as a content-addressed file in ``cache_dir``, default the URDF cache
+    (:mod:`cdmp_ros.core.cache`, kind ``urdf``)."""
+    filename = f'{prefix}_{hashlib.sha1(text.encode()).hexdigest()[:16]}.urdf'
+    dirs = (cache_dir,) if cache_dir else (cache.cache_dir('urdf'), cache.fallback_dir('urdf'))
+    path, errors = cache.store(filename, text, dirs)
+    if path is None:
+        raise ValidationError(f'cannot write the generated URDF {filename}: '
+                              f'{"; ".join(errors)}')
     return path
 
 

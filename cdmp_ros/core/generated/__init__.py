@@ -13,8 +13,9 @@ source into a function whose code lives in a file:
   written by ``python scripts/gen_kernels.py``; test/test_core_generated.py regenerates them
   and fails on any difference;
 - else a module in the kernel cache (:func:`cache_dir`: ``$CDMP_ROS_KERNEL_CACHE``, else
-  ``$XDG_CACHE_HOME/cdmp_ros/kernels`` or ``~/.cache/cdmp_ros/kernels``; :func:`fallback_dir`
-  if that is not usable), named after the function and the hash of its source, with a header
+  ``$CDMP_ROS_CACHE/kernels``, ``$XDG_CACHE_HOME/cdmp_ros/kernels`` or
+  ``~/.cache/cdmp_ros/kernels``, :mod:`cdmp_ros.core.cache`; :func:`fallback_dir` if that is
+  not usable), named after the function and the hash of its source, with a header
   naming the generator and the configuration. Code is imported from these directories, so
   they must belong to the user and be closed to writes of others (else the source is compiled
   in memory).
@@ -24,13 +25,12 @@ Either way tracebacks and profiles point into a file whose first lines say what 
 import hashlib
 import importlib
 import importlib.util
-import os
 import re
-import stat
-import tempfile
 import textwrap
 import threading
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+from cdmp_ros.core import cache
 
 __all__ = ['load_generated', 'lookup', 'cache_dir', 'fallback_dir', 'source_hash',
            'render_module', 'render_index', 'wrap_line']
@@ -153,11 +153,7 @@ def render_index(entries: Dict[str, Tuple[str, str]]) -> str:
 
 def cache_dir() -> str:
     """Directory of the kernels written at run time (module docstring)."""
-    env = os.environ.get('CDMP_ROS_KERNEL_CACHE')
-    if env:
-        return env
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return os.path.join(base, 'cdmp_ros', 'kernels')
+    return cache.cache_dir('kernels', 'CDMP_ROS_KERNEL_CACHE')
 
 
 _LOADED: Dict[str, Callable] = {}
@@ -166,43 +162,7 @@ _LOCK = threading.Lock()
 
 def fallback_dir() -> str:
     """The temporary directory of the kernels when :func:`cache_dir` is not writable."""
-    return os.path.join(tempfile.gettempdir(), f'cdmp_ros_kernels_{os.getuid()}')
-
-
-def _private_dir(directory: str) -> Optional[str]:
-    """Create ``directory`` (mode 0700) if needed; what is wrong with it, or None when it is a
-    directory of this user that no one else may write (code is imported from it)."""
-    os.makedirs(directory, mode=0o700, exist_ok=True)
-    st = os.lstat(directory)
-    if (not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid()
-            or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
-        return f'not a directory of uid {os.getuid()} closed to others'
-    return None
-
-
-def _write(directory: str, filename: str, text: str) -> str:
-    """``text`` as ``directory/filename`` (kept if already identical; written atomically), in
-    a directory :func:`_private_dir` accepted."""
-    path = os.path.join(directory, filename)
-    try:
-        with open(path, encoding='utf-8') as f:
-            if f.read() == text:
-                return path
-    except OSError:
-        pass
-    fd, tmp = tempfile.mkstemp(prefix='.' + filename, dir=directory)
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return path
+    return cache.fallback_dir('kernels')
 
 
 def _cached(source: str, name: str, text: str) -> Callable:
@@ -210,17 +170,7 @@ def _cached(source: str, name: str, text: str) -> Callable:
     directory) and imported from there; compiled in memory only if neither is usable."""
     key = source_hash(source)
     filename = f'{name}_{key[:20]}.py'
-    path = None
-    errors = []
-    for directory in (cache_dir(), fallback_dir()):
-        try:
-            problem = _private_dir(directory)
-            if problem is None:
-                path = _write(directory, filename, text)
-                break
-            errors.append(f'{directory}: {problem}')
-        except OSError as exc:
-            errors.append(f'{directory}: {exc}')
+    path, errors = cache.store(filename, text, (cache_dir(), fallback_dir()))
     if path is None:
         scope: dict = {}
         exec(compile(text, f'<generated, not written: {"; ".join(errors)}>', 'exec'),  # noqa: S102

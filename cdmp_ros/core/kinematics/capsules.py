@@ -28,6 +28,8 @@ The capsule of least volume found wins (a local search: small, not proven minima
 guaranteed is the enclosure). A capsule is convex, so enclosing a mesh's vertices encloses
 the mesh.
 """
+import hashlib
+import json
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -36,6 +38,7 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 from numpy.typing import NDArray
 
+from cdmp_ros.core import cache
 from cdmp_ros.core.errors import ValidationError
 from cdmp_ros.core.kinematics.chain import PointOfInterest
 from cdmp_ros.core.kinematics.closest import segment_sphere
@@ -54,6 +57,9 @@ MAX_MESH_BYTES = 50_000_000
 #: distance that rounding moves a point of the axis.
 ENDS_DECIMALS = 9
 ENDS_ROUNDING = 1e-9
+
+with open(__file__, 'rb') as _f:  # a fitted capsule is cached under this source's hash too
+    _SOURCE_HASH = hashlib.sha256(_f.read()).digest()
 
 
 @dataclass(frozen=True)
@@ -285,13 +291,52 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
         if link not in by_name:
             raise ValidationError(f'links[{i}]: no link {link!r} in {path!r}')
         centres, radii = collision_balls(by_name[link], mesh_dir, f'link {link!r}')
-        a, b, r = fit_capsule(centres, radii)
-        # ends rounded to ENDS_DECIMALS: the fit's last bits follow the CPU's BLAS kernels, the
-        # generated coupling kernels (their source and its hash) must not; the radius grows by
-        # the rounding so that the capsule still encloses the balls
-        a, b = (tuple(round(float(v), ENDS_DECIMALS) for v in e) for e in (a, b))
-        out.append(Capsule(link, a, b, float(r) + ENDS_ROUNDING))
+        out.append(Capsule(link, *link_capsule(centres, radii)))
     return out
+
+
+def link_capsule(centres: NDArray, radii: NDArray) -> Tuple[Vec3, Vec3, float]:
+    """``(start, end, radius)`` of the capsule :func:`collision_capsules` gives a link with
+    these balls: :func:`fit_capsule`, its ends rounded to ENDS_DECIMALS (the fit's last bits
+    follow the CPU's BLAS kernels, the generated coupling kernels, their source and its hash,
+    must not), its radius grown by the rounding so that it still encloses the balls.
+
+    A fit costs 0.1-0.3 s and its import of scipy.optimize 0.7 s, at every streamer start: the
+    result is kept in the capsule cache (:mod:`cdmp_ros.core.cache`, kind ``capsules``), under
+    the SHA-256 of the balls and of this module's source, and a capsule read back is used only
+    if it encloses every ball (:func:`encloses`); else it is fitted again."""
+    X = np.ascontiguousarray(centres, dtype=np.float64)
+    rho = np.ascontiguousarray(radii, dtype=np.float64)
+    key = hashlib.sha256(_SOURCE_HASH + repr((X.shape, rho.shape)).encode() + X.tobytes()
+                         + rho.tobytes()).hexdigest()[:32]
+    filename = f'capsule_{key}.json'
+    dirs = (cache.cache_dir('capsules'), cache.fallback_dir('capsules'))
+    text = cache.read(filename, dirs, max_bytes=1000)
+    if text is not None:
+        try:
+            d = json.loads(text)
+            a, b = tuple(map(float, d['start'])), tuple(map(float, d['end']))
+            r = float(d['radius'])
+            if len(a) == 3 and len(b) == 3 and encloses(a, b, r, X, rho):
+                return a, b, r
+        except (ValueError, KeyError, TypeError):
+            pass
+    a, b, r = fit_capsule(X, rho)
+    a, b = (tuple(round(float(v), ENDS_DECIMALS) for v in e) for e in (a, b))
+    r = float(r) + ENDS_ROUNDING
+    cache.store(filename, json.dumps({'start': a, 'end': b, 'radius': r}), dirs)
+    return a, b, r
+
+
+def encloses(start: Sequence[float], end: Sequence[float], radius: float, centres: NDArray,
+             radii: NDArray) -> bool:
+    """Whether the capsule (``start``, ``end``, ``radius``) contains every ball (``centres``
+    (N, 3), ``radii`` (N,)); False for non-finite numbers."""
+    if not (np.all(np.isfinite(start)) and np.all(np.isfinite(end)) and np.isfinite(radius)):
+        return False
+    d = segment_sphere(np.asarray(start, float), np.asarray(end, float), centres, 0.0,
+                       float(radius))[1]
+    return bool(np.all(d + radii <= 0.0))
 
 
 class ArmCapsules:
