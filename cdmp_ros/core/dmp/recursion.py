@@ -12,6 +12,8 @@ interpolate and ndimage), and every node process that rolls a primitive out (str
 learner, adapter) paid it at start. The results agree with lfilter to rounding (tested, lfilter
 is the oracle in the tests).
 """
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,13 +48,7 @@ def second_order_recursion(tr: float, det: float, gain: float, v: NDArray, y_pre
         return np.empty_like(v)
     n_block = max(2, min(BLOCK, m))  # the carry reads the two last steps of a block
     nb = -(-m // n_block)
-    g = impulse_response(tr, det, n_block + 1)
-    lag = np.subtract.outer(np.arange(n_block), np.arange(n_block))
-    # [gain * Toeplitz(g) | weights of y[s-1] | weights of y[s-2]]: one block from its state
-    W = np.empty((n_block, n_block + 2))
-    W[:, :n_block] = np.where(lag >= 0, gain * g[np.maximum(lag, 0)], 0.0)
-    W[:, n_block] = g[1:]
-    W[:, n_block + 1] = -det * g[:n_block]
+    W = _block_matrix(float(tr), float(det), float(gain), n_block)
     # columns: (block, element); rows: the steps of a block, then the block's start state
     cols = int(np.prod(rest, dtype=int))
     X = np.zeros((n_block + 2, nb, cols))
@@ -71,6 +67,20 @@ def second_order_recursion(tr: float, det: float, gain: float, v: NDArray, y_pre
         s1, s2 = a1 * s1 + b1 * s2 + P[1, k], a2 * s1 + b2 * s2 + P[0, k]
     Y = (W @ X2).reshape(n_block, nb, cols)
     return Y.transpose(1, 0, 2).reshape((nb * n_block,) + rest)[:m]
+
+
+@functools.lru_cache(maxsize=32)
+def _block_matrix(tr: float, det: float, gain: float, n_block: int) -> NDArray:
+    """``[gain * Toeplitz(g) | weights of y[s-1] | weights of y[s-2]]`` (n_block, n_block + 2):
+    one block from its start state; cached (rollouts of one primitive share their step)."""
+    g = impulse_response(tr, det, n_block + 1)
+    lag = np.subtract.outer(np.arange(n_block), np.arange(n_block))
+    W = np.empty((n_block, n_block + 2))
+    W[:, :n_block] = np.where(lag >= 0, gain * g[np.maximum(lag, 0)], 0.0)
+    W[:, n_block] = g[1:]
+    W[:, n_block + 1] = -det * g[:n_block]
+    W.setflags(write=False)
+    return W
 
 
 def _blocks(v: NDArray, n_block: int, nb: int) -> NDArray:
