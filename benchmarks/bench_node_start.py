@@ -40,7 +40,7 @@ def ros_env(domain: int, code: str, cache: str) -> dict:
     e = dict(os.environ)
     e.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID=str(domain),
              AMENT_PREFIX_PATH=sys.prefix, PYTHONUNBUFFERED='1', PYTHONPATH=code,
-             CDMP_ROS_CACHE=cache)
+             CDMP_ROS_CACHE=cache, XDG_CACHE_HOME=cache)  # XDG: code older than CDMP_ROS_CACHE
     e.pop('CDMP_ROS_KERNEL_CACHE', None)
     return e
 

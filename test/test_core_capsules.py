@@ -252,11 +252,14 @@ def test_fitted_capsules_are_cached_checked_on_reading_and_refitted_when_wrong(
     for cap in again:
         centres, rho = collision_balls(links[cap.link], os.path.dirname(path), cap.link)
         assert capsules.encloses(cap.start, cap.end, cap.radius, centres, rho)
-    # a wrong file: shrunk by 1 mm, malformed, not finite, huge: each is fitted again
+    # a wrong file: shrunk by 1 mm, malformed, not finite, an end of 2 numbers, enclosing
+    # but 1e300 wide, a number too large for a float: each is fitted again
+    good = files[0].read_text()
     for bad in (lambda d: dict(d, radius=d['radius'] - 1e-3), lambda d: {'start': 1},
-                lambda d: dict(d, radius=float('nan')), lambda d: dict(d, end=[0, 0])):
-        d = json.loads(files[0].read_text())
-        files[0].write_text(json.dumps(bad(d)))
+                lambda d: dict(d, radius=float('nan')), lambda d: dict(d, end=[0, 0]),
+                lambda d: dict(d, radius=1e300), lambda d: '{"radius": 1' + '0' * 400 + '}'):
+        d = bad(json.loads(good))
+        files[0].write_text(d if isinstance(d, str) else json.dumps(d))
         n = len(fits)
         assert collision_capsules(path, PANDA_LINKS[:3]) == first
         assert len(fits) == n + 1

@@ -1,12 +1,12 @@
 """The rollout's second-order linear recursion (``cdmp_ros.core.dmp.recursion``) against its
-oracle, ``scipy.signal.lfilter``, which computes the same recursion step by step: block
-boundaries, shapes, the coefficients of DMPs at every dt the package uses, and a non-DMP
+oracle, ``scipy.signal.lfilter``, which computes the same recursion step by step: block and
+chunk boundaries, shapes, the coefficients of DMPs at every dt the package uses, and a non-DMP
 (oscillating, nearly unstable) recursion."""
 import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from cdmp_ros.core.dmp.recursion import BLOCK, impulse_response, second_order_recursion
+from cdmp_ros.core.dmp.recursion import BLOCK, CHUNK, impulse_response, second_order_recursion
 
 
 def oracle(tr, det, gain, v, y1, y2):
@@ -18,7 +18,8 @@ def dmp_coefficients(h, alpha=25.0, beta=6.25):
     return 2.0 - h * alpha - h * h * alpha * beta, 1.0 - h * alpha, h * h
 
 
-@pytest.mark.parametrize('m', [1, 2, 3, BLOCK - 1, BLOCK, BLOCK + 1, 2 * BLOCK + 7, 20_000])
+@pytest.mark.parametrize('m', [1, 2, 3, BLOCK - 1, BLOCK, BLOCK + 1, 2 * BLOCK + 7, CHUNK + 1,
+                               2 * CHUNK + 300])
 @pytest.mark.parametrize('h', [0.0005, 0.002, 0.01, 0.05])
 def test_equals_lfilter_across_block_boundaries(m, h):
     rng = np.random.default_rng(m)

@@ -151,11 +151,8 @@ def inline_parameters_file(parameters: Dict[str, object]) -> Optional[str]:
     if not nested:
         return None
     text = '\n'.join(['/**:', '  ros__parameters:'] + lines(nested, '    ')) + '\n'
-    path, errors = cache.store(hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml', text,
-                               (cache.cache_dir('parameters'), cache.fallback_dir('parameters')))
-    if path is None:
-        raise ValidationError(f'cannot write a parameter file: {"; ".join(errors)}')
-    return path
+    return cache.store_or_raise(hashlib.sha1(text.encode()).hexdigest()[:16] + '.yaml', text,
+                                cache.locations('parameters'), 'a parameter file')
 
 
 @dataclass(frozen=True)

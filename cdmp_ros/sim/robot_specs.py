@@ -147,7 +147,8 @@ def panda_spec(home: Optional[Sequence[float]] = None, finger_opening: float = 0
         ``'fixed'``: finger joints fixed in a generated URDF copy (exact dynamics model);
         ``'held'``: stock URDF, fingers held by pybullet position motors.
     cache_dir : str, optional
-        Where the generated URDF is written (default: the URDF cache, :mod:`cdmp_ros.core.cache`).
+        Where the generated URDF is written (default: the URDF cache,
+        :mod:`cdmp_ros.core.cache`); a directory of this user that no one else may write.
     """
     o = _check_opening(finger_opening)
     home = PANDA_HOME if home is None else tuple(home)
@@ -264,15 +265,12 @@ def planar_arm_urdf_path(cache_dir: Optional[str] = None, **kwargs) -> str:
 
 
 def _cached_file(text: str, prefix: str, cache_dir: Optional[str]) -> str:
-    """``text`` as a content-addressed file in ``cache_dir``, default the URDF cache
-    (:mod:`cdmp_ros.core.cache`, kind ``urdf``)."""
+    """``text`` as a content-addressed file in ``cache_dir`` (a directory of this user that
+    no one else may write), default the URDF cache (:mod:`cdmp_ros.core.cache`, kind
+    ``urdf``)."""
     filename = f'{prefix}_{hashlib.sha1(text.encode()).hexdigest()[:16]}.urdf'
-    dirs = (cache_dir,) if cache_dir else (cache.cache_dir('urdf'), cache.fallback_dir('urdf'))
-    path, errors = cache.store(filename, text, dirs)
-    if path is None:
-        raise ValidationError(f'cannot write the generated URDF {filename}: '
-                              f'{"; ".join(errors)}')
-    return path
+    dirs = (cache_dir,) if cache_dir else cache.locations('urdf')
+    return cache.store_or_raise(filename, text, dirs, 'the generated URDF')
 
 
 def planar_arm_spec(link_lengths: Sequence[float] = (1.0, 1.0, 1.0, 1.0),

@@ -116,13 +116,14 @@ def clopper_pearson_upper(k: NDArray, n: int, confidence: float = 0.95) -> NDArr
 
 @functools.lru_cache(maxsize=256)
 def critical_count(n: int, p: float, level: float) -> int:
-    """Largest count c with P(Bin(n, p) > c) <= ``level`` (counts above c reject p); cached
-    (a stream of adaptations asks for the same few). -1 if even P(Bin > -1) = 1 <= ``level``.
+    """Smallest count c with P(Bin(n, p) > c) <= ``level`` (counts above c reject p); cached
+    (a stream of adaptations asks for the same few). ``level`` in (0, 1), ``p`` in [0, 1].
 
     ``special.bdtrc(c, n, p)`` is P(Bin(n, p) > c), decreasing in c: a bisection over
-    ``[-1, n]`` (what ``scipy.stats.binom.isf(level, n, p)`` returns, tested)."""
-    if level >= 1.0:
-        return -1
+    ``[0, n]`` (what ``scipy.stats.binom.isf(level, n, p)`` returns, tested)."""
+    if not (0.0 < level < 1.0 and 0.0 <= p <= 1.0 and n >= 1):
+        raise ValidationError(f'critical_count: expected n >= 1, p in [0, 1] and level in '
+                              f'(0, 1), got n={n}, p={p}, level={level}')
     lo, hi = -1, int(n)  # P(Bin > n) = 0 <= level: hi satisfies, lo does not
     while hi - lo > 1:
         mid = (lo + hi) // 2

@@ -21,6 +21,8 @@ from numpy.typing import NDArray
 #: BLOCK for the near-double roots at 1 of a DMP's recursion; a block costs BLOCK flops per
 #: element, and the carry loop runs ``len(v) / BLOCK`` times.
 BLOCK = 256
+#: Steps solved at once (64 blocks): bounds the temporary arrays of a long rollout.
+CHUNK = 64 * BLOCK
 
 
 def impulse_response(tr: float, det: float, n: int) -> NDArray:
@@ -41,23 +43,40 @@ def second_order_recursion(tr: float, det: float, gain: float, v: NDArray, y_pre
     ``v.shape[1:]``).
 
     With the impulse response ``g`` (:func:`impulse_response`), a block that starts at step
-    ``s`` is ``y[s+j] = g[j+1] y[s-1] - det g[j] y[s-2] + gain sum_{i<=j} g[j-i] v[s+i]``."""
+    ``s`` is ``y[s+j] = g[j+1] y[s-1] - det g[j] y[s-2] + gain sum_{i<=j} g[j-i] v[s+i]``.
+    Steps are taken :data:`CHUNK` at a time (a chunk's temporary arrays are about four times
+    its size). Unlike lfilter, a NaN or inf in ``v`` also reaches the steps of its block
+    before it (through the product with the block matrix); the rollout discards any result
+    that is not finite."""
     v = np.asarray(v, dtype=float)
     m, rest = v.shape[0], v.shape[1:]
     if m == 0:
         return np.empty_like(v)
+    cols = int(np.prod(rest, dtype=int))
+    v2 = v.reshape(m, cols)
+    s1 = np.broadcast_to(np.asarray(y_prev1, dtype=float), rest).reshape(cols).copy()
+    s2 = np.broadcast_to(np.asarray(y_prev2, dtype=float), rest).reshape(cols).copy()
+    y = np.empty((m, cols))
+    for start in range(0, m, CHUNK):
+        stop = min(m, start + CHUNK)
+        y[start:stop] = _chunk(float(tr), float(det), float(gain), v2[start:stop], s1, s2)
+        s1, s2 = y[stop - 1], (y[stop - 2] if stop - start > 1 else s1)
+    return y.reshape(v.shape)
+
+
+def _chunk(tr: float, det: float, gain: float, v: NDArray, s1: NDArray,
+           s2: NDArray) -> NDArray:
+    """The recursion over ``v`` (steps, columns) from ``y[-1] = s1``, ``y[-2] = s2``."""
+    m, cols = v.shape
     n_block = max(2, min(BLOCK, m))  # the carry reads the two last steps of a block
     nb = -(-m // n_block)
-    W = _block_matrix(float(tr), float(det), float(gain), n_block)
+    W = _block_matrix(tr, det, gain, n_block)
     # columns: (block, element); rows: the steps of a block, then the block's start state
-    cols = int(np.prod(rest, dtype=int))
     X = np.zeros((n_block + 2, nb, cols))
-    X[:n_block] = _blocks(v.reshape(m, cols), n_block, nb)
+    X[:n_block] = _blocks(v, n_block, nb)
     X2 = X.reshape(n_block + 2, nb * cols)
     # the two last steps of every block started from rest, then the carry from block to block
     P = (W[-2:, :n_block] @ X2[:n_block]).reshape(2, nb, cols)
-    s1 = np.broadcast_to(np.asarray(y_prev1, dtype=float), rest).reshape(cols).copy()
-    s2 = np.broadcast_to(np.asarray(y_prev2, dtype=float), rest).reshape(cols).copy()
     a1, b1 = W[-1, n_block], W[-1, n_block + 1]
     a2, b2 = W[-2, n_block], W[-2, n_block + 1]
     S1, S2 = X[n_block], X[n_block + 1]
@@ -66,7 +85,7 @@ def second_order_recursion(tr: float, det: float, gain: float, v: NDArray, y_pre
         S2[k] = s2
         s1, s2 = a1 * s1 + b1 * s2 + P[1, k], a2 * s1 + b2 * s2 + P[0, k]
     Y = (W @ X2).reshape(n_block, nb, cols)
-    return Y.transpose(1, 0, 2).reshape((nb * n_block,) + rest)[:m]
+    return Y.transpose(1, 0, 2).reshape(nb * n_block, cols)[:m]
 
 
 @functools.lru_cache(maxsize=32)

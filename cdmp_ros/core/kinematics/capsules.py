@@ -303,29 +303,50 @@ def link_capsule(centres: NDArray, radii: NDArray) -> Tuple[Vec3, Vec3, float]:
 
     A fit costs 0.1-0.3 s and its import of scipy.optimize 0.7 s, at every streamer start: the
     result is kept in the capsule cache (:mod:`cdmp_ros.core.cache`, kind ``capsules``), under
-    the SHA-256 of the balls and of this module's source, and a capsule read back is used only
-    if it encloses every ball (:func:`encloses`); else it is fitted again."""
+    the SHA-256 of the balls, of this module's source and of the numpy and scipy versions, and
+    a capsule read back is used only if it encloses every ball (:func:`encloses`) and is of
+    the balls' size (:func:`_plausible`); else it is fitted again."""
     X = np.ascontiguousarray(centres, dtype=np.float64)
     rho = np.ascontiguousarray(radii, dtype=np.float64)
-    key = hashlib.sha256(_SOURCE_HASH + repr((X.shape, rho.shape)).encode() + X.tobytes()
-                         + rho.tobytes()).hexdigest()[:32]
+    key = hashlib.sha256(_SOURCE_HASH + repr((X.shape, rho.shape, np.__version__,
+                                              _scipy_version())).encode()
+                         + X.tobytes() + rho.tobytes()).hexdigest()[:32]
     filename = f'capsule_{key}.json'
-    dirs = (cache.cache_dir('capsules'), cache.fallback_dir('capsules'))
+    dirs = cache.locations('capsules')
     text = cache.read(filename, dirs, max_bytes=1000)
     if text is not None:
         try:
             d = json.loads(text)
             a, b = tuple(map(float, d['start'])), tuple(map(float, d['end']))
             r = float(d['radius'])
-            if len(a) == 3 and len(b) == 3 and encloses(a, b, r, X, rho):
+            if (len(a) == 3 and len(b) == 3 and encloses(a, b, r, X, rho)
+                    and _plausible(a, b, r, X, rho)):
                 return a, b, r
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, OverflowError):
             pass
     a, b, r = fit_capsule(X, rho)
     a, b = (tuple(round(float(v), ENDS_DECIMALS) for v in e) for e in (a, b))
     r = float(r) + ENDS_ROUNDING
     cache.store(filename, json.dumps({'start': a, 'end': b, 'radius': r}), dirs)
     return a, b, r
+
+
+def _scipy_version() -> str:
+    from importlib.metadata import version  # not scipy itself: its import is what is saved
+    return version('scipy')
+
+
+def _plausible(start, end, radius: float, centres: NDArray, radii: NDArray) -> bool:
+    """Whether a capsule is of the size a fit of these balls can have: a least-volume fit has
+    a radius below 2.3 times the balls' extent ``e`` (the diagonal of their box plus twice the
+    largest ball radius: a candidate of the fit has radius <= 2 e and length <= e, and the fit
+    is no larger than its candidates), and its ends lie within 3 e + radius of the box."""
+    e = float(np.linalg.norm(np.ptp(centres, axis=0)) + 2.0 * np.max(radii, initial=0.0))
+    lo, hi = centres.min(axis=0), centres.max(axis=0)
+    reach = 3.0 * e + radius
+    ends = np.array([start, end])
+    return bool(0.0 < radius <= 2.3 * e + 1e-9 and np.all(ends >= lo - reach)
+                and np.all(ends <= hi + reach))
 
 
 def encloses(start: Sequence[float], end: Sequence[float], radius: float, centres: NDArray,
