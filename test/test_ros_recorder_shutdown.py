@@ -1,5 +1,5 @@
-"""cdmp_ros.ros.node_main, the shared Jazzy entry-point pattern: both modes exit 0 on SIGINT
-and SIGTERM, call close() once, and a CdmpError while building the node gives exit code 2."""
+"""cdmp_ros.ros.node_main, the shared Jazzy entry-point pattern: a node exits 0 on SIGINT and
+SIGTERM and calls close() once, and a CdmpError while building the node gives exit code 2."""
 import signal
 import subprocess
 import sys
@@ -20,7 +20,7 @@ from cdmp_ros.ros.node_main import run_node
 class Tiny(Node):
     def __init__(self):
         super().__init__('tiny')
-        if sys.argv[2] == 'fail':
+        if sys.argv[1] == 'fail':
             raise ValidationError('parameter x: expected > 0, got -1')
         self.create_timer(0.05, self.tick)
         self.closed = 0
@@ -32,14 +32,13 @@ class Tiny(Node):
         self.closed += 1
         print(f'closed {self.closed}', flush=True)
 
-sys.exit(run_node(Tiny, [], graceful=sys.argv[1] == 'graceful'))
+sys.exit(run_node(Tiny, []))
 '''
 
 
-@pytest.mark.parametrize('mode', ['graceful', 'standard'])
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_signals_end_the_node_cleanly(mode, sig):
-    proc = subprocess.Popen([sys.executable, '-c', NODE, mode, 'ok'], env=ros_env(),
+def test_signals_end_the_node_cleanly(sig):
+    proc = subprocess.Popen([sys.executable, '-c', NODE, 'ok'], env=ros_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     watchdog = threading.Timer(60.0, proc.kill)  # a hang fails the test instead of blocking
     watchdog.start()
@@ -57,7 +56,7 @@ def test_signals_end_the_node_cleanly(mode, sig):
 
 
 def test_error_while_building_the_node_exits_2():
-    proc = subprocess.run([sys.executable, '-c', NODE, 'graceful', 'fail'], env=ros_env(),
+    proc = subprocess.run([sys.executable, '-c', NODE, 'fail'], env=ros_env(),
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert 'parameter x: expected > 0, got -1' in proc.stderr

@@ -91,7 +91,7 @@ class Recording:
 
 
 EXECUTOR = Recording(make_executor()) if HANG == 'order' else None   # as the sim's main()
-sys.exit(run_node(Stuck, ['--ros-args'], graceful=True, executor=EXECUTOR))
+sys.exit(run_node(Stuck, ['--ros-args'], executor=EXECUTOR))
 '''
 
 

@@ -20,7 +20,7 @@ from cdmp_ros.ros.node_main import catch_stop_signals, run_node  # noqa: E402
 def main(args=None) -> int:
     catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     from cdmp_ros.ros.adapter_node import AdapterNode
-    return run_node(AdapterNode, args, graceful=True)
+    return run_node(AdapterNode, args)
 
 
 if __name__ == '__main__':

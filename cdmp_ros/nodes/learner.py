@@ -4,7 +4,7 @@ Run: ``ros2 run cdmp_ros learner --ros-args --params-file config/learner.yaml`` 
 ``python -m cdmp_ros.nodes.learner --ros-args -p kind:=promp``. Services (std_srvs/Trigger):
 ``~/refit``, ``~/save``, ``~/improve``. The logic is in :mod:`cdmp_ros.core.learning`,
 :mod:`cdmp_ros.core.demonstrations` and :mod:`cdmp_ros.core.dmp.improve`, the ROS glue in
-:mod:`cdmp_ros.ros.learner_node`. Spun in the graceful loop of
+:mod:`cdmp_ros.ros.learner_node`. Spun in the loop of
 :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM stop a running improvement first).
 
 OpenBLAS runs single-threaded in this process unless ``OPENBLAS_NUM_THREADS`` is set: the fits
@@ -21,7 +21,7 @@ def main(args=None) -> int:
     catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy is imported
     from cdmp_ros.ros.learner_node import LearnerNode
-    return run_node(LearnerNode, args, graceful=True)
+    return run_node(LearnerNode, args)
 
 
 if __name__ == '__main__':

@@ -17,7 +17,7 @@ from cdmp_ros.ros.node_main import catch_stop_signals, run_node
 def main(args=None) -> int:
     catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     from cdmp_ros.ros.bag_bridge import PlayerNode
-    return run_node(PlayerNode, args, graceful=True)
+    return run_node(PlayerNode, args)
 
 
 if __name__ == '__main__':

@@ -18,7 +18,7 @@ def main(args=None) -> int:
     from cdmp_ros.ros.bag_bridge import RecorderNode
     from cdmp_ros.ros.recorder_take import apply_dds_profile
     apply_dds_profile()  # before rclpy.init: Fast DDS reads it when the participant is made
-    return run_node(RecorderNode, args, graceful=True)
+    return run_node(RecorderNode, args)
 
 
 if __name__ == '__main__':

@@ -10,7 +10,7 @@ optionally under SCHED_FIFO: ``-p realtime_priority:=50``, see
 services are spun by rclpy's EventsExecutor (far less CPU per timer callback than the
 SingleThreadedExecutor, which rebuilds its wait set per callback; it also runs the tick with
 ``tick_thread:=false``), in the
-graceful loop of :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag;
+spin loop of :func:`cdmp_ros.ros.node_main.run_node` (SIGINT/SIGTERM set a flag;
 ``EventsExecutor.spin()`` does not return on SIGINT in this rclpy); the node's ``close()``
 stops the tick thread before the node is destroyed.
 
@@ -31,7 +31,7 @@ from cdmp_ros.ros.node_main import catch_stop_signals, make_executor, run_node  
 def main(args=None) -> int:
     catch_stop_signals()  # first: a signal during the imports below ends the node cleanly
     from cdmp_ros.ros.streamer_node import StreamerNode
-    return run_node(StreamerNode, args, graceful=True, executor=make_executor())
+    return run_node(StreamerNode, args, executor=make_executor())
 
 
 if __name__ == '__main__':

@@ -1,17 +1,15 @@
 """The shared entry-point pattern of every cdmp_ros node (ROS 2 Jazzy).
 
-Two ways to run a node, both ending the same way (``close()`` hook, ``destroy_node``,
-``rclpy.try_shutdown``) and both exiting 0 on SIGINT / SIGTERM:
+:func:`run_node` ends every node the same way (``close()`` hook, ``destroy_node``,
+``rclpy.try_shutdown``) and exits 0 on SIGINT / SIGTERM. The signals only set a flag (rclpy's
+own signal handlers are not installed); the node keeps a valid context while its ``close()``
+runs, so it can still take pending messages or publish a last diagnostic (the recorder drains
+its subscriptions there). rclpy's handlers are left out for a second reason: in about 1 of
+150 stops they crash the process (SIGSEGV) when the executor's shutdown destroys its SIGINT
+guard condition while rclpy's signal thread still triggers it (reproduced with a bare node,
+2026-12-07; the standard ``rclpy.spin`` pattern this module also offered until then).
 
-- :func:`run_node` -- the standard Jazzy pattern: rclpy installs its signal handlers,
-  ``rclpy.spin`` returns through ``KeyboardInterrupt`` or ``ExternalShutdownException``.
-  The context is already shut down when ``close()`` runs, so it may only release
-  non-ROS resources (files, threads).
-- :func:`run_node` with ``graceful=True`` -- SIGINT and SIGTERM only set a flag; the node keeps
-  a valid context while its ``close()`` runs, so it can still take pending messages or publish
-  a last diagnostic (the recorder drains its subscriptions there).
-
-Every node executable is graceful and calls :func:`catch_stop_signals` first thing in its
+Every node executable calls :func:`catch_stop_signals` first thing in its
 ``main()``, before importing rclpy, numpy or the node class, so that a signal that arrives
 while the process is still starting (imports, ``rclpy.init``, the node's constructor) is
 remembered instead of raising ``KeyboardInterrupt`` (a traceback and exit code -2) or killing
@@ -36,7 +34,7 @@ Usage in ``cdmp_ros/nodes/<name>.py``::
     def main(args=None):
         catch_stop_signals()
         from cdmp_ros.ros.my_node import MyNode   # the heavy imports come after
-        return run_node(MyNode, args, graceful=True)
+        return run_node(MyNode, args)
 
 A node may define ``close(self)`` (called once at shutdown) and ``done(self) -> bool`` (the
 loop ends when it returns True, e.g. a player that finished its bag).  ``make_node`` errors
@@ -54,7 +52,7 @@ from typing import Callable, List, Optional
 from cdmp_ros.core.errors import CdmpError
 from cdmp_ros.common.node_signals import DUMP_SIGNAL, STOP_SIGNALS
 
-#: How often the graceful loop checks the stop flag and ``done()`` (seconds).
+#: How often the spin loop checks the stop flag and ``done()`` (seconds).
 SPIN_PERIOD = 0.05
 #: Set by SIGINT / SIGTERM once :func:`catch_stop_signals` ran (one per process).
 STOP = threading.Event()
@@ -191,7 +189,7 @@ def make_executor():
 
 
 def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
-             graceful: bool = False, executor=None) -> int:
+             executor=None) -> int:
     """Initialise rclpy, build the node, spin until shutdown, clean up; return an exit code.
 
     Parameters
@@ -200,8 +198,6 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
         Builds the node after ``rclpy.init`` (typically the node class).
     args : list of str, optional
         Command-line arguments (``--ros-args ...``); default ``sys.argv``.
-    graceful : bool
-        Handle SIGINT/SIGTERM with a flag and call ``close()`` before the context goes down.
     executor : rclpy executor, optional
         Default: a ``SingleThreadedExecutor``.
     """
@@ -214,13 +210,9 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     except ImportError:  # pragma: no cover - other rclpy builds
         RCLError = RuntimeError
 
-    stop = STOP if graceful else threading.Event()
     try:
-        if graceful:
-            catch_stop_signals()  # usually done already by the executable's main()
-            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        else:
-            rclpy.init(args=args)
+        catch_stop_signals()  # usually done already by the executable's main()
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RCLError as exc:  # e.g. a malformed --params-file or --ros-args
         print(f'error: invalid ROS arguments or parameter file: {exc}', file=sys.stderr)
         return 2
@@ -228,18 +220,15 @@ def run_node(make_node: Callable[[], object], args: Optional[List[str]] = None,
     code = 0
     executor = executor if executor is not None else SingleThreadedExecutor()
     try:
-        if stop.is_set():  # stopped while importing or initialising: nothing to build
+        if STOP.is_set():  # stopped while importing or initialising: nothing to build
             return code
         node = make_node()
         _built_at[0] = time.monotonic()
         BUILT.set()
         executor.add_node(node)
         done = getattr(node, 'done', None)
-        if graceful or done is not None:
-            while not stop.is_set() and rclpy.ok() and not (done is not None and done()):
-                executor.spin_once(timeout_sec=SPIN_PERIOD)
-        else:
-            executor.spin()
+        while not STOP.is_set() and rclpy.ok() and not (done is not None and done()):
+            executor.spin_once(timeout_sec=SPIN_PERIOD)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
