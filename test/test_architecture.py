@@ -252,7 +252,7 @@ def test_start_imports_stay_light(module, banned):
     code = (f'import sys, {module}\n'
             f'bad = [m for m in sys.modules if m in {banned!r} or m.split(".")[0] in {banned!r}]\n'
             'assert not bad, bad\n')
+    from conftest import ros_env
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          timeout=300, env=dict(os.environ, AMENT_PREFIX_PATH=os.path.dirname(
-                              os.path.dirname(sys.executable))))
+                          timeout=300, env=ros_env())
     assert proc.returncode == 0, proc.stderr

@@ -9,8 +9,8 @@ its subscriptions there). rclpy's handlers are left out for a second reason: in 
 guard condition while rclpy's signal thread still triggers it (reproduced with a bare node,
 2026-12-07; the standard ``rclpy.spin`` pattern this module also offered until then).
 
-Every node executable calls :func:`catch_stop_signals` first thing in its
-``main()``, before importing rclpy, numpy or the node class, so that a signal that arrives
+Every node executable calls :func:`catch_stop_signals` first thing in its ``main()``, before
+importing rclpy, numpy or the node class, so that a signal that arrives
 while the process is still starting (imports, ``rclpy.init``, the node's constructor) is
 remembered instead of raising ``KeyboardInterrupt`` (a traceback and exit code -2) or killing
 the process (SIGTERM's default, exit code -15, no ``close()``). Such a signal lets the node

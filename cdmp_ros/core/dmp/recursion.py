@@ -73,7 +73,11 @@ def _chunk(tr: float, det: float, gain: float, v: NDArray, s1: NDArray,
     W = _block_matrix(tr, det, gain, n_block)
     # columns: (block, element); rows: the steps of a block, then the block's start state
     X = np.zeros((n_block + 2, nb, cols))
-    X[:n_block] = _blocks(v, n_block, nb)
+    by_block = X[:n_block].swapaxes(0, 1)  # (block, step in block, column): a view of X
+    full = m // n_block
+    by_block[:full] = v[:full * n_block].reshape(full, n_block, cols)
+    if full < nb:  # the last block, zero-padded
+        by_block[full, :m - full * n_block] = v[full * n_block:]
     X2 = X.reshape(n_block + 2, nb * cols)
     # the two last steps of every block started from rest, then the carry from block to block
     P = (W[-2:, :n_block] @ X2[:n_block]).reshape(2, nb, cols)
@@ -100,11 +104,3 @@ def _block_matrix(tr: float, det: float, gain: float, n_block: int) -> NDArray:
     W[:, n_block + 1] = -det * g[:n_block]
     W.setflags(write=False)
     return W
-
-
-def _blocks(v: NDArray, n_block: int, nb: int) -> NDArray:
-    """``v`` (steps, columns) zero-padded to ``nb * n_block`` steps, as (step in block, block,
-    column)."""
-    padded = np.zeros((nb * n_block, v.shape[1]))
-    padded[:v.shape[0]] = v
-    return padded.reshape(nb, n_block, v.shape[1]).transpose(1, 0, 2)

@@ -355,9 +355,8 @@ def encloses(start: Sequence[float], end: Sequence[float], radius: float, centre
     (N, 3), ``radii`` (N,)); False for non-finite numbers."""
     if not (np.all(np.isfinite(start)) and np.all(np.isfinite(end)) and np.isfinite(radius)):
         return False
-    d = segment_sphere(np.asarray(start, float), np.asarray(end, float), centres, 0.0,
-                       float(radius))[1]
-    return bool(np.all(d + radii <= 0.0))
+    return bool(np.all(Capsule('', tuple(start), tuple(end), float(radius)).distance(centres)
+                       + radii <= 0.0))
 
 
 class ArmCapsules:
