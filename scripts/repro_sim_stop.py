@@ -17,7 +17,9 @@ session)"). Each trial of this script:
 4. waits a random delay in [0, ``--max-delay``] s, then stops: ``stop=sim`` sends SIGINT to
    the sim alone, ``stop=all`` SIGINT to every running node at once (as ``cdmp bringup``
    stops a graph, the sim first);
-5. measures the time from that SIGINT to the sim's exit and its exit code. A sim still running
+5. measures the time from that SIGINT to the sim's exit and its exit code (``--watch NODE``:
+   that node's instead; ``--watch learner`` for the learner's stop in a graph stop,
+   scenario ``none/all``). A sim still running
    after ``--hang-after`` s is a *hang*: it gets SIGUSR1 (the node writes every thread's stack
    to stderr), 2 s, then SIGKILL. The other nodes are then stopped the same way (SIGINT,
    10 s, SIGUSR1, 2 s, SIGKILL).
@@ -367,7 +369,7 @@ def trial(i, scenario, domain, args, params, rng):
     t_start = time.monotonic()
     if not wait_line(logs['sim'], READY_LINE, procs['sim'], args.startup_timeout):
         rec['result'] = 'sim not ready'
-        rec['sim_code'] = procs['sim'].poll()
+        rec['code'] = procs['sim'].poll()
         reap_all()
         return rec
     rec['ready_s'] = round(time.monotonic() - t_start, 2)
@@ -392,19 +394,22 @@ def trial(i, scenario, domain, args, params, rng):
     for n in targets:
         if procs[n].poll() is None:
             signal_group(procs[n], signal.SIGINT)
-    t_exit, code, hung = wait_exit(procs['sim'], args.hang_after, logs['sim'], 'sim',
+    w = args.watch
+    t_exit, code, hung = wait_exit(procs[w], args.hang_after, logs[w], w,
                                    args.dump_after, args.native)
-    rec.update(exit_s=round(t_exit, 3), sim_code=code, hang=hung,
-               dumped='(--dump-after)' in read(logs['sim']))
+    rec.update(exit_s=round(t_exit, 3), code=code, hang=hung,
+               dumped='(--dump-after)' in read(logs[w]))
     peers = {}
-    for n in nodes[1:]:
+    for n in nodes:
+        if n == w:
+            continue
         p = procs[n]
         if n in victims and not restart:
             peers[n] = 'killed'   # our SIGKILL of step 3
             continue
         if p.poll() is None and n not in targets:
             signal_group(p, signal.SIGINT)
-        _, c, h = wait_exit(p, PEER_STOP, logs[n], n)
+        _, c, h = wait_exit(p, PEER_STOP, logs[n], n, args.dump_after, args.native)
         peers[n] = c if not h else f'hung({c})'
     rec['peer_codes'] = peers
     reap_all()
@@ -413,7 +418,7 @@ def trial(i, scenario, domain, args, params, rng):
         lines = [m.group(0).strip() for m in MARK_LINE.finditer(read(logs[n]))]
         if lines:
             rec['marks'][n] = lines
-    rec['watchdog'] = bool(rec['marks'].get('sim'))
+    rec['watchdog'] = bool(rec['marks'].get(w))
     rec['result'] = 'hang' if hung else ('watchdog' if rec['watchdog'] else 'ok')
     return rec
 
@@ -425,18 +430,18 @@ def pct(values, q):
     return v[max(0, math.ceil(q / 100.0 * len(v)) - 1)]
 
 
-def table(records):
+def table(records, watch='sim'):
     by = collections.OrderedDict((s, []) for s in SCENARIOS)
     for r in records:
         by.setdefault(r['scenario'], []).append(r)
     lines = ['| scenario | trials | exit p50 / p95 / max [s] | hangs (> hang-after) | '
-             'watchdog (sim) | sim exit codes | other exit codes of the peers |',
+             f'watchdog ({watch}) | {watch} exit codes | other exit codes of the peers |',
              '|---|---|---|---|---|---|---|']
     for name, rs in list(by.items()) + [('**all**', records)]:
         if not rs:
             continue
         ex = [r['exit_s'] for r in rs if 'exit_s' in r]
-        codes = collections.Counter(str(r.get('sim_code')) if 'exit_s' in r else r['result']
+        codes = collections.Counter(str(r.get('code')) if 'exit_s' in r else r['result']
                                     for r in rs)
         peers = collections.Counter(f'{n}:{c}' for r in rs
                                     for n, c in r.get('peer_codes', {}).items()
@@ -478,7 +483,8 @@ def main(argv=None):
     ap.add_argument('--hang-after', type=float, default=15.0,
                     help='s after SIGINT before the sim counts as hung (15)')
     ap.add_argument('--dump-after', type=float, default=None,
-                    help='s after SIGINT: a sim still running then writes its Python stacks '
+                    help='s after SIGINT (for the other nodes: after the wait for their stop '
+                         'began): a node still running then writes its Python stacks '
                          '(SIGUSR1) to its log, once; diagnosis of slow stops (default off)')
     ap.add_argument('--native', action='store_true',
                     help='with --dump-after: also the native stacks (gdb -batch -p)')
@@ -486,6 +492,9 @@ def main(argv=None):
                     help="s to wait for the sim's ready line (120)")
     ap.add_argument('--hogs', type=int, default=0, help='busy-loop processes to run (0)')
     ap.add_argument('--learner', action='store_true', help='also run the learner (as CI)')
+    ap.add_argument('--watch', default='sim', choices=('sim', 'streamer', 'adapter', 'learner'),
+                    help='the node whose stop is timed, dumped (--dump-after) and counted in '
+                         'the table (default sim; learner implies --learner)')
     ap.add_argument('--param', action='append', default=[], metavar='NODE:NAME:=VALUE',
                     help='an extra -p parameter of one node (repeatable)')
     ap.add_argument('--env', action='append', default=[], metavar='NODE:VAR=VALUE',
@@ -497,6 +506,7 @@ def main(argv=None):
                     help='where the logs go (default: a new /tmp/repro_sim_stop_* dir)')
     args = ap.parse_args(argv)
     params = parse_params(args.param)
+    args.learner = args.learner or args.watch == 'learner'
     for item in args.env:
         node, _, assignment = item.partition(':')
         var, eq, value = assignment.partition('=')
@@ -534,7 +544,7 @@ def main(argv=None):
                 f.write(json.dumps(rec) + '\n')
             print(f'trial {i:3d} {scenario:26s} ready {rec.get("ready_s", "-")} s, delay '
                   f'{rec.get("delay_s", "-")} s, exit {rec.get("exit_s", "-")} s, code '
-                  f'{rec.get("sim_code")}, peers {rec.get("peer_codes", {})}: {rec["result"]}',
+                  f'{rec.get("code")}, peers {rec.get("peer_codes", {})}: {rec["result"]}',
                   file=sys.stderr, flush=True)
     finally:
         cleanup()
@@ -542,14 +552,14 @@ def main(argv=None):
     print(f'\n{len(records)} trials in {wall / 60:.1f} min, seed {args.seed}, hogs {args.hogs}, '
           f'learner {args.learner}, env {dict(NODE_ENV)}, hang after {args.hang_after:g} s, '
           f'logs {args.logdir}\n')
-    print(table(records))
+    print(table(records, args.watch))
     flagged = [r for r in records if r.get('hang') or r.get('marks')
                or r['result'] not in ('ok',)]
     if flagged:
         print('\nTrials with a hang, a watchdog line or no start:')
         for r in flagged:
-            print(f'- trial {r["trial"]} ({r["scenario"]}): {r["result"]}, sim code '
-                  f'{r.get("sim_code")}; sim log {r["logs"]["sim"]}')
+            print(f'- trial {r["trial"]} ({r["scenario"]}): {r["result"]}, {args.watch} code '
+                  f'{r.get("code")}; its log {r["logs"][args.watch]}')
             for n, marks in r.get('marks', {}).items():
                 for m in marks:
                     print(f'  - {n}: {m.strip()}  ({r["logs"][n]})')

@@ -24,10 +24,12 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
+from cdmp_ros.common.node_signals import teardown_hang
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from conftest import REPO_ROOT, ros_env, wait_for
 
@@ -141,7 +143,10 @@ def running(proc: subprocess.Popen, harness: 'NodeHarness', log, ready: Callable
         harness.close()
         code = stop_process(proc)
     if exit_code is not None:
-        assert code == exit_code, f'{what} exit code {code}\n{log.read_text()}'
+        if exit_code == 0:
+            assert_clean_stop(code, log.read_text(), what)
+        else:
+            assert code == exit_code, f'{what} exit code {code}\n{log.read_text()}'
 
 
 @contextlib.contextmanager
@@ -158,7 +163,30 @@ def graph_running(bringup, harness: 'NodeHarness', log):
         log.close()
     with open(log.name) as f:
         tail = f.read()[-3000:]
-    assert all(c in (0, -signal.SIGINT) for c in codes.values()), f'{codes}\n{tail}'
+    hung = set(bringup.teardown_hangs())
+    for name in hung:
+        _warn_teardown_hang(name, codes[name])
+    assert all(c in (0, -signal.SIGINT) or n in hung for n, c in codes.items()), \
+        f'{codes}\n{tail}'
+
+
+def assert_clean_stop(code: int, output: str, what: str = 'node') -> None:
+    """A node stopped by SIGINT / SIGTERM exited with 0, or its exit was the known teardown
+    hang below rclpy (:func:`_warn_teardown_hang`: a warning); ``output`` is its log."""
+    if code != 0 and teardown_hang(code, output):
+        _warn_teardown_hang(what, code)
+        return
+    assert code == 0, f'{what} exit code {code}\n{output}'
+
+
+def _warn_teardown_hang(what: str, code: int) -> None:
+    """A node's exit after SIGINT was the known, bounded hang of rclpy's middleware teardown
+    after the node's close() returned (:func:`cdmp_ros.common.node_signals.teardown_hang`;
+    rare, below rclpy, issue 31 item 3; its rate is in benchmarks/RESULTS.md). The fixtures
+    check the stop of the node's own code, which finished: such an exit is a warning, any
+    other non-zero exit fails the test."""
+    warnings.warn(f"{what}: rclpy's middleware teardown hung after close() returned; the "
+                  f'stop backstop ended it with exit code {code} (issue 31 item 3)')
 
 
 def expect_startup_failures(procs, timeout: float) -> None:

@@ -18,6 +18,7 @@ from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, reach_cdmp,
 from markers import MARKER_CASES, bad_marker
 from node_harness import (GOAL_CASES, JOINT_STATE_CASES, bad_joint_state,
                           expect_startup_failures, running)
+from node_harness import assert_clean_stop
 from cdmp_ros.core.primitive_io import dumps_primitive
 
 pytestmark = pytest.mark.ros
@@ -628,4 +629,4 @@ def test_startup_bad_parameters_exit_nonzero_and_a_restarted_adapter_gets_the_pr
     finally:
         code = stop_process(second)
         h.node.destroy_subscription(sub)
-    assert code == 0, log.read_text()
+    assert_clean_stop(code, log.read_text(), 'adapter')

@@ -20,6 +20,7 @@ from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import (LOWER, PANDA_JOINTS, Q_GOAL, Q_START, UPPER, Harness, reach_cdmp,
                               start_streamer, stop_process)
+from node_harness import assert_clean_stop
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(30)
@@ -83,7 +84,7 @@ def stream(request, tmp_path_factory):
     finally:
         h.close()
         code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
+    assert_clean_stop(code, log.read_text(), 'streamer')
     assert not h.violations, h.violations[:5]
 
 

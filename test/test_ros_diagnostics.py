@@ -9,6 +9,7 @@ import pytest
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from conftest import module_domain
 from node_harness import WAIT_S, NodeHarness, start_node, stop_process
+from node_harness import assert_clean_stop
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(53)
@@ -31,7 +32,7 @@ def test_a_node_in_a_namespace_reports_on_the_absolute_topic(tmp_path):
         # the node's publisher is on /diagnostics (its message came: discovery is done)
         assert h.node.count_publishers(DIAGNOSTICS_TOPIC) == 1
         assert h.node.count_publishers('/arm/diagnostics') == 0
-        assert stop_process(proc) == 0, log.read_text()
+        assert_clean_stop(stop_process(proc), log.read_text())
     finally:
         stop_process(proc, signal.SIGKILL)
         h.close()

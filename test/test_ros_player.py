@@ -12,6 +12,7 @@ import pytest
 from bag_ros_util import Peer, recoverable_count
 from conftest import wait_for
 from node_harness import WAIT_S, start_node, stop_process
+from node_harness import assert_clean_stop
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 
@@ -99,7 +100,7 @@ def test_plays_the_selected_topic_remapped_in_order_with_clock(tmp_path, peer):
     try:
         assert wait_for(lambda: len(got_c) >= 40 and len(got_clock) >= 21, WAIT_S), (
             len(got_c), len(got_clock), open(log).read())
-        assert stop_process(play) == 0, open(log).read()
+        assert_clean_stop(stop_process(play), open(log).read(), 'player')
     finally:
         stop_process(play, signal.SIGKILL)
     texts = [decode_string(m) for _, m in got_c]

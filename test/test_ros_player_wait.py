@@ -16,6 +16,7 @@ import pytest
 from bag_ros_util import Peer
 from conftest import ros_env, wait_for
 from node_harness import WAIT_S, NodeHarness, start_node, stop_process
+from node_harness import assert_clean_stop
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 
@@ -225,7 +226,7 @@ def test_the_timeout_names_the_topics_without_subscriber_and_plays_anyway(tmp_pa
         assert state.values['no_subscriber'] == '/a, /clock', state
         assert state.values['waited_for'] == '/a, /clock', state
         assert wait_for(lambda: int(h.last_state()[1].get('published', 0)) > 0, WAIT_S)
-        assert stop_process(play) == 0, open(log).read()
+        assert_clean_stop(stop_process(play), open(log).read(), 'player')
     finally:
         stop_process(play, signal.SIGKILL)
         h.close()

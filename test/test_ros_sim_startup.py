@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from sim_harness import SimHarness, start_sim, stop_process
+from node_harness import assert_clean_stop
 from conftest import module_domain
 
 pytestmark = pytest.mark.ros
@@ -105,7 +106,7 @@ def test_planar_arm_as_fast_as_possible_with_clock(tmp_path):
     finally:
         h.close()
         code = stop_process(proc)
-    assert code == 0, log.read_text()
+    assert_clean_stop(code, log.read_text(), 'sim')
 
 
 def test_streamer_drives_the_sim(tmp_path):

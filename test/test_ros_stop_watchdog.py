@@ -4,10 +4,10 @@ of the stop that has no bound of its own.
 
 Each case runs a small node process through ``run_node`` (real rclpy, localhost, a private
 domain) and makes one part of its stop hang forever: the middleware teardown
-(``destroy_node``, also blocked in C with the GIL held), or the main loop (a ``done()``
-that never returns). The test waits for the
-node's ``ready`` line, sends SIGINT and waits (bounded) for the exit. No duration is asserted:
-what is checked is the exit code, the message and the stack of the place that hung.
+(``destroy_node``, also blocked in C with the GIL held, in the node's code or inside rclpy's),
+or the main loop (a ``done()`` that never returns). The test waits for the node's ``ready``
+line, sends SIGINT and waits (bounded) for the exit. No duration is asserted: what is checked
+is the exit code, the message and the stack of the place that hung.
 A last case checks the order of the teardown that removed the hang of the sim and the streamer:
 the node is destroyed only after its EventsExecutor shut down.
 """
@@ -19,7 +19,8 @@ import threading
 import pytest
 
 from conftest import module_domain, ros_env, wait_for
-from cdmp_ros.ros.node_main import EXIT_BACKSTOP, EXIT_STUCK
+from cdmp_ros.common.node_signals import EXIT_BACKSTOP, teardown_hang
+from cdmp_ros.ros.node_main import EXIT_STUCK
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(13)
@@ -50,6 +51,34 @@ def hang_holding_the_gil():
     libc.pthread_mutex_lock(mutex)
 
 
+def block_rclpys_node_handle(node):
+    """The hang of Fast DDS 2.14's participant deletion (issue 31 item 3): rclpy's own
+    destroy_node blocks in C in its node handle's last call, holding the GIL. The handle's
+    destroy_when_not_in_use becomes a C call that never returns, and the node's destroy_node
+    rclpy's own (no frame of this file on the main thread's stack)."""
+    import ctypes
+    import functools
+    libc = ctypes.PyDLL(None)
+    mutex = ctypes.create_string_buffer(64)
+    libc.pthread_mutex_lock(mutex)
+    handle = node._Node__node
+
+    class Handle:
+        destroy_when_not_in_use = functools.partial(libc.pthread_mutex_lock, mutex)
+
+        def __getattr__(self, name):
+            return getattr(handle, name)
+
+        def __enter__(self):
+            return handle.__enter__()
+
+        def __exit__(self, *exc):
+            return handle.__exit__(*exc)
+
+    node._Node__node = Handle()
+    node.destroy_node = functools.partial(Node.destroy_node, node)
+
+
 class Stuck(Node):
     def __init__(self):
         super().__init__('stop_watchdog_case')
@@ -62,6 +91,8 @@ class Stuck(Node):
 
     def close(self):
         print('closed', flush=True)
+        if HANG == 'rclpy':
+            block_rclpys_node_handle(self)
 
     def destroy_node(self):
         if HANG == 'order':     # the executor must have let go of every entity by now
@@ -135,6 +166,17 @@ def test_a_teardown_blocked_in_c_holding_the_gil_ends_by_the_backstop():
     assert 'closed' in text
     assert 'Timeout (' in text, text
     assert 'in hang_holding_the_gil' in text and 'in destroy_node' in text, text
+    assert not teardown_hang(code, text), text   # the node's own code: not excused
+
+
+def test_a_hang_inside_rclpys_teardown_is_told_apart_from_the_nodes_own():
+    """What the fixtures and cdmp bringup excuse: the backstop's exit with the main thread
+    inside rclpy's destroy_node, after close(). The same exit from the node's own teardown
+    code (the case above) is not excused."""
+    code, text = _run('rclpy')
+    assert code == EXIT_BACKSTOP and 'closed' in text, text
+    assert 'rclpy/node.py' in text and 'in destroy_node' in text, text
+    assert teardown_hang(code, text), text
 
 
 def test_a_main_loop_that_never_ends_exits_stuck_with_the_stacks():

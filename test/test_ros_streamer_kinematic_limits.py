@@ -13,6 +13,7 @@ from cdmp_ros.core.primitive_io import dumps_primitive
 from cdmp_ros.core.run_metrics import kinematic_report
 from cdmp_ros.ros.robot_model import default_urdf_path
 from streamer_harness import Harness, reach_cdmp, start_streamer, stop_process
+from node_harness import assert_clean_stop
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(47)
@@ -64,7 +65,7 @@ def test_published_references_keep_the_given_limits(tmp_path, rate):
     finally:
         h.close()
         code = stop_process(proc)
-    assert code == 0, f'streamer exit code {code}\n{log.read_text()}'
+    assert_clean_stop(code, log.read_text(), 'streamer')
     assert not h.violations, h.violations[:5]
     stamps = np.array([r[1] for r in refs])
     Q = np.array([r[2] for r in refs])

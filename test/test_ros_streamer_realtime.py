@@ -21,6 +21,7 @@ import pytest
 
 from cdmp_ros.core.primitive_io import dumps_primitive
 from streamer_harness import Harness, reach_cdmp, start_streamer, stop_process, wait_for
+from node_harness import assert_clean_stop
 from conftest import module_domain
 
 pytestmark = pytest.mark.ros
@@ -78,7 +79,7 @@ def test_realtime_priority_is_applied_to_the_tick_thread(tmp_path, scope):
             assert fifo.count(19) == len(pol) - 2, pol  # executor, middleware, ...
     finally:
         code = stop_process(proc)
-    assert code == 0, log.read_text()
+    assert_clean_stop(code, log.read_text(), 'streamer')
 
 
 def test_obstacle_wakeups_keep_the_stamps_on_the_grid(tmp_path):
@@ -123,5 +124,5 @@ def test_obstacle_wakeups_keep_the_stamps_on_the_grid(tmp_path):
     finally:
         h.close()
         code = stop_process(proc)
-    assert code == 0, log.read_text()
+    assert_clean_stop(code, log.read_text(), 'streamer')
     assert not h.violations, h.violations[:5]

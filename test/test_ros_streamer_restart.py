@@ -19,6 +19,7 @@ from cdmp_ros.core.primitive_io import dumps_primitive
 from cdmp_ros.core.streaming.selection import Provenance, primitive_id
 from node_harness import stop_process
 from streamer_harness import Harness, Q_GOAL, Q_START, reach_cdmp, start_streamer
+from node_harness import assert_clean_stop
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(35)
@@ -104,7 +105,7 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
         kv = h.last_state()[1]
         assert kv['adapted_generation'] == '21'
         assert kv['adaptation_latency_n'] == '1' and int(kv['adapted_reference_stamp_ns']) == first
-        assert stop_process(proc) == 0, log.read_text()
+        assert_clean_stop(stop_process(proc), log.read_text(), 'streamer')
 
         # a restarted streamer gets P2 and its newest adaptation (latched): streams it
         h.robot_q = Q_START.copy()

@@ -33,7 +33,9 @@ forwarded to each node (SIGINT when the graph ends for another reason), SIGKILL 
 stack of each of its threads into the output, and gets :data:`DUMP_WAIT` to do so); the exit
 code is 0 when every process stopped cleanly (exit code 0, or ended
 by that signal in the first instants of the interpreter, before the node's entry point
-installed its handlers, see :mod:`cdmp_ros.ros.node_main`). If the launching process dies
+installed its handlers, see :mod:`cdmp_ros.ros.node_main`). A node whose rclpy teardown hung
+after its ``close()`` returned (ended by its stop backstop, exit code 1) is named as such
+(:meth:`Bringup.teardown_hangs`); it still counts as not clean. If the launching process dies
 without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kernel
 (``PR_SET_PDEATHSIG``; Linux): the thread that calls :meth:`Bringup.start` must live as long
 as the graph.
@@ -44,6 +46,7 @@ matched by peers; streamer and adapter: a primitive received), prints ``bringup:
 and runs on; when they are not ready in time it names them, stops the graph and exits with
 code 3. A launch file waits on the same line with an ``OnProcessIO`` event handler.
 """
+import collections
 import contextlib
 import hashlib
 import os
@@ -59,7 +62,7 @@ import yaml
 
 from cdmp_ros.core import cache
 from cdmp_ros.core.errors import CdmpError, ValidationError
-from cdmp_ros.common.node_signals import DUMP_SIGNAL
+from cdmp_ros.common.node_signals import DUMP_SIGNAL, teardown_hang
 from cdmp_ros.common.prctl import PR_SET_PDEATHSIG, load as prctl_load, prctl
 from cdmp_ros.core.readiness import READY_LINE
 
@@ -73,6 +76,9 @@ NOT_READY_EXIT_CODE = 3
 #: Exit codes of a clean stop: 0, or killed by the SIGINT / SIGTERM we sent before the process
 #: had installed its handlers (the interpreter still starting).
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
+#: Output lines kept per process for :meth:`Bringup.teardown_hangs` (a node's stack dump is
+#: about 10 lines per thread).
+TAIL_LINES = 400
 _NODE_KEYS = {'name', 'executable', 'params_file', 'parameters', 'remappings', 'namespace',
               'required', 'delay', 'arguments'}
 #: [s] a node that did not stop within stop_timeout gets this long to write its threads' stacks
@@ -392,10 +398,14 @@ class Bringup:
         #: process name -> seconds after start at which the node said it was ready
         self.ready: Dict[str, float] = {}
         self._ready_changed = threading.Event()
+        #: process name -> its last output lines (what :meth:`teardown_hangs` reads)
+        self._tails: Dict[str, collections.deque] = {}
 
     def _pump(self, name: str, stream) -> None:
         width = max(len(n.name) for n in self.graph.nodes)
+        tail = self._tails.setdefault(name, collections.deque(maxlen=TAIL_LINES))
         for line in iter(stream.readline, ''):
+            tail.append(line)
             if name not in self.ready:
                 m = READY_LINE.search(line)
                 if m is not None:
@@ -485,6 +495,13 @@ class Bringup:
         for t in self._threads:
             t.join(timeout=1.0)
         return {n: p.returncode for n, p in self.procs.items()}
+
+    def teardown_hangs(self) -> List[str]:
+        """The exited processes whose exit was the stop backstop ending a hang inside rclpy's
+        middleware teardown after their ``close()`` returned
+        (:func:`cdmp_ros.common.node_signals.teardown_hang`, read from their output)."""
+        return [n for n, c in self.exited().items()
+                if teardown_hang(c, ''.join(self._tails.get(n, ())))]
 
     def _kill_stuck(self, name: str, p: subprocess.Popen) -> None:
         """SIGKILL a node that did not stop within ``stop_timeout``, after asking it for the
@@ -602,6 +619,11 @@ def run_graph(path: str, duration: Optional[float] = None, log=None,
     bad = {n: c for n, c in codes.items() if c not in CLEAN_EXIT_CODES}
     out.write('bringup: ' + ('all nodes stopped cleanly\n' if not bad else
                              f'nodes that did not stop cleanly: {bad}\n'))
+    hung = [n for n in b.teardown_hangs() if n in bad]
+    if hung:
+        out.write(f'bringup: {", ".join(hung)}: close() had returned, then rclpy\'s middleware '
+                  f'teardown hung and the stop backstop ended the process (its stacks are '
+                  f'above); no work of the node was lost\n')
     out.flush()
     if bad:
         return 1

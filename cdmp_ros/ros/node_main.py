@@ -26,8 +26,17 @@ writes the stack of every thread to stderr and exits (:data:`EXIT_STUCK` if ``cl
 started). The watchdog is Python and needs the GIL; a main thread blocked in C while holding it
 (the sim's hung stop: rclpy's teardown of an event waiting for a DDS mutex) would starve it, so
 the same bounds plus :data:`BACKSTOP_MARGIN` are also armed in faulthandler's C thread
-(``dump_traceback_later``: the stacks and exit code :data:`EXIT_BACKSTOP`). SIGUSR1 writes
-the same stacks at any time (``cdmp bringup`` sends it before SIGKILL).
+(``dump_traceback_later``: the stacks and exit code
+:data:`~cdmp_ros.common.node_signals.EXIT_BACKSTOP`). SIGUSR1 writes the same stacks at any time
+(``cdmp bringup`` sends it before SIGKILL).
+
+The one such hang still seen (about 1 in 2,000 node stops when a whole graph stops) is below
+rclpy: ``destroy_node`` of the process's last node deletes the Fast DDS 2.14 participant, whose
+``set_listener(nullptr)`` busy-waits, holding its mutex, for a participant-discovery callback
+in flight (a peer that left at the same moment) that needs that mutex to finish; the waiting
+thread usually wins the mutex within a second, rarely not within the bound (native stacks:
+benchmarks/RESULTS.md, 2026-12-08). Such an exit is recognised from the node's stack dump by
+:func:`cdmp_ros.common.node_signals.teardown_hang`; ``cdmp bringup`` names it.
 
 Usage in ``cdmp_ros/nodes/<name>.py``::
 
@@ -76,8 +85,6 @@ _watchdog: List[threading.Thread] = []
 #: [s] The GIL-free backstop (:func:`_arm_backstop`) acts this long after the Python watchdog
 #: would have.
 BACKSTOP_MARGIN = 1.0
-#: Exit code of a node ended by the backstop (faulthandler's ``exit=True``).
-EXIT_BACKSTOP = 1
 _backstop_lock = threading.Lock()
 
 
@@ -123,8 +130,9 @@ def _watch_stop(fd: int) -> None:
 
 def _arm_backstop(seconds: float) -> None:
     """Arm the GIL-free backstop of the stop watchdog: faulthandler's C thread writes every
-    thread's stack and exits with code 1 (:data:`EXIT_BACKSTOP`) ``seconds`` +
-    :data:`BACKSTOP_MARGIN` from now unless :func:`_disarm_backstop` comes first.
+    thread's stack and exits with code 1
+    (:data:`~cdmp_ros.common.node_signals.EXIT_BACKSTOP`) ``seconds`` + :data:`BACKSTOP_MARGIN`
+    from now unless :func:`_disarm_backstop` comes first.
 
     The Python watchdog needs the GIL to act; a main thread blocked in C while holding it (an
     rclpy teardown call waiting for a DDS mutex, as seen in the sim's stop) starves it, the
