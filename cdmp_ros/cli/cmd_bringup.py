@@ -405,13 +405,13 @@ class Bringup:
         width = max(len(n.name) for n in self.graph.nodes)
         tail = self._tails.setdefault(name, collections.deque(maxlen=TAIL_LINES))
         for line in iter(stream.readline, ''):
-            tail.append(line)
             if name not in self.ready:
                 m = READY_LINE.search(line)
                 if m is not None:
                     self.ready[name] = float(m.group(1))
                     self._ready_changed.set()
             with self._lock:
+                tail.append(line)
                 self.log.write(f'[{name:<{width}}] {line}')
                 self.log.flush()
         stream.close()
@@ -500,8 +500,9 @@ class Bringup:
         """The exited processes whose exit was the stop backstop ending a hang inside rclpy's
         middleware teardown after their ``close()`` returned
         (:func:`cdmp_ros.common.node_signals.teardown_hang`, read from their output)."""
-        return [n for n, c in self.exited().items()
-                if teardown_hang(c, ''.join(self._tails.get(n, ())))]
+        with self._lock:
+            outputs = {n: ''.join(t) for n, t in self._tails.items()}
+        return [n for n, c in self.exited().items() if teardown_hang(c, outputs.get(n, ''))]
 
     def _kill_stuck(self, name: str, p: subprocess.Popen) -> None:
         """SIGKILL a node that did not stop within ``stop_timeout``, after asking it for the
