@@ -358,9 +358,12 @@ def main(argv=None) -> int:
             f.close()
         nss.remove()
     left = [ns for ns in (nss.robot, nss.ws) if ns in ip('netns', 'list')]
-    out.update(layout=args.layout, domain=args.domain, namespaces_left=left,
-               exit_codes={name: p.returncode for name, p in
-                           zip(('sim',) + WORKSTATION_NODES + ('probe',), procs)})
+    from cdmp_ros.common.node_signals import teardown_hang
+    names = ('sim',) + WORKSTATION_NODES + ('probe',)
+    codes = {name: p.returncode for name, p in zip(names, procs)}
+    out.update(layout=args.layout, domain=args.domain, namespaces_left=left, exit_codes=codes,
+               teardown_hangs=[n for n, c in codes.items() if teardown_hang(
+                   c, open(os.path.join(log_dir, f'{n}.log'), errors='replace').read())])
     bad = verdict(out) + ([f'namespaces left: {left}'] if left else [])
     if not all(out.get('alive_at_end', {'all': False}).values()):
         bad.append(f"a node ended early: {out.get('alive_at_end')}")

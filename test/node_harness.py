@@ -19,6 +19,7 @@ Every wait is on a condition (:func:`conftest.wait_for`) with a generous timeout
 """
 import contextlib
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -165,21 +166,35 @@ def graph_running(bringup, harness: 'NodeHarness', log):
         tail = f.read()[-3000:]
     hung = set(bringup.teardown_hangs())
     for name in hung:
-        _warn_teardown_hang(name, codes[name])
+        warn_teardown_hang(name, codes[name])
     assert all(c in (0, -signal.SIGINT) or n in hung for n, c in codes.items()), \
         f'{codes}\n{tail}'
 
 
 def assert_clean_stop(code: int, output: str, what: str = 'node') -> None:
     """A node stopped by SIGINT / SIGTERM exited with 0, or its exit was the known teardown
-    hang below rclpy (:func:`_warn_teardown_hang`: a warning); ``output`` is its log."""
+    hang below rclpy (:func:`warn_teardown_hang`: a warning); ``output`` is its log."""
     if code != 0 and teardown_hang(code, output):
-        _warn_teardown_hang(what, code)
+        warn_teardown_hang(what, code)
         return
     assert code == 0, f'{what} exit code {code}\n{output}'
 
 
-def _warn_teardown_hang(what: str, code: int) -> None:
+def assert_bringup_stopped(code: int, text: str, expected: int = 0) -> None:
+    """``cdmp bringup``'s exit ``code`` and output ``text``: every node stopped cleanly and
+    the code is ``expected``; or the nodes that did not are the teardown hang below rclpy
+    (:func:`warn_teardown_hang`, named by bringup; exit code 4, or ``expected`` if not 0)."""
+    from cdmp_ros.cli.cmd_bringup import TEARDOWN_HANG_EXIT_CODE, TEARDOWN_HANG_LINE
+    if 'all nodes stopped cleanly' in text:
+        assert code == expected, text
+        return
+    before, after = (re.escape(part.strip('\n')) for part in TEARDOWN_HANG_LINE.split('{nodes}'))
+    hung = re.findall(f'^{before}(.+?){after}$', text, re.M)
+    assert hung and code == (expected or TEARDOWN_HANG_EXIT_CODE), f'exit code {code}\n{text}'
+    warn_teardown_hang(', '.join(hung), code)
+
+
+def warn_teardown_hang(what: str, code: int) -> None:
     """A node's exit after SIGINT was the known, bounded hang of rclpy's middleware teardown
     after the node's close() returned (:func:`cdmp_ros.common.node_signals.teardown_hang`;
     rare, below rclpy, issue 31 item 3; its rate is in benchmarks/RESULTS.md). The fixtures

@@ -111,3 +111,60 @@ def test_bringup_names_the_nodes_whose_teardown_hung_from_their_output():
                                         'close\n')))
     assert b.teardown_hangs() == ['learner']
     assert '[learner] Timeout (0:00:05)!' in out.getvalue()   # the output still reaches the log
+
+
+class _FakeBringup:
+    """A Bringup whose nodes have already ended with ``CODES``, ``HUNG`` of them by the
+    teardown hang (what run_graph decides its exit code from)."""
+    CODES, HUNG, READY = {}, [], True
+
+    def __init__(self, graph, log=None):
+        self.env = {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+        self.ready, self.procs = {}, {}
+
+    def start(self):
+        pass
+
+    def wait_ready(self, timeout, stop):
+        return None if self.READY else 'timeout'
+
+    def not_ready(self):
+        return [] if self.READY else ['streamer']
+
+    def wait(self, stop, timeout):
+        return None
+
+    def stop(self, sig):
+        return dict(self.CODES)
+
+    def teardown_hangs(self):
+        return list(self.HUNG)
+
+
+def test_bringups_exit_code_tells_a_teardown_hang_from_a_failure(monkeypatch, tmp_path):
+    from cdmp_ros.cli import cmd_bringup
+    graph = tmp_path / 'g.yaml'
+    graph.write_text('nodes:\n  - {name: sim, executable: sim}\n'
+                     '  - {name: learner, executable: learner}\n')
+    monkeypatch.setattr(cmd_bringup, 'Bringup', _FakeBringup)
+
+    def run(codes, hung, ready=True):
+        monkeypatch.setattr(_FakeBringup, 'CODES', codes)
+        monkeypatch.setattr(_FakeBringup, 'HUNG', hung)
+        monkeypatch.setattr(_FakeBringup, 'READY', ready)
+        out = io.StringIO()
+        return cmd_bringup.run_graph(str(graph), duration=0.0, log=out, wait_ready=1.0), \
+            out.getvalue()
+
+    code, text = run({'sim': 0, 'learner': 0}, [])
+    assert code == 0 and 'all nodes stopped cleanly' in text
+    code, text = run({'sim': 0, 'learner': EXIT_BACKSTOP}, ['learner'])
+    assert code == cmd_bringup.TEARDOWN_HANG_EXIT_CODE == 4, text
+    assert cmd_bringup.TEARDOWN_HANG_LINE.format(nodes='learner') in text
+    assert "nodes that did not stop cleanly: {'learner': 1}" in text
+    code, text = run({'sim': 2, 'learner': EXIT_BACKSTOP}, ['learner'])   # sim failed
+    assert code == 1, text
+    code, text = run({'sim': 0, 'learner': EXIT_BACKSTOP}, [])            # not recognised
+    assert code == 1 and 'teardown hung' not in text, text
+    code, text = run({'sim': 0, 'learner': EXIT_BACKSTOP}, ['learner'], ready=False)
+    assert code == cmd_bringup.NOT_READY_EXIT_CODE, text

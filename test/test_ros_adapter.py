@@ -16,9 +16,8 @@ import pytest
 from adapter_harness import (PANDA_JOINTS, Q_GOAL, Q_START, Harness, reach_cdmp,
                              reach_promp, start_adapter, stop_process)
 from markers import MARKER_CASES, bad_marker
-from node_harness import (GOAL_CASES, JOINT_STATE_CASES, bad_joint_state,
+from node_harness import (GOAL_CASES, JOINT_STATE_CASES, assert_clean_stop, bad_joint_state,
                           expect_startup_failures, running)
-from node_harness import assert_clean_stop
 from cdmp_ros.core.primitive_io import dumps_primitive
 
 pytestmark = pytest.mark.ros

@@ -10,7 +10,7 @@ import yaml
 
 from bag_ros_util import Lines, recoverable_count
 from conftest import wait_for
-from node_harness import WAIT_S
+from node_harness import WAIT_S, assert_bringup_stopped
 from cdmp_ros.bag import BagReader
 from cdmp_ros.cli.cmd_bringup import (CLEAN_EXIT_CODES, Bringup, load_graph, package_config_dir,
                                       parse_graph)
@@ -220,8 +220,7 @@ def test_a_graph_runs_and_ctrl_c_stops_every_node(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     text = out.text()
-    assert proc.returncode == 0, text
-    assert 'all nodes stopped cleanly' in text
+    assert_bringup_stopped(proc.returncode, text)
     assert (bag / 'metadata.yaml').is_file(), text
     assert {m.topic for m in BagReader(str(bag)).messages()} == {'/diagnostics'}
 

@@ -8,8 +8,7 @@ import pytest
 
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 from conftest import module_domain
-from node_harness import WAIT_S, NodeHarness, start_node, stop_process
-from node_harness import assert_clean_stop
+from node_harness import NodeHarness, WAIT_S, assert_clean_stop, start_node, stop_process
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(53)

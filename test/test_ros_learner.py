@@ -16,7 +16,7 @@ import pytest
 
 from conftest import REPO_ROOT, module_domain
 from learner_harness import PANDA_JOINTS, LearnerHarness, start_learner
-from node_harness import (GOAL_CASES, bad_joint_state, config_file_parameters,
+from node_harness import (GOAL_CASES, assert_clean_stop, bad_joint_state, config_file_parameters,
                           expect_startup_failures, parameter_defaults, running, stop_process)
 
 pytestmark = pytest.mark.ros
@@ -326,7 +326,7 @@ def test_bad_startup_parameters_and_files_exit_nonzero_and_bad_bags_do_not(tmp_p
         if h is not None:
             h.close()
         stop_process(broken_proc)  # expect_startup_failures stopped the others
-        assert stop_process(bad_bags) == 0
+        assert_clean_stop(stop_process(bad_bags), (tmp_path / 'bags.log').read_text(), 'learner')
 
 
 # -- files -------------------------------------------------------------------------------------

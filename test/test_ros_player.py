@@ -11,8 +11,7 @@ import pytest
 
 from bag_ros_util import Peer, recoverable_count
 from conftest import wait_for
-from node_harness import WAIT_S, start_node, stop_process
-from node_harness import assert_clean_stop
+from node_harness import WAIT_S, assert_clean_stop, start_node, stop_process
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 
@@ -123,7 +122,7 @@ def test_loop_replays_in_order_until_stopped(tmp_path, peer):
                       extra=['--params-file', os.path.join(ROOT, 'config', 'bag.yaml')])
     try:
         assert wait_for(lambda: len(got) >= 16, WAIT_S), len(got)
-        assert stop_process(play) == 0
+        assert_clean_stop(stop_process(play), (tmp_path / 'play.log').read_text(), 'player')
     finally:
         stop_process(play, signal.SIGKILL)
     texts = [decode_string(m) for _, m in got]
@@ -185,7 +184,7 @@ def test_replay_determinism_record_play_rerecord(tmp_path, peer):
             # every message is on disk before the recorder is stopped
             probe = str(tmp_path / f'probe{gen}')
             assert wait_for(lambda: recoverable_count(out, probe) >= 201, WAIT_S, period=0.1)
-            assert stop_process(rec) == 0
+            assert_clean_stop(stop_process(rec), rec_log.read_text(), 'recorder')
         finally:
             if play is not None:
                 stop_process(play, signal.SIGKILL)

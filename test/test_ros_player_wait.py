@@ -15,8 +15,7 @@ import pytest
 
 from bag_ros_util import Peer
 from conftest import ros_env, wait_for
-from node_harness import WAIT_S, NodeHarness, start_node, stop_process
-from node_harness import assert_clean_stop
+from node_harness import NodeHarness, WAIT_S, assert_clean_stop, start_node, stop_process
 from cdmp_ros.bag import BagReader, BagWriter
 from cdmp_ros.bag.cdr import decode_string, encode_string
 

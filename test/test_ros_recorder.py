@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bag_ros_util import Peer
-from node_harness import start_node, stop_process, wait_acked, wait_matched
+from node_harness import assert_clean_stop, start_node, stop_process, wait_acked, wait_matched
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.metadata import read_metadata
 from conftest import module_domain
@@ -47,7 +47,8 @@ def test_clean_stop_records_exactly_what_was_published(tmp_path, peer, sig_name,
             pub.publish(data)
         # every message is in the recorder's queue; the clean stop must take and write them
         assert wait_acked(pub), 'the recorder never acknowledged every message'
-        assert stop_process(rec, getattr(signal, sig_name)) == 0
+        assert_clean_stop(stop_process(rec, getattr(signal, sig_name)),
+                          (tmp_path / 'rec.log').read_text(), 'recorder')
     finally:
         stop_process(rec, signal.SIGKILL)
     if rt:  # granted (root / CAP_SYS_NICE / rtprio limit) or refused with a warning
@@ -82,7 +83,7 @@ def test_records_all_discovered_topics_but_not_rosout(tmp_path, peer):
             pa.publish(String(data=str(i)))
             pb.publish(JointState(name=['q'], position=[float(i)]))
         assert wait_acked(pa) and wait_acked(pb)
-        assert stop_process(rec) == 0
+        assert_clean_stop(stop_process(rec), (tmp_path / 'rec.log').read_text(), 'recorder')
     finally:
         stop_process(rec, 9)
     counts = {t.name: (t.type, t.message_count) for t in read_metadata(bag).topics}

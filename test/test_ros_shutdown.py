@@ -26,7 +26,7 @@ import pytest
 
 from conftest import REPO_ROOT, module_domain, ros_env
 from conftest import wait_for as conftest_wait_for
-from node_harness import NodeHarness
+from node_harness import NodeHarness, assert_bringup_stopped
 
 pytestmark = pytest.mark.ros
 
@@ -432,6 +432,5 @@ def test_bringup_forwards_the_signal_and_exits_0(tmp_path, sig):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
         obs.close()
-    assert proc.returncode == 0, out
-    assert 'all nodes stopped cleanly' in out, out
+    assert_bringup_stopped(proc.returncode, out)
     assert 'Traceback' not in out, out

@@ -138,5 +138,6 @@ def test_streamer_drives_the_sim(tmp_path):
         assert kv['limit_violations'] == '0' and kv.get('rejected_total', '0') == '0', kv
     finally:
         h.close()
-        codes = stop_process(streamer), stop_process(sim)
-    assert codes == (0, 0), codes
+        codes = {'streamer': stop_process(streamer), 'sim': stop_process(sim)}
+    for name, code in codes.items():
+        assert_clean_stop(code, (tmp_path / f'{name}.log').read_text(), name)

@@ -17,9 +17,8 @@ import pytest
 from conftest import module_domain
 from cdmp_ros.core.primitive_io import dumps_primitive
 from cdmp_ros.core.streaming.selection import Provenance, primitive_id
-from node_harness import stop_process
+from node_harness import assert_clean_stop, stop_process
 from streamer_harness import Harness, Q_GOAL, Q_START, reach_cdmp, start_streamer
-from node_harness import assert_clean_stop
 
 pytestmark = pytest.mark.ros
 DOMAIN = module_domain(35)
@@ -64,7 +63,7 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
         log = tmp_path / 'streamer1.log'
         proc = start_streamer(DOMAIN, ['diagnostics_period:=0.2'], log_path=str(log),
                               params_file='config/streamer.yaml')
-        procs.append(proc)
+        procs.append((proc, log))
         t_start = time.monotonic()
         assert converges_to(h, proc, Q_GOAL), log.read_text()
         # P2 is streamed; the adaptation of P1 was never switched in
@@ -113,7 +112,7 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
         log2 = tmp_path / 'streamer2.log'
         proc2 = start_streamer(DOMAIN, ['diagnostics_period:=0.2'], log_path=str(log2),
                                params_file='config/streamer.yaml')
-        procs.append(proc2)
+        procs.append((proc2, log2))
         t2 = time.monotonic()
         assert h.wait(lambda: '21' in state_value(h, 'adapted_generation', t2)
                       or proc2.poll() is not None, STARTUP), log2.read_text()
@@ -123,6 +122,8 @@ def test_restarted_streamer_streams_the_newest_adaptation_of_the_current_primiti
         assert h.last_state()[1]['adaptation_latency_n'] == '0'
     finally:
         h.close()
-        codes = [stop_process(p) for p in procs]
-    assert codes and all(c == 0 for c in codes), codes
+        codes = [(stop_process(p), log) for p, log in procs]
+    assert codes
+    for code, log in codes:
+        assert_clean_stop(code, log.read_text(), 'streamer')
     assert not h.violations, h.violations[:5]

@@ -35,7 +35,8 @@ code is 0 when every process stopped cleanly (exit code 0, or ended
 by that signal in the first instants of the interpreter, before the node's entry point
 installed its handlers, see :mod:`cdmp_ros.ros.node_main`). A node whose rclpy teardown hung
 after its ``close()`` returned (ended by its stop backstop, exit code 1) is named as such
-(:meth:`Bringup.teardown_hangs`); it still counts as not clean. If the launching process dies
+(:meth:`Bringup.teardown_hangs`); when no other node failed, the exit code is
+:data:`TEARDOWN_HANG_EXIT_CODE` (4) instead of 1. If the launching process dies
 without stopping them (SIGKILL, a crash), every node gets SIGTERM from the kernel
 (``PR_SET_PDEATHSIG``; Linux): the thread that calls :meth:`Bringup.start` must live as long
 as the graph.
@@ -73,6 +74,10 @@ EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim', 'recorder', 'player')
 READY_EXECUTABLES = ('learner', 'adapter', 'streamer', 'sim')
 #: Exit code of ``cdmp bringup --wait-ready`` when the graph was not ready in time.
 NOT_READY_EXIT_CODE = 3
+#: Exit code of ``cdmp bringup`` when every node that did not stop cleanly was ended by its stop
+#: backstop in rclpy's middleware teardown after its ``close()`` returned
+#: (:meth:`Bringup.teardown_hangs`): the nodes did all of their work.
+TEARDOWN_HANG_EXIT_CODE = 4
 #: Exit codes of a clean stop: 0, or killed by the SIGINT / SIGTERM we sent before the process
 #: had installed its handlers (the interpreter still starting).
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, -signal.SIGTERM)
@@ -89,6 +94,14 @@ _GRAPH_KEYS = {'environment', 'stop_timeout', 'nodes'}
 
 NAME = 'bringup'
 HELP = 'start a graph of cdmp_ros nodes (a YAML file) as processes; Ctrl-C stops them cleanly'
+DESCRIPTION = (HELP + '. Exit code: 0 when every node stopped cleanly; 1 when one did not; 3 '
+               'when --wait-ready ran out; 4 when every node finished its work but the '
+               'middleware teardown below rclpy hung in one after its close() returned and its '
+               'stop watchdog ended it (named in the output).')
+#: The line that names the nodes of :meth:`Bringup.teardown_hangs` (``{nodes}``).
+TEARDOWN_HANG_LINE = ("bringup: {nodes}: close() had returned, then rclpy's middleware teardown "
+                      'hung and the stop backstop ended the process (its stacks are above); no '
+                      'work of the node was lost\n')
 
 
 def package_config_dir() -> str:
@@ -584,7 +597,8 @@ def run_graph(path: str, duration: Optional[float] = None, log=None,
     stop; 0 when every process ended cleanly. With ``wait_ready`` [s], print
     ``bringup: graph ready ...`` once every node of :data:`READY_EXECUTABLES` said it is
     ready, or stop the graph and return :data:`NOT_READY_EXIT_CODE` when they did not within
-    that time."""
+    that time. 1 when a node did not stop cleanly, :data:`TEARDOWN_HANG_EXIT_CODE` when every
+    such node is one of :meth:`Bringup.teardown_hangs`."""
     graph = load_graph(path)
     out = log if log is not None else sys.stdout
     not_ready = False
@@ -622,13 +636,13 @@ def run_graph(path: str, duration: Optional[float] = None, log=None,
                              f'nodes that did not stop cleanly: {bad}\n'))
     hung = [n for n in b.teardown_hangs() if n in bad]
     if hung:
-        out.write(f'bringup: {", ".join(hung)}: close() had returned, then rclpy\'s middleware '
-                  f'teardown hung and the stop backstop ended the process (its stacks are '
-                  f'above); no work of the node was lost\n')
+        out.write(TEARDOWN_HANG_LINE.format(nodes=', '.join(hung)))
     out.flush()
-    if bad:
+    if set(bad) - set(hung):
         return 1
-    return NOT_READY_EXIT_CODE if not_ready else 0
+    if not_ready:
+        return NOT_READY_EXIT_CODE
+    return TEARDOWN_HANG_EXIT_CODE if hung else 0
 
 
 def add_arguments(parser):
