@@ -30,9 +30,9 @@ def teardown_hang(code: int, output: str) -> bool:
     is :data:`EXIT_BACKSTOP`; the output holds faulthandler's ``Timeout (...)!`` dump; in the
     last such dump, the main thread (the stack that starts at the executable's ``<module>``)
     is inside rclpy only, in a call of :data:`TEARDOWN_CALLS` made by ``run_node``. Such a
-    node did all of its own work, its close() included; what hung is below rclpy (DDS entities
-    being deleted while holding the GIL, issue 31 item 3). A hang in the node's own code, in
-    ``close()``, in the spin loop, or a dump cut short is not one.
+    node did all of its own work, its close() included; what hung is below rclpy, holding the
+    GIL (see :mod:`cdmp_ros.ros.node_main`). A hang in the node's own code, in ``close()``, in
+    the spin loop, or a dump cut short is not one.
     """
     if code != EXIT_BACKSTOP:
         return False

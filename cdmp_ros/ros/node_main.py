@@ -30,12 +30,11 @@ the same bounds plus :data:`BACKSTOP_MARGIN` are also armed in faulthandler's C 
 :data:`~cdmp_ros.common.node_signals.EXIT_BACKSTOP`). SIGUSR1 writes the same stacks at any time
 (``cdmp bringup`` sends it before SIGKILL).
 
-The one such hang still seen (about 1 in 2,000 node stops when a whole graph stops) is below
-rclpy: ``destroy_node`` of the process's last node deletes the Fast DDS 2.14 participant, whose
-``set_listener(nullptr)`` busy-waits, holding its mutex, for a participant-discovery callback
-in flight (a peer that left at the same moment) that needs that mutex to finish; the waiting
-thread usually wins the mutex within a second, rarely not within the bound (native stacks:
-benchmarks/RESULTS.md, 2026-12-08). Such an exit is recognised from the node's stack dump by
+The one such hang still seen is below rclpy: ``destroy_node`` of the process's last node
+deletes the Fast DDS 2.14 participant, whose ``set_listener(nullptr)`` busy-waits, holding its
+mutex, for a participant-discovery callback in flight (a peer that left at the same moment)
+that needs that mutex to finish; the callback usually gets the mutex within a second, rarely
+not within the bound. Such an exit is recognised from the node's stack dump by
 :func:`cdmp_ros.common.node_signals.teardown_hang`; ``cdmp bringup`` names it.
 
 Usage in ``cdmp_ros/nodes/<name>.py``::
