@@ -50,6 +50,11 @@ STARTUP_S = 120.0   # bounds a failing start only (five interpreters on a loaded
 WAIT_S = 30.0       # bounds any other failing wait
 
 
+def _read(path: str) -> str:
+    with open(path, errors='replace') as f:
+        return f.read()
+
+
 # -- namespaces ------------------------------------------------------------------------------
 def ip(*args: str) -> str:
     out = subprocess.run(['ip', *args], capture_output=True, text=True)
@@ -362,8 +367,8 @@ def main(argv=None) -> int:
     names = ('sim',) + WORKSTATION_NODES + ('probe',)
     codes = {name: p.returncode for name, p in zip(names, procs)}
     out.update(layout=args.layout, domain=args.domain, namespaces_left=left, exit_codes=codes,
-               teardown_hangs=[n for n, c in codes.items() if teardown_hang(
-                   c, open(os.path.join(log_dir, f'{n}.log'), errors='replace').read())])
+               teardown_hangs=[n for n, c in codes.items() if c != 0 and teardown_hang(
+                   c, _read(os.path.join(log_dir, f'{n}.log')))])
     bad = verdict(out) + ([f'namespaces left: {left}'] if left else [])
     if not all(out.get('alive_at_end', {'all': False}).values()):
         bad.append(f"a node ended early: {out.get('alive_at_end')}")
