@@ -1,14 +1,16 @@
 """Adaptation requests of the adapter (cdmp_ros.core.adaptation.requests): obstacles, goals and the
 current state turned into a constrained ProMP problem, checked against independent
 computations (closed-form distances, forward kinematics, Monte Carlo)."""
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from adapter_harness import PANDA_JOINTS, Q_GOAL, Q_START, reach_cdmp
-from cdmp_ros.core.adaptation.requests import (AdaptRequest, box_wall, build_problem, classify,
-                                               clip_goal, ee_band, ee_path, obstacle_distance,
+from cdmp_ros.core.adaptation.requests import (AdaptRequest, avoided_points, box_wall,
+                                               build_problem, classify, clip_goal, ee_band,
+                                               ee_path, link_balls, obstacle_distance,
                                                reorder_promp, retarget_primitive_dict, run_request,
                                                solve_goal_point)
 from cdmp_ros.core.adaptation.solver import AdaptationReport, monte_carlo_satisfaction
@@ -150,7 +152,7 @@ def test_box_wall_is_the_face_leaving_the_most_room(rng):
 
 
 def test_build_problem_collects_limits_near_obstacles_and_conditions(chain, prior):
-    cfg = AdaptRequestConfig(n_steps=20, obstacle_margin=0.02, influence_distance=0.2)
+    cfg = AdaptRequestConfig(n_steps=20, obstacle_margin=0.02, influence_distance=1.0)
     x_mid = ee_path(chain, prior.mean([0.5]))[0]
     near = Sphere(tuple(x_mid + [0.03, 0.0, 0.0]), 0.04)
     far = Sphere((3.0, 3.0, 3.0), 0.1)
@@ -179,6 +181,88 @@ def test_build_problem_collects_limits_near_obstacles_and_conditions(chain, prio
     assert np.abs(cont.prior.mean([0.0])[0] - q0).min() > 0.03
     with pytest.raises(ValidationError, match='avoid_links'):
         build_problem(req, chain, AdaptRequestConfig(avoid_links=('no_such_link',)))
+
+
+def _panda_balls(links=('panda_link4', 'panda_hand')):
+    from cdmp_ros.core.kinematics.capsules import collision_capsules
+    from cdmp_ros.ros.robot_model import default_urdf_path
+    return link_balls(collision_capsules(default_urdf_path(), list(links)))
+
+
+def test_avoided_points_are_the_links_balls(chain):
+    """avoided_points: the tool centre point, then each avoided link as the balls covering its
+    collision capsule (named <link>_<i>), or as its origin without balls."""
+    balls = _panda_balls()
+    assert len(balls['panda_link4']) == 2 and len(balls['panda_hand']) == 3
+    pts = avoided_points(chain, ('panda_link4', 'panda_hand'), balls)
+    assert [p.name for p in pts] == ['ee', 'panda_link4_0', 'panda_link4_1', 'panda_hand_0',
+                                     'panda_hand_1', 'panda_hand_2']
+    assert pts[0].radius == 0.0 and pts[0].poi == EE
+    for p, (centre, radius) in zip(pts[3:], balls['panda_hand']):
+        assert p.poi == PointOfInterest('panda_hand', centre) and p.radius == radius
+    origins = avoided_points(chain, ('panda_link4',))
+    assert [(p.name, p.poi, p.radius) for p in origins] == [
+        ('ee', EE, 0.0), ('panda_link4', PointOfInterest('panda_link4'), 0.0)]
+    with pytest.raises(ValidationError, match="no collision balls of 'panda_link5'"):
+        avoided_points(chain, ('panda_link5',), balls)
+    with pytest.raises(ValidationError, match=r"avoid_links\[0\]: 'nowhere' is not a link"):
+        avoided_points(chain, ('nowhere',), balls)
+
+
+def test_build_problem_keeps_the_links_balls_clear(chain, prior):
+    """With link_balls, every repeller's radius is the sphere's plus the margin plus its ball's,
+    every wall is moved out by the ball's radius too, and an obstacle counts as near when it
+    comes within influence_distance of a ball's surface; a ball (not the origin) inside an
+    obstacle at the conditioned start is infeasible."""
+    cfg = AdaptRequestConfig(n_steps=20, obstacle_margin=0.02, influence_distance=1.0)
+    balls = _panda_balls()
+    pts = avoided_points(chain, cfg.avoid_links, balls)
+    x_mid = ee_path(chain, prior.mean([0.5]))[0]
+    near = Sphere(tuple(x_mid + [0.03, 0.0, 0.0]), 0.04)
+    box = Box(tuple(x_mid + [0.15, -0.05, -0.05]), tuple(x_mid + [0.25, 0.05, 0.05]))
+    req = AdaptRequest(prior, (near, box), None, Q_GOAL - 0.05, Q_START + 0.05,
+                       link_balls=balls)
+    prob = build_problem(req, chain, cfg)
+    rep = {c.name: c for c in prob.constraints if isinstance(c, Repeller)}
+    walls = {c.name: c for c in prob.constraints if isinstance(c, Hyperplane)}
+    assert sorted(rep) == sorted(f'obstacle_0_{p.name}' for p in pts)
+    assert sorted(walls) == sorted(f'obstacle_1_{p.name}' for p in pts)
+    plain = build_problem(dataclasses.replace(req, link_balls=None), chain, cfg)
+    plain_walls = {c.name: c for c in plain.constraints if isinstance(c, Hyperplane)}
+    for p in pts:
+        assert rep[f'obstacle_0_{p.name}'].radius == pytest.approx(0.04 + 0.02 + p.radius)
+        assert rep[f'obstacle_0_{p.name}'].point.point == p.poi
+    # the wall of the end effector (radius 0) is the plain one; a ball's is moved out by its
+    # radius along the wall's normal
+    ee_wall = walls['obstacle_1_ee']
+    np.testing.assert_allclose(ee_wall.offset, plain_walls['obstacle_1_ee'].offset)
+    same_face = 0
+    for p in pts[1:]:
+        w = walls[f'obstacle_1_{p.name}']
+        if np.allclose(w.normal, ee_wall.normal):
+            assert float((ee_wall.offset - w.offset) @ w.normal) == pytest.approx(p.radius)
+            same_face += 1
+    assert same_face >= 1
+    # influence_distance per point: only the balls that come that close to the sphere along
+    # the (conditioned) prior mean get its repeller
+    grid = np.linspace(0.0, 1.0, cfg.n_steps)
+    X = chain.forward(prob.prior.mean(grid), [p.poi for p in pts])       # (n, P, 3)
+    gap = (np.linalg.norm(X - np.asarray(near.center), axis=-1) - near.radius
+           - np.array([p.radius for p in pts])).min(axis=0)
+    assert gap.min() < 0.1 < gap.max()
+    tight = build_problem(req, chain, dataclasses.replace(cfg, influence_distance=0.1))
+    assert sorted(c.name for c in tight.constraints if isinstance(c, Repeller)) == sorted(
+        f'obstacle_0_{p.name}' for p, g in zip(pts, gap) if g <= 0.1)
+    # a sphere 5 cm beside the hand's balls at the start: near with balls, a contact at the
+    # conditioned start with the ball; 5 cm past the origin's margin without
+    x0 = chain.forward(Q_START, [p.poi for p in pts])
+    hand = max(range(len(pts)), key=lambda i: pts[i].radius)
+    out = x0[hand] + np.array([0.0, 0.0, 1.0]) * (pts[hand].radius + 0.04 + 0.01)
+    start = Sphere(tuple(out), 0.04)
+    bad = build_problem(AdaptRequest(prior, (start,), None, None, Q_START, link_balls=balls),
+                        chain, cfg)
+    assert any(f'contains the {pts[hand].name} at the conditioned start' in m
+               for m in bad.infeasible), bad.infeasible
 
 
 def test_user_constraint_set_is_added_and_validated(chain, prior):

@@ -106,6 +106,9 @@ def test_the_job_carries_the_inputs_and_provenance():
     assert job.request.constraint_doc == {'constraints': []}
     assert np.array_equal(job.request.goal_y, s.goal_y)
     assert job.request.limits == s.primitive['limits']
+    assert job.request.link_balls is None                 # the links' origins
+    s.link_balls = {'link1': [((0.0, 0.0, 0.1), 0.05)]}   # the node's link_geometry
+    assert trigger(s, 'goal').job.request.link_balls is s.link_balls
 
 
 def test_a_new_primitive_clears_the_goal_and_keeps_the_constraints():

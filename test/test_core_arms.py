@@ -139,8 +139,13 @@ def test_the_adapters_constraints_are_per_arm(arms, single, dual_prior):
     grid = np.linspace(0.0, 1.0, 21)
     mean = dual_prior.mean(grid)
     hand = single[0].forward(mean[:, :7], [PointOfInterest('ee')])[10, 0]
-    cfg = AdaptRequestConfig(avoid_links=('right_panda_link4', 'left_panda_link4'), n_steps=21)
+    cfg = AdaptRequestConfig(avoid_links=('right_panda_link4', 'left_panda_link4'), n_steps=21,
+                             influence_distance=5.0)    # every point, the far arm's too
     built = build_problem(AdaptRequest(dual_prior, (Sphere(hand, 0.05),)), arms, cfg)
+    near = build_problem(AdaptRequest(dual_prior, (Sphere(hand, 0.05),)), arms,
+                         dataclasses.replace(cfg, influence_distance=0.3))
+    assert 'obstacle_0_left_panda_hand_tcp' in {c.name for c in near.constraints}
+    assert len(near.constraints) < len(built.constraints)   # the points that stay far: none
     obstacle = {c.name: c for c in built.constraints if c.name.startswith('obstacle_0_')}
     assert sorted(obstacle) == sorted(['obstacle_0_left_panda_hand_tcp',
                                        'obstacle_0_left_panda_link4',

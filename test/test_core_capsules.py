@@ -266,3 +266,59 @@ def test_fitted_capsules_are_cached_checked_on_reading_and_refitted_when_wrong(
     files[0].write_text('x' * 5000)  # longer than any capsule file: not read
     n = len(fits)
     assert collision_capsules(path, PANDA_LINKS[:3]) == first and len(fits) == n + 1
+
+
+@pytest.mark.parametrize('start, end, radius', [
+    ((0.0, 0.0, 0.0), (0.3, 0.0, 0.0), 0.05),        # k = 3: four balls
+    ((0.01, -0.02, 0.03), (-0.05, 0.04, 0.0), 0.08),  # shorter than 2 r: the two ends
+    ((0.1, 0.1, 0.1), (0.1, 0.1, 0.1), 0.04),         # a ball
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 0.05),         # the planar arm's 1 m link: eleven
+])
+def test_covering_balls_contain_the_capsule(rng, start, end, radius):
+    """Capsule.covering_balls: every point of the capsule (sampled uniformly in it, and on its
+    surface) lies in one of the balls; each radius is at most sqrt(2) r; ends included."""
+    cap = Capsule('l', start, end, radius)
+    balls = cap.covering_balls()
+    a, b = np.asarray(start), np.asarray(end)
+    length = np.linalg.norm(b - a)
+    k = int(math.ceil(length / (2 * radius)))
+    assert len(balls) == k + 1
+    C = np.array([c for c, _ in balls])
+    R = np.array([r for _, r in balls])
+    assert np.all(R <= math.sqrt(2) * radius + 1e-12) and np.all(R >= radius)
+    np.testing.assert_allclose(C[0], a) and np.testing.assert_allclose(C[-1], b)
+    # points of the capsule: a segment point plus an offset of length <= r (= r: the surface)
+    t = rng.uniform(0.0, 1.0, 20000)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rho = radius * np.where(rng.uniform(size=20000) < 0.5, 1.0, rng.uniform(size=20000) ** (1 / 3))
+    P = a + t[:, None] * (b - a) + rho[:, None] * u
+    assert np.all(cap.distance(P) <= 1e-12)                 # they are in the capsule
+    inside = np.linalg.norm(P[:, None] - C[None], axis=-1) <= R[None] + 1e-12
+    assert inside.any(axis=1).all()
+    # and the balls are not larger than the rule: a point just outside a ball's reach exists
+    # for a capsule longer than its diameter (the radius is the cover's least one for k)
+    if k > 1:
+        mid = a + (b - a) * (0.5 / k)
+        across = np.cross(b - a, [1.0, 0.0, 0.0] if abs((b - a)[0]) < 0.9 * length else
+                          [0.0, 1.0, 0.0])
+        p = mid + radius * across / np.linalg.norm(across)
+        assert np.linalg.norm(p - C, axis=1).min() == pytest.approx(R[0], rel=1e-9)
+
+
+def test_covering_balls_refuse_a_capsule_without_radius():
+    with pytest.raises(ValidationError, match="capsule of 'l'"):
+        Capsule('l', (0.0, 0.0, 0.0), (0.1, 0.0, 0.0), 0.0).covering_balls()
+
+
+def test_covering_balls_contain_every_panda_collision_vertex():
+    """The balls of each Panda link's capsule hold all of its URDF collision geometry (what the
+    adapter's link_geometry keeps clear of obstacles)."""
+    path = default_urdf_path()
+    links = {el.get('name'): el for el in ET.parse(path).getroot().findall('link')}
+    for cap in collision_capsules(path, PANDA_LINKS):
+        centres, rho = collision_balls(links[cap.link], os.path.dirname(path), cap.link)
+        C = np.array([c for c, _ in cap.covering_balls()])
+        R = np.array([r for _, r in cap.covering_balls()])
+        gap = (np.linalg.norm(centres[:, None] - C[None], axis=-1) + rho[:, None] - R).min(axis=1)
+        assert gap.max() <= 1e-9, (cap.link, gap.max())

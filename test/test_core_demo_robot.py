@@ -100,11 +100,12 @@ def test_arm_distances_and_violation_against_each_pair(dual, cell):
     """arm_distances: the least distance between a point of one arm (hand, link4) and one of
     the other, computed pair by pair with the sim's chains; arm_violation of a distribution
     without spread is 1 or 0 as its one trajectory is inside the clearance or not."""
-    from cdmp_ros.cli.demo_promp import arm_distances, arm_violation
+    from cdmp_ros.cli.demo_promp import arm_distances, arm_violation, demo_points
     rng = np.random.default_rng(3)
     links = ['left_panda_link4', 'right_panda_link4']
+    origins = demo_points(dual, links, geometry=False)
     Q = _random_q(dual, rng, 6)
-    got = arm_distances(dual, Q, links)
+    got = arm_distances(dual, Q, origins)
     pts = [EE, [PointOfInterest('panda_link4')]]
     for q, d in zip(Q, got):
         A = np.concatenate([cell[0].forward(q[:7], p) for p in pts])
@@ -112,11 +113,33 @@ def test_arm_distances_and_violation_against_each_pair(dual, cell):
         assert d == pytest.approx(np.linalg.norm(A[:, None] - B[None], axis=-1).min(), abs=1e-9)
     q = Q[0]
     prior = _fixed(14, q, dual.joint_names)
-    dist = float(arm_distances(dual, q, links))
+    dist = float(arm_distances(dual, q, origins))
     for clearance, expect in ((dist + 0.01, 1.0), (max(dist - 0.01, 1e-3), 0.0)):
-        v = arm_violation(prior, dual, links, clearance, rng, n_samples=50, n_phases=5)
+        v = arm_violation(prior, dual, origins, clearance, rng, n_samples=50, n_phases=5)
         assert v['trajectory'] == expect and v['per_step_max'] == expect
         assert v['min_arm_distance_mean_path_m'] == pytest.approx(dist, abs=1e-6)
+
+
+def test_arm_distances_between_the_links_balls(dual, cell):
+    """With the links' geometry (the adapter's link_geometry), arm_distances is the least
+    distance between the surfaces of the balls covering panda_link4's capsule and the hands,
+    computed pair by pair from the capsule the URDF gives (both arms have the same)."""
+    from cdmp_ros.cli.demo_promp import arm_distances, demo_points
+    from cdmp_ros.core.kinematics.capsules import collision_capsules
+    links = ['left_panda_link4', 'right_panda_link4']
+    points = demo_points(dual, links)
+    cap = collision_capsules(dual.urdf, ['left_panda_link4'])[0]
+    balls = cap.covering_balls()
+    assert [p.name for p in points] == (['left_panda_hand_tcp'] + [f'left_panda_link4_{i}'
+                                        for i in range(len(balls))] + ['right_panda_hand_tcp']
+                                        + [f'right_panda_link4_{i}' for i in range(len(balls))])
+    pts = [PointOfInterest('ee')] + [PointOfInterest('panda_link4', c) for c, _ in balls]
+    pad = np.array([0.0] + [r for _, r in balls])
+    Q = _random_q(dual, np.random.default_rng(5), 4)
+    for q, d in zip(Q, arm_distances(dual, Q, points)):
+        A, B = cell[0].forward(q[:7], pts), cell[1].forward(q[7:], pts)
+        pair = np.linalg.norm(A[:, None] - B[None], axis=-1) - pad[:, None] - pad[None, :]
+        assert d == pytest.approx(pair.min(), abs=1e-9)
 
 
 def test_the_band_of_each_arm(dual, cell):

@@ -154,7 +154,8 @@ def test_sphere_obstacle_is_avoided_and_shown(graph, prims, chain):
     assert np.linalg.norm(path - centre, axis=1).min() > 0.05
     m, level, kv = converged_state(h, t0, 'obstacles')
     assert kv['obstacles_used'] == '1' and 'p.obstacle_0_ee' in kv
-    assert 'p.obstacle_0_panda_link4' in kv
+    # link_geometry (config/adapter.yaml): panda_link4 as the two balls over its capsule
+    assert 'p.obstacle_0_panda_link4_0' in kv and 'p.obstacle_0_panda_link4_1' in kv
     assert h.wait(lambda: any(mk.ns == 'obstacles' for mk in h.last_viz().markers), TIMEOUT)
     viz = h.last_viz().markers
     assert viz[0].action == Marker.DELETEALL
@@ -541,6 +542,9 @@ def test_runtime_parameter_changes_are_validated(graph):
     assert 'alpha' in h.refusal('adaptation.alpha', 1.5)
     assert "['nose'] are not links of the robot" in h.refusal('adaptation.avoid_links',
                                                               ['panda_link4', 'nose'])
+    # link_geometry (default true) needs collision geometry: the flange has none
+    assert "'panda_link8': no <collision> geometry" in h.refusal('adaptation.avoid_links',
+                                                                 ['panda_link8'])
     assert 'max_input_rate' in h.refusal('max_input_rate', -5.0)
     assert 'read-only' in h.refusal('joint_names', ['a']).lower()
     r = h.set_parameter('adaptation.obstacle_margin', 0)  # an integer for a float is accepted

@@ -13,11 +13,12 @@ robot is a :class:`~cdmp_ros.core.demo_robot.DemoRobot` (one Panda or two). From
   neither solved nor dropped at the end: the latest request wins, none waits in a queue);
 - ``adapted_violation``: for the last of them and for the prior, the fraction of 2,000
   trajectories sampled from the distribution (independently of the adapter's own check) in
-  which a hand or an avoided link origin comes within the sphere's radius plus the
-  adapter's ``obstacle_margin`` at any of 100 phases (``trajectory``), and the largest such
+  which a hand or an avoided link (the points and balls the adapter constrains:
+  :func:`~cdmp_ros.core.adaptation.requests.avoided_points`) comes within the adapter's
+  ``obstacle_margin`` of the sphere at any of 100 phases (``trajectory``), and the largest such
   fraction at one phase (``per_step_max``), each with a 95 % upper bound (Clopper-Pearson);
-- ``arm_violation`` (two arms, ``arm_clearance`` > 0): the same for two points of different
-  arms (each arm's hand and avoided links) closer than ``arm_clearance``, and
+- ``arm_violation`` (two arms, ``arm_clearance`` > 0): the same for two of those points of
+  different arms closer than ``arm_clearance``, and
   ``min_arm_distance_mean_path_m`` the least such distance along the mean;
 - ``adapted_laws``: per probability law, the constraints of the last adaptation that used it
   (its report's ``ConstraintReport.law``: 'gaussian' for the joint limits, under the default
@@ -37,9 +38,8 @@ from numpy.typing import NDArray
 from cdmp_ros.bag import BagReader
 from cdmp_ros.bag.cdr import decode_string
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig
-from cdmp_ros.core.adaptation.requests import ee_band
-from cdmp_ros.core.demo_robot import EE
-from cdmp_ros.core.kinematics import PointOfInterest
+from cdmp_ros.core.adaptation.requests import (AvoidedPoint, avoided_points, ee_band,
+                                               link_balls)
 from cdmp_ros.core.primitive_io import promp_from_dict, validate_primitive_dict
 from cdmp_ros.core.topics import DIAGNOSTICS_TOPIC
 
@@ -64,10 +64,21 @@ def upper95(k: int, n: int) -> float:
     return float(clopper_pearson_upper(k, n))
 
 
-def _points(robot, links: Sequence[str]) -> List[List[PointOfInterest]]:
-    """Per arm, its hand and the links of ``links`` that belong to it."""
-    return [[EE] + [PointOfInterest(link) for link in own]
-            for own in robot.split(links, 'avoid_links')]
+def demo_points(robot, links: Sequence[str], geometry: bool = True) -> List[AvoidedPoint]:
+    """The points the adapter of the demo graph constrains: each hand, and the links of
+    ``links`` as the balls covering their collision geometry in the robot's URDF (``geometry``:
+    the adapter's ``link_geometry``) or as their frame origins."""
+    balls = None
+    if geometry and links:
+        from cdmp_ros.core.kinematics.capsules import collision_capsules
+        balls = link_balls(collision_capsules(robot.urdf, list(links)))
+    return avoided_points(robot.model, links, balls)
+
+
+def _positions(robot, Y, points: Sequence[AvoidedPoint]) -> NDArray:
+    """Positions ``(..., P, 3)`` of ``points`` (in their order) at joint positions ``Y``."""
+    per_arm = [[p.poi for p in points if p.arm == k] for k in range(robot.n_arms)]
+    return np.concatenate(robot.positions(Y, per_arm), axis=-2)
 
 
 def _rates(inside: NDArray, n_samples: int) -> Dict[str, float]:
@@ -79,46 +90,51 @@ def _rates(inside: NDArray, n_samples: int) -> Dict[str, float]:
             'per_step_max_upper95': upper95(k_step, n_samples)}
 
 
-def sphere_violation(promp, robot, links: Sequence[str], center, radius: float,
+def sphere_violation(promp, robot, points: Sequence[AvoidedPoint], center, radius: float,
                      rng: np.random.Generator, n_samples: int = N_SAMPLES,
                      n_phases: int = N_PHASES) -> Dict[str, float]:
-    """Sampled probability that a hand or a link origin of ``links`` enters the ball
-    ``|x - center| < radius`` (see the module docstring); ``promp`` in the robot's joint
-    order."""
+    """Sampled probability that one of ``points`` (:func:`demo_points`) comes within
+    ``radius`` of ``center``, plus its own radius (see the module docstring); ``promp`` in the
+    robot's joint order. ``min_distance_mean_path_m``: along the mean, the least distance from
+    ``center`` to a point's ball."""
     s = np.linspace(0.0, 1.0, n_phases)
-    points = _points(robot, links)
     c = np.asarray(center, dtype=float)
-    X = np.concatenate(robot.positions(promp.sample_trajectories(s, n_samples, rng), points),
-                       axis=-2)                                       # (K, n, P, 3)
-    inside = (np.linalg.norm(X - c, axis=-1) < radius).any(axis=2)    # (K, n)
-    mean = np.concatenate(robot.positions(promp.mean(s), points), axis=-2)
+    pad = np.array([p.radius for p in points])
+    X = _positions(robot, promp.sample_trajectories(s, n_samples, rng), points)  # (K, n, P, 3)
+    inside = (np.linalg.norm(X - c, axis=-1) < radius + pad).any(axis=2)          # (K, n)
+    mean = _positions(robot, promp.mean(s), points)
     return {'n_samples': n_samples, 'n_phases': n_phases, **_rates(inside, n_samples),
-            'min_distance_mean_path_m': float(np.linalg.norm(mean - c, axis=-1).min())}
+            'min_distance_mean_path_m': float((np.linalg.norm(mean - c, axis=-1)
+                                               - pad).min())}
 
 
-def arm_distances(robot, Y, links: Sequence[str]) -> NDArray:
-    """Least distance between two points of different arms (each arm's hand and its links of
-    ``links``) at joint positions ``Y (..., n_dofs)``: shape ``Y.shape[:-1]``."""
-    X = robot.positions(Y, _points(robot, links))
+def arm_distances(robot, Y, points: Sequence[AvoidedPoint]) -> NDArray:
+    """Least distance between two of ``points`` (:func:`demo_points`) of different arms, less
+    their radii (between the balls), at joint positions ``Y (..., n_dofs)``: shape
+    ``Y.shape[:-1]``."""
+    per_arm = [[p.poi for p in points if p.arm == k] for k in range(robot.n_arms)]
+    pad = [np.array([p.radius for p in points if p.arm == k]) for k in range(robot.n_arms)]
+    X = robot.positions(Y, per_arm)
     best = np.full(np.shape(Y)[:-1], np.inf)
     for a in range(len(X)):
         for b in range(a + 1, len(X)):
-            d = np.linalg.norm(X[a][..., :, None, :] - X[b][..., None, :, :], axis=-1)
+            d = (np.linalg.norm(X[a][..., :, None, :] - X[b][..., None, :, :], axis=-1)
+                 - pad[a][:, None] - pad[b][None, :])
             best = np.minimum(best, d.min(axis=(-2, -1)))
     return best
 
 
-def arm_violation(promp, robot, links: Sequence[str], clearance: float,
+def arm_violation(promp, robot, points: Sequence[AvoidedPoint], clearance: float,
                   rng: np.random.Generator, n_samples: int = N_SAMPLES,
                   n_phases: int = N_PHASES) -> Dict[str, float]:
     """Sampled probability that two points of different arms come closer than ``clearance``
     (the adapter's ``arm_clearance``; see the module docstring)."""
     s = np.linspace(0.0, 1.0, n_phases)
     inside = arm_distances(robot, promp.sample_trajectories(s, n_samples, rng),
-                           links) < clearance
+                           points) < clearance
     return {'n_samples': n_samples, 'n_phases': n_phases, **_rates(inside, n_samples),
             'min_arm_distance_mean_path_m': float(arm_distances(robot, promp.mean(s),
-                                                                links).min())}
+                                                                points).min())}
 
 
 def _diagnostic_values(bag: str, prefix: str) -> List[Dict[str, str]]:
@@ -163,10 +179,14 @@ def promp_summary(bag: str, driver: Dict, robot, adapter_params: Dict,
     after = [d for t, d in adapted if isinstance(drop, int) and t >= drop]
     obs = driver.get('obstacle', {})
     ad = adapter_params.get('adaptation', {})
-    links = list(ad.get('avoid_links', AdaptRequestConfig().avoid_links))
-    radius = float(obs.get('radius', 0.0)) + float(ad.get('obstacle_margin', 0.02))
+    defaults = AdaptRequestConfig()
+    links = list(ad.get('avoid_links', defaults.avoid_links))
+    points = demo_points(robot, links, bool(ad.get('link_geometry', defaults.link_geometry)))
+    margin = float(ad.get('obstacle_margin', defaults.obstacle_margin))
+    radius = float(obs.get('radius', 0.0)) + margin
     out = {'adaptations': len(after), 'adaptation_latency_ms': adaptation_latencies(bag),
-           'violation_radius_m': radius, 'violation_points': ['ee'] + links,
+           'violation_radius_m': radius, 'violation_margin_m': margin,
+           'violation_points': {p.name: p.radius for p in points},
            'obstacle_messages': int(driver.get('obstacle_messages', 0))}
     # the adapter stays current: its last adaptation answers the last obstacle message
     last_stamp = driver.get('events_ns', {}).get('last_obstacle_stamp')
@@ -190,19 +210,19 @@ def promp_summary(bag: str, driver: Dict, robot, adapter_params: Dict,
                                  - counts.get('requests_dropped', 0))
     if prior and obs.get('center') is not None:
         out['prior_violation'] = sphere_violation(
-            _promp(prior[0][1], robot), robot, links, obs['center'], radius, rng)
+            _promp(prior[0][1], robot), robot, points, obs['center'], radius, rng)
     # the last adaptation answers the sphere's last position (a crossing sphere moved on)
     last = driver['crossing'][-1] if driver.get('crossing') else obs.get('center')
     if after and last is not None:
         out['adapted_violation'] = sphere_violation(
-            _promp(after[-1], robot), robot, links, last, radius, rng)
+            _promp(after[-1], robot), robot, points, last, radius, rng)
     clearance = float(ad.get('arm_clearance', 0.0))
     if robot.n_arms > 1 and clearance > 0.0:
         out['arm_clearance_m'] = clearance
         for key, d in (('prior_arm_violation', prior[0][1] if prior else None),
                        ('adapted_arm_violation', after[-1] if after else None)):
             if d is not None:
-                out[key] = arm_violation(_promp(d, robot), robot, links, clearance, rng)
+                out[key] = arm_violation(_promp(d, robot), robot, points, clearance, rng)
     if after:
         out['adapted_laws'] = constraint_laws(after[-1])
     return out

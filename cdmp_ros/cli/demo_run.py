@@ -241,8 +241,9 @@ def markdown(s: Dict) -> str:
                 f'{np.median(lat):.1f} ms median, {max(lat):.1f} ms max ({len(lat)} '
                 'adaptations switched in)') if lat else 'not reported')]
         for prefix, what, tail in (
-                ('', f'P(hand or link within {p["violation_radius_m"] * 100:.0f} cm of the '
-                 'sphere)', lambda v: f'{v["n_samples"]} samples'),
+                ('', f'P(a hand or an avoided link within '
+                 f'{p["violation_margin_m"] * 100:.0f} cm of the sphere)',
+                 lambda v: f'{v["n_samples"]} samples'),
                 ('arm_', f'P(two points of different arms within '
                  f'{p.get("arm_clearance_m", 0.0) * 100:.0f} cm)',
                  lambda v: f'mean path {v["min_arm_distance_mean_path_m"] * 100:.1f} cm apart')):

@@ -47,7 +47,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from cdmp_ros.core.adaptation.requests import rollout_path, solve_goal_point
+from cdmp_ros.core.adaptation.requests import link_balls, rollout_path, solve_goal_point
 from cdmp_ros.core.adaptation.config import AdaptRequestConfig, AdapterConfig
 from cdmp_ros.core.adaptation.warm import WarmStarts
 from cdmp_ros.core.config_fields import chain_tips
@@ -69,7 +69,7 @@ from cdmp_ros.ros.input_gate import (EXTRA_JOINTS, SMALL_MESSAGE_BYTES, InputGat
 from cdmp_ros.ros.params import ConfigParameters
 from cdmp_ros.ros.readiness_probe import ReadinessProbe, has_publishers, has_subscribers
 from cdmp_ros.ros.robot_description import RobotDescriptionInput
-from cdmp_ros.ros.robot_model import RobotModelSelector
+from cdmp_ros.ros.robot_model import RobotModelSelector, load_collision_capsules
 
 INPUT_TOPICS = ('primitive', 'obstacles', 'goal', 'goal_point', 'constraints')
 #: [s] Python's GIL switch interval in the adapter process (default 5 ms): the executor takes a
@@ -104,13 +104,16 @@ class AdapterNode(Node):
             String, 'robot_description', self.robot.on_raw, qos.LATCHED, raw=True))
         self.urdf_path = model.source
         self.chain = model.chain
+        self.model = model
         self._check_links(self.params['adaptation'])
+        balls = self._link_balls(self.params['adaptation'])
         self.joint_names = list(cfg.joint_names)
         self.js_mapper = JointStateMapper(cfg.joint_names, allow_extra=True)
         self.goal_mapper = JointStateMapper(cfg.joint_names, allow_extra=False)
         self.obstacles = ObstacleSet(cfg.base_frame, cfg.max_obstacles, cfg.max_obstacle_size,
                                      cfg.max_obstacle_distance)
         self.session = AdaptationSession(self.joint_names)
+        self.session.link_balls = balls
         self.q: Optional[np.ndarray] = None
         self.q_time = -math.inf
         self._obstacle_items = ()
@@ -167,6 +170,15 @@ class AdapterNode(Node):
             raise ValidationError(f'adaptation.avoid_links: {bad} are not links of the robot '
                                   f'{list(self.chain.link_names)}')
 
+    def _link_balls(self, acfg: AdaptRequestConfig):
+        """The balls covering the collision geometry of ``acfg.avoid_links`` (None without
+        ``link_geometry``); ValidationError naming a link without collision geometry."""
+        if not acfg.link_geometry or not acfg.avoid_links:
+            return None
+        return link_balls(load_collision_capsules(
+            self.config.urdf_path, list(acfg.avoid_links), self.model.text or '', self.chain,
+            what='adaptation.avoid_links (adaptation.link_geometry true)'))
+
     def _set_rates(self, cfg: AdapterConfig) -> None:
         self.gate.set_rates({t: cfg.max_input_rate for t in INPUT_TOPICS})
 
@@ -174,6 +186,7 @@ class AdapterNode(Node):
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
         cfg: AdapterConfig = configs['']
         self._check_links(configs['adaptation'])
+        self.session.link_balls = self._link_balls(configs['adaptation'])
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance

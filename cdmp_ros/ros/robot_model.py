@@ -143,7 +143,7 @@ def load_chain(urdf_path: str, joint_names: Sequence[str],
 
 
 def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = '',
-                            chain=None):
+                            chain=None, what: str = 'coupling_capsule_links'):
     """The capsules fitted around the collision geometry of ``links``
     (:func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`) of the robot of
     :func:`limits_source`. Mesh files of a ``robot_description`` are looked up from the
@@ -154,16 +154,17 @@ def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_descript
     Raises
     ------
     ValidationError
-        Naming ``coupling_capsule_links`` and what is wrong (unknown link, a link twice, a link
-        not in the chain, no collision geometry, a mesh that cannot be read).
+        Naming ``what`` (the parameter that lists the links) and what is wrong (unknown link, a
+        link twice, a link not in the chain, no collision geometry, a mesh that cannot be
+        read).
     """
     if not links:
         return []
     if chain is not None:
         for i, link in enumerate(links):
             if not has_link(chain, link):
-                raise ValidationError(f'coupling_capsule_links[{i}]: {link!r} is not a link of '
-                                      f'the chain {list(chain.link_names)}')
+                raise ValidationError(f'{what}[{i}]: {link!r} is not a link of the chain '
+                                      f'{list(chain.link_names)}')
     from cdmp_ros.core.kinematics.capsules import collision_capsules
     source = limits_source(urdf_path, robot_description)
     text = robot_description if source == ROBOT_DESCRIPTION else None
@@ -171,7 +172,7 @@ def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_descript
         return collision_capsules(source, links, urdf_text=text,
                                   mesh_dir=os.getcwd() if text is not None else None)
     except CdmpError as exc:
-        raise ValidationError(f'coupling_capsule_links: {exc}') from None
+        raise ValidationError(f'{what}: {exc}') from None
 
 
 # -- which model a node runs with --------------------------------------------------------------

@@ -566,17 +566,25 @@ class AdaptRequestConfig:
     obstacle_margin: float = _param(
         0.02, 'Clearance added to every obstacle (sphere radius, box faces) [m].', 0.0, 1.0)
     influence_distance: float = _param(
-        0.3, 'Obstacles farther than this [m] from the prior mean path of every point of '
-        'interest are left out of the problem.', 0.0, 100.0)
+        0.3, 'An obstacle constrains the points of interest (and balls of avoid_links) '
+        'that come within this distance [m] of it along the prior mean path; one farther '
+        'from all of them is left out of the problem.', 0.0, 100.0)
     avoid_links: Tuple[str, ...] = _param(
-        ('panda_link4', 'panda_hand'), 'Links whose frame origin gets the obstacle constraints '
-        'besides the end effector (the Panda elbow and the flange of its hand by default).')
+        ('panda_link4', 'panda_hand'), 'Links that avoid obstacles besides the end effector '
+        '(the Panda elbow and its hand by default), as their collision geometry '
+        '(link_geometry) or their frame origin.')
+    link_geometry: bool = _param(
+        True, 'true: each link of avoid_links keeps obstacle_margin clear with all of its '
+        'collision geometry (balls covering the capsule fitted to its URDF <collision>, as '
+        'the capsules of the streamer parameter coupling_capsule_links); false: with its '
+        'frame origin only (a link '
+        'with no collision geometry needs false).')
     arm_clearance: float = _param(
         0.0, 'A robot of several arms (tip_links): every point of one arm (its tool centre '
-        'point and its avoid_links) keeps at least this distance [m] from every point of '
-        'another arm, with probability alpha at every step (paper 003 Eq. 22, mutual '
-        'avoidance; distances between the points, not the link surfaces). 0: no constraint '
-        'between the arms.', 0.0, 10.0)
+        'point and its avoid_links: their balls with link_geometry, else their origins) '
+        'keeps at least this distance [m] from every point of another arm, with probability '
+        'alpha at every step (paper 003 Eq. 22, mutual avoidance; between the surfaces of '
+        'the balls, or between the points). 0: no constraint between the arms.', 0.0, 10.0)
     joint_limits: bool = _param(
         True, 'Constrain every joint to the robot limits (paper 003 Eq. 12).')
     condition_start: bool = _param(

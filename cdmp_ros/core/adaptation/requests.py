@@ -6,11 +6,16 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 
 - the prior ProMP is conditioned on the current joint state at phase 0 and on the joint goal
   at phase 1 (Gaussian conditioning in weight space, paper 003 Eq. 1-3);
-- every sphere obstacle near the prior mean path becomes a repeller (Eq. 18) on the end
-  effector and on each avoided link origin, of radius ``radius + obstacle_margin``;
+- the points that avoid obstacles (:func:`avoided_points`): each arm's tool centre point, and
+  each link of ``avoid_links`` as the balls that cover its collision geometry
+  (:func:`link_balls`, ``AdaptRequest.link_balls``) or as its frame origin;
+- every sphere obstacle near the prior mean path becomes a repeller (Eq. 18) on each of those
+  points that comes within ``influence_distance`` of it along the prior mean, of radius
+  ``radius + obstacle_margin`` plus the point's ball radius;
 - every box obstacle near the path becomes a virtual wall (Eq. 16) on the same points: the
-  plane of the box face, pushed out by ``obstacle_margin``, that leaves the prior mean path the
-  most room (a convex box is avoided by staying on the free side of one of its faces);
+  plane of the box face, pushed out by ``obstacle_margin`` and the ball radius, that leaves
+  the prior mean path the most room (a convex box is avoided by staying on the free side of
+  one of its faces);
 - the joint limits (the tighter of the primitive's and the robot's, ``AdaptRequest.limits``)
   become two-sided joint-limit constraints (Eq. 12);
 - the user's constraint set (``msg_schemas/constraints.schema.json``) is added as is.
@@ -18,7 +23,7 @@ Pure numpy (no ROS): the adapter node snapshots its inputs into an :class:`Adapt
 import dataclasses
 import json
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -39,6 +44,9 @@ from cdmp_ros.core.validation import as_array, name_permutation
 
 Obstacle = Union[Sphere, Box, OrientedBox]
 EE = PointOfInterest('ee')
+#: Per avoided link, the balls ``(centre in the link frame [m], radius [m])`` that stand for
+#: its collision geometry in the obstacle constraints (:func:`link_balls`).
+LinkBalls = Mapping[str, Sequence[Tuple[Tuple[float, float, float], float]]]
 
 #: Outcomes reported by the adapter (diagnostics key ``outcome``).
 OUTCOMES = ('converged', 'infeasible', 'unconverged', 'rejected', 'retargeted')
@@ -196,6 +204,65 @@ def box_wall(box: Union[Box, OrientedBox], X: ArrayLike, margin: float = 0.0
     return R @ normal, c + R @ offset, clearance
 
 
+def link_balls(capsules: Sequence) -> Dict[str, List[Tuple[Tuple[float, float, float], float]]]:
+    """Per capsule's link, the balls that cover it
+    (:meth:`~cdmp_ros.core.kinematics.capsules.Capsule.covering_balls`): the geometry of the
+    avoided links (``adaptation.link_geometry``)."""
+    return {c.link: c.covering_balls() for c in capsules}
+
+
+@dataclass(frozen=True)
+class AvoidedPoint:
+    """A point with which an arm avoids obstacles, and the ball around it that must stay clear.
+
+    Attributes
+    ----------
+    arm : int
+        Index into :func:`~cdmp_ros.core.kinematics.arms.arms_of` of the robot.
+    name : str
+        ``ee`` (one arm) or ``<tip link>_tcp`` for the tool centre point; the link's name for
+        its origin or its only ball; ``<link>_<i>`` for its ball ``i`` of several.
+    poi : PointOfInterest
+    radius : float
+        [m] added to an obstacle's radius (0: the point itself).
+    """
+
+    arm: int
+    name: str
+    poi: PointOfInterest
+    radius: float = 0.0
+
+
+def avoided_points(model, links: Sequence[str], balls: Optional[LinkBalls] = None
+                   ) -> List[AvoidedPoint]:
+    """The points of ``model`` (a Chain or Arms) that the obstacle constraints act on: per arm
+    its tool centre point, then each of its ``links`` (``adaptation.avoid_links``) as the balls
+    of ``balls[link]`` (its collision geometry), or as its frame origin when ``balls`` is None.
+
+    Raises
+    ------
+    ValidationError
+        A link of no arm, or a link that ``balls`` does not cover.
+    """
+    arms = arms_of(model)
+    own = split_by_arm(model, links, 'adaptation.avoid_links')
+    out: List[AvoidedPoint] = []
+    for k, ((arm, _), arm_links) in enumerate(zip(arms, own)):
+        out.append(AvoidedPoint(k, 'ee' if len(arms) == 1 else f'{arm.ee_link}_tcp', EE))
+        for link in arm_links:
+            if balls is None:
+                out.append(AvoidedPoint(k, link, PointOfInterest(link)))
+                continue
+            if link not in balls:
+                raise ValidationError(f'adaptation.avoid_links: no collision balls of {link!r} '
+                                      f'(given for {sorted(balls)})')
+            several = len(balls[link]) > 1
+            out += [AvoidedPoint(k, f'{link}_{i}' if several else link,
+                                 PointOfInterest(link, tuple(centre)), float(radius))
+                    for i, (centre, radius) in enumerate(balls[link])]
+    return out
+
+
 @dataclass(frozen=True)
 class AdaptRequest:
     """A snapshot of the adapter's inputs (everything in the robot's joint order).
@@ -220,6 +287,9 @@ class AdaptRequest:
     limits : ((n_dims,), (n_dims,)), optional
         Lower and upper bounds of the joint-limit constraints: the tighter of the primitive's
         and the robot's (:func:`cdmp_ros.core.joint_limits.merge_limits`). None: the chain's.
+    link_balls : mapping, optional
+        The balls that stand for each link of ``avoid_links`` (:func:`link_balls`; the node's
+        ``adaptation.link_geometry``). None: each link's frame origin.
     """
 
     prior: ProMP
@@ -229,6 +299,7 @@ class AdaptRequest:
     start_y: Optional[NDArray[np.float64]] = None
     limits: Optional[Tuple[NDArray[np.float64], NDArray[np.float64]]] = None
     continues: bool = False
+    link_balls: Optional[LinkBalls] = None
 
 
 @dataclass
@@ -275,57 +346,53 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
         notes.append('conditioned on ' + ' and '.join(
             name for name, on in (('the current state', condition_start),
                                   ('the goal', req.goal_y is not None)) if on))
-    for link in cfg.avoid_links:
-        if link not in chain.link_names:
-            raise ValidationError(f'adaptation.avoid_links: {link!r} is not a link of the '
-                                  f'robot {list(chain.link_names)}')
+    avoided = avoided_points(chain, cfg.avoid_links, req.link_balls)
     arms = arms_of(chain)
-    links = split_by_arm(chain, cfg.avoid_links, 'adaptation.avoid_links')
-    # per arm its tool centre point ('ee'; of several arms: '<tip link>_tcp') and its links of
-    # avoid_links; each point shared by its constraints: one FK / UT per time step
+    # each point shared by its constraints: one FK / UT per time step
+    points = [ChainPoint(arms[p.arm][0], p.poi, arms[p.arm][1]) for p in avoided]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
     mean = prior.mean(grid)
-    points, names, of_arm, X = [], [], [], []
-    for k, ((arm, idx), arm_links) in enumerate(zip(arms, links)):
-        pois = [EE] + [PointOfInterest(link) for link in arm_links]
-        points += [ChainPoint(arm, p, idx) for p in pois]
-        names += ['ee' if len(arms) == 1 else f'{arm.ee_link}_tcp'] + arm_links
-        of_arm += [k] * len(pois)
-        X.append(arm.forward(mean[:, idx], pois))      # (n_steps, the arm's points, 3)
-    X = np.concatenate(X, axis=1)                      # (n_steps, n_points, 3)
+    X = np.stack([arms[p.arm][0].forward(mean[:, arms[p.arm][1]], [p.poi])[:, 0]
+                  for p in avoided], axis=1)           # (n_steps, n_points, 3)
+    radii = [p.radius for p in avoided]
     constraints: list = []
     if cfg.joint_limits:  # Eq. (12), paper 003
         lower, upper = req.limits if req.limits is not None else (chain.lower, chain.upper)
         constraints += [JointLimit(j, float(lower[j]), float(upper[j]),
                                    alpha=cfg.alpha, name=f'limit_{chain.joint_names[j]}')
                         for j in range(n)]
-    if cfg.arm_clearance > 0.0:  # Eq. 22 between every two points of different arms
-        constraints += [MutualAvoidance(points[i], points[j], float(cfg.arm_clearance),
-                                        alpha=cfg.alpha, name=f'arms_{names[i]}_{names[j]}')
+    if cfg.arm_clearance > 0.0:  # Eq. 22 between every two points (balls) of different arms
+        constraints += [MutualAvoidance(points[i], points[j],
+                                        float(cfg.arm_clearance + radii[i] + radii[j]),
+                                        alpha=cfg.alpha,
+                                        name=f'arms_{avoided[i].name}_{avoided[j].name}')
                         for i in range(len(points)) for j in range(i + 1, len(points))
-                        if of_arm[i] != of_arm[j]]
+                        if avoided[i].arm != avoided[j].arm]
     # phases pinned by the conditioning: an obstacle there makes the problem infeasible
     pinned = [(i, label) for i, label, on in ((0, 'start', 0.0 in s_obs),
                                               (-1, 'goal', 1.0 in s_obs)) if on]
     used = ignored = 0
     infeasible = []
     for k, ob in enumerate(req.obstacles):
-        d = obstacle_distance(ob, X)                     # (n_steps, n_points)
+        d = obstacle_distance(ob, X) - np.asarray(radii)  # (n_steps, n_points), to the balls
         if float(d.min()) > cfg.influence_distance:
             ignored += 1
             continue
         used += 1
-        for i, (pt, pname) in enumerate(zip(points, names)):
+        for i, (pt, av) in enumerate(zip(points, avoided)):
+            if float(d[:, i].min()) > cfg.influence_distance:
+                continue  # this point stays far from it: no constraint (as for an obstacle)
+            margin = cfg.obstacle_margin + av.radius
             if isinstance(ob, Sphere):
-                constraints.append(Repeller(pt, ob.center, ob.radius + cfg.obstacle_margin,
-                                            alpha=cfg.alpha, name=f'obstacle_{k}_{pname}'))
+                constraints.append(Repeller(pt, ob.center, ob.radius + margin,
+                                            alpha=cfg.alpha, name=f'obstacle_{k}_{av.name}'))
                 clear = d[:, i] - cfg.obstacle_margin
             else:
-                normal, offset, _ = box_wall(ob, X[:, i], cfg.obstacle_margin)
+                normal, offset, _ = box_wall(ob, X[:, i], margin)
                 constraints.append(Hyperplane(pt, normal, offset, alpha=cfg.alpha,
-                                              name=f'obstacle_{k}_{pname}'))
+                                              name=f'obstacle_{k}_{av.name}'))
                 clear = (X[:, i] - offset) @ -normal
-            infeasible += [f'obstacle {k} (with its margin) contains the {pname} at the '
+            infeasible += [f'obstacle {k} (with its margin) contains the {av.name} at the '
                            f'conditioned {label}' for j, label in pinned if clear[j] <= 0.0]
     overrides: Dict[str, Any] = {}
     if req.constraint_doc is not None:

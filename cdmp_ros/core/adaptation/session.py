@@ -95,6 +95,10 @@ class AdaptationSession:
         self.motion_of = 0
         self.restart_generation = 0
         self.constraint_doc: Optional[dict] = None
+        #: the balls of the avoided links' collision geometry (None: their frame origins),
+        #: set by the node from the robot model (:func:`~cdmp_ros.core.adaptation.requests.
+        #: link_balls`); every request carries them
+        self.link_balls = None
         self.goal_y: Optional[np.ndarray] = None
         self.goal_point: Optional[np.ndarray] = None
         self.counts: Dict[str, int] = {k: 0 for k in COUNTERS}
@@ -161,7 +165,7 @@ class AdaptationSession:
         if not continues:
             self.restart_generation = generation
         req = AdaptRequest(p['prim'], tuple(obstacles), self.constraint_doc, self.goal_y, start,
-                           p['limits'], continues=continues)
+                           p['limits'], continues=continues, link_balls=self.link_balls)
         return Trigger('solve', job=Job(req, config, node_config, topic, stamp_ns, received,
                                         self.primitive_id, p['sha1'], generation=generation))
 

@@ -76,6 +76,28 @@ class Capsule:
         (negative inside)."""
         return segment_sphere(self.start, self.end, points, 0.0, self.radius)[1]
 
+    def covering_balls(self) -> List[Tuple[Vec3, float]]:
+        """Balls ``(centre, radius)`` in the link frame whose union contains the capsule:
+        centres at ``k + 1`` evenly spaced points of the segment, both ends included, with
+        ``k = ceil(L / (2 r))`` for a segment of length ``L``, each of radius
+        ``sqrt(r^2 + (L / 2k)^2)`` (at most ``sqrt(2) r``).
+
+        A point of the capsule lies within ``r`` of a point ``s`` of the segment: a point of an
+        end cap within ``r`` of an end, which is a centre; a point of the cylinder at ``r`` or
+        less across the axis from ``s``, which is at most ``L / 2k`` along the axis from the
+        nearest centre. A ball therefore stands for the link wherever the link must keep clear:
+        the adapter's obstacle constraints (:mod:`cdmp_ros.core.adaptation.requests`)."""
+        a, b, r = np.asarray(self.start), np.asarray(self.end), float(self.radius)
+        if not r > 0.0:
+            raise ValidationError(f'capsule of {self.link!r}: balls cannot cover a radius of '
+                                  f'{r!r}')
+        length = float(np.linalg.norm(b - a))
+        k = int(np.ceil(length / (2.0 * r)))
+        if k == 0:
+            return [(tuple(float(v) for v in a), r)]
+        radius = float(np.hypot(r, length / (2.0 * k)))
+        return [(tuple(float(v) for v in a + (b - a) * (i / k)), radius) for i in range(k + 1)]
+
 
 def _enclose(X, rho, axis, c):
     """(volume, start, end, radius) of the least-volume capsule on the line ``c + t axis``
