@@ -178,12 +178,13 @@ def test_streamer_parameter_errors_name_the_parameter(tmp_path):
     with pytest.raises(ValidationError,
                        match=r"coupling_capsule_links: links\[1\]: no link 'panda_link9'"):
         load_collision_capsules('', ['panda_hand', 'panda_link9'])
-    # a robot_description whose meshes cannot be found from here: named
+    # a robot_description whose meshes are neither here nor beside urdf_path: named
     text = open(default_urdf_path()).read()
     missing = r"mesh 'package://meshes/collision/link5.obj' not found"
     with pytest.raises(ValidationError,
                        match=r"coupling_capsule_links: link 'panda_link5'.*" + missing):
-        load_collision_capsules('', ['panda_link5'], robot_description=text)
+        load_collision_capsules(str(tmp_path / 'robot.urdf'), ['panda_link5'],
+                                robot_description=text)
 
 
 def test_more_bad_inputs_are_named(tmp_path):

@@ -216,3 +216,35 @@ def test_the_selector_loads_the_planar_arm_and_rejects_a_panda_description():
     model, _, warn = sel.start(open(PLANAR4_FILE).read())
     assert sel.verdict.status == USED and not warn
     np.testing.assert_array_equal(model.chain.upper, [2.8] * 4)
+
+
+def test_meshes_of_a_robot_description_are_found_as_ros_finds_them(tmp_path, monkeypatch):
+    """load_collision_capsules of a robot_description (text): its relative mesh names are found
+    beside the node's urdf_path file when not in the working directory, and
+    package://<package>/<path> names in the share directory of an AMENT_PREFIX_PATH prefix;
+    the capsules equal those of the file itself. A mesh found nowhere is named with every
+    place looked at."""
+    from cdmp_ros.ros.robot_model import load_collision_capsules, mesh_dirs
+    path = default_urdf_path()
+    links = ['panda_link4', 'panda_hand']
+    want = load_collision_capsules(path, links)
+    text = open(path).read()
+    monkeypatch.chdir(tmp_path)                       # no meshes here
+    assert load_collision_capsules(path, links, text) == want
+    dirs = mesh_dirs(path, 'robot_description', True)
+    assert dirs[:2] == [str(tmp_path), os.path.dirname(path)]
+    # package://franka/meshes/... in <prefix>/share/franka/meshes/...
+    share = tmp_path / 'prefix' / 'share' / 'franka'
+    share.mkdir(parents=True)
+    os.symlink(os.path.join(os.path.dirname(path), 'meshes'), share / 'meshes')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path / 'prefix'))
+    pkg = text.replace('filename="package://meshes/', 'filename="package://franka/meshes/')
+    assert 'package://franka/meshes/collision/link4.obj' in pkg
+    other = tmp_path / 'elsewhere.urdf'
+    other.write_text('<robot name="x"/>')
+    assert load_collision_capsules(str(other), links, pkg) == want
+    gone = text.replace('filename="package://meshes/collision/link4.obj"',
+                        'filename="package://nowhere/link4.obj"')
+    with pytest.raises(ValidationError, match=r"coupling_capsule_links: .*'package://nowhere/"
+                                              r"link4.obj' not found \(looked for .*prefix"):
+        load_collision_capsules(str(other), links, gone)

@@ -142,12 +142,31 @@ def load_chain(urdf_path: str, joint_names: Sequence[str],
         raise ValidationError(f'{msg} (the robot of {source!r})') from None
 
 
+def mesh_dirs(urdf_path: str, source: str, text: bool) -> List[str]:
+    """Where the mesh files of a robot model are looked up, in turn: of a ``robot_description``
+    (``text``) the working directory, then the directory of the node's ``urdf_path`` file (the
+    robot that description usually describes); of a file ``source`` its directory; then the
+    ``share`` directory of every ``AMENT_PREFIX_PATH`` prefix, which resolves
+    ``package://<package>/<path>`` as ROS does."""
+    if text:
+        out = [os.getcwd()]
+        try:
+            out.append(os.path.dirname(os.path.abspath(resolve_urdf_path(urdf_path))))
+        except ValidationError:
+            pass
+    else:
+        out = [os.path.dirname(os.path.abspath(source))]
+    out += [os.path.join(p, 'share') for p in os.environ.get('AMENT_PREFIX_PATH', '').split(
+        os.pathsep) if p]
+    return list(dict.fromkeys(out))
+
+
 def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_description: str = '',
                             chain=None, what: str = 'coupling_capsule_links'):
     """The capsules fitted around the collision geometry of ``links``
     (:func:`~cdmp_ros.core.kinematics.capsules.collision_capsules`) of the robot of
-    :func:`limits_source`. Mesh files of a ``robot_description`` are looked up from the
-    working directory (absolute or ``file://`` names always work).
+    :func:`limits_source`. Mesh files are looked up as :func:`mesh_dirs` says (absolute or
+    ``file://`` names always work).
 
     ``chain``, if given: every link must be one of its links (the ones the coupling moves).
 
@@ -170,7 +189,7 @@ def load_collision_capsules(urdf_path: str, links: Sequence[str], robot_descript
     text = robot_description if source == ROBOT_DESCRIPTION else None
     try:
         return collision_capsules(source, links, urdf_text=text,
-                                  mesh_dir=os.getcwd() if text is not None else None)
+                                  mesh_dirs=mesh_dirs(urdf_path, source, text is not None))
     except CdmpError as exc:
         raise ValidationError(f'{what}: {exc}') from None
 

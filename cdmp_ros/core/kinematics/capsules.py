@@ -13,8 +13,9 @@ Geometry read from ``<collision>``: ``<mesh filename scale>`` (Wavefront ``.obj`
 other formats are refused), ``<box size>``, ``<cylinder radius length>``, ``<sphere
 radius>`` and ``<capsule radius length>`` (pybullet's extension: ``length`` between the centres
 of its end caps), each placed by its ``<origin xyz rpy>``. A mesh's ``package://`` or relative
-``filename`` is looked up under ``mesh_dir`` (default: the URDF's directory), with and
-without its first path component (the package name).
+``filename`` is looked up under each of ``mesh_dirs`` in turn (default: the URDF's directory),
+with and without its first path component (the package name: a ``share`` directory of an
+install prefix resolves ``package://<package>/<path>`` as ROS does).
 
 Fit (:func:`fit_capsule`): the geometry becomes balls (points with a radius: mesh and box
 vertices with radius 0, sphere centres, cylinder rims sampled with the chord's sag as radius,
@@ -165,14 +166,16 @@ def fit_capsule(centres: NDArray, radii: Optional[NDArray] = None
     return best[1], best[2], best[3]
 
 
-def _mesh_file(filename: str, mesh_dir: str, where: str) -> str:
+def _mesh_file(filename: str, mesh_dirs: Sequence[str], where: str) -> str:
     if filename.startswith('file://'):
         candidates = [filename[len('file://'):]]
     else:
         rel = filename[len('package://'):] if filename.startswith('package://') else filename
-        candidates = [rel] if os.path.isabs(rel) else [os.path.join(mesh_dir, rel)]
-        if not os.path.isabs(rel) and '/' in rel:
-            candidates.append(os.path.join(mesh_dir, rel.split('/', 1)[1]))
+        candidates = [rel] if os.path.isabs(rel) else []
+        for mesh_dir in ([] if os.path.isabs(rel) else mesh_dirs):
+            candidates.append(os.path.join(mesh_dir, rel))
+            if '/' in rel:
+                candidates.append(os.path.join(mesh_dir, rel.split('/', 1)[1]))
     for path in candidates:
         if os.path.isfile(path):
             return path
@@ -227,9 +230,11 @@ def _floats(el, attr: str, n: int, default, where: str) -> NDArray:
     return v
 
 
-def collision_balls(link_el, mesh_dir: str, where: str) -> Tuple[NDArray, NDArray]:
+def collision_balls(link_el, mesh_dirs, where: str) -> Tuple[NDArray, NDArray]:
     """The collision geometry of a ``<link>`` element as balls (centres (N, 3) in the link
-    frame, radii (N,)): see the module docstring."""
+    frame, radii (N,)): see the module docstring. ``mesh_dirs``: a directory or a sequence
+    of them, where mesh files are looked up in turn."""
+    mesh_dirs = [mesh_dirs] if isinstance(mesh_dirs, str) else list(mesh_dirs)
     centres, radii = [], []
     for k, col in enumerate(link_el.findall('collision')):
         at = f'{where} <collision> {k}'
@@ -241,7 +246,7 @@ def collision_balls(link_el, mesh_dir: str, where: str) -> Tuple[NDArray, NDArra
         if shape is None:
             raise ValidationError(f'{at}: no <geometry>')
         if shape.tag == 'mesh':
-            V = _obj_vertices(_mesh_file(shape.get('filename', ''), mesh_dir, at), at)
+            V = _obj_vertices(_mesh_file(shape.get('filename', ''), mesh_dirs, at), at)
             V = V * _floats(shape, 'scale', 3, (1.0, 1.0, 1.0), at)
             rho = np.zeros(len(V))
         elif shape.tag == 'box':
@@ -274,7 +279,7 @@ def collision_balls(link_el, mesh_dir: str, where: str) -> Tuple[NDArray, NDArra
 
 
 def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str] = None,
-                       mesh_dir: Optional[str] = None) -> List[Capsule]:
+                       mesh_dirs: Optional[Sequence[str]] = None) -> List[Capsule]:
     """One enclosing capsule per link of ``links``, fitted to its URDF ``<collision>``
     geometry (module docstring), in the link's frame.
 
@@ -285,8 +290,8 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
     links : sequence of str
     urdf_text : str, optional
         The URDF XML itself (a ``robot_description``).
-    mesh_dir : str, optional
-        Where mesh file names are looked up; default the directory of ``path``.
+    mesh_dirs : sequence of str, optional
+        Where mesh file names are looked up, in turn; default the directory of ``path``.
 
     Raises
     ------
@@ -305,14 +310,15 @@ def collision_capsules(path: str, links: Sequence[str], urdf_text: Optional[str]
     except ET.ParseError as exc:
         raise ValidationError(f'{path}: malformed XML ({exc})') from None
     by_name = {el.get('name'): el for el in root.findall('link')}
-    mesh_dir = os.path.dirname(os.path.abspath(path)) if mesh_dir is None else mesh_dir
+    if mesh_dirs is None:
+        mesh_dirs = [os.path.dirname(os.path.abspath(path))]
     out = []
     for i, link in enumerate(links):
         if link in links[:i]:
             raise ValidationError(f'links[{i}]: {link!r} is listed twice')
         if link not in by_name:
             raise ValidationError(f'links[{i}]: no link {link!r} in {path!r}')
-        centres, radii = collision_balls(by_name[link], mesh_dir, f'link {link!r}')
+        centres, radii = collision_balls(by_name[link], mesh_dirs, f'link {link!r}')
         out.append(Capsule(link, *link_capsule(centres, radii)))
     return out
 
