@@ -190,11 +190,18 @@ def test_kinematics_and_limits_are_compared_other_elements_are_not():
 
 def test_collision_capsules_are_part_of_the_model(tmp_path, monkeypatch):
     """The streamer's coupling_capsule_links: loaded with the model from the same source; a
-    description whose meshes cannot be found from the working directory is rejected."""
+    description whose meshes are found nowhere (working directory, beside urdf_path, share
+    directories) is rejected; the stock one's package://meshes/... are found beside the
+    Panda file of urdf_path ''."""
     monkeypatch.chdir(tmp_path)
     links = ('panda_hand',)
     sel = RobotModelSelector('', PANDA_JOINTS, timeout=1.0, capsule_links=links)
-    model, note, warn = sel.start(PANDA)           # package://meshes/...: not found from here
+    model, _, _ = sel.start(PANDA)
+    assert model.source == ROBOT_DESCRIPTION_TOPIC and model.capsules[0].link == 'panda_hand'
+    lost = PANDA.replace('package://meshes/collision/hand.obj', 'package://nowhere/hand.obj')
+    assert lost != PANDA
+    sel = RobotModelSelector('', PANDA_JOINTS, timeout=1.0, capsule_links=links)
+    model, note, warn = sel.start(lost)
     assert model.source == FILE and len(model.capsules) == 1
     v = sel.verdict
     assert v.status == REJECTED and 'robot_description: coupling_capsule_links' in v.message

@@ -383,11 +383,14 @@ class DemoDriver(Node):
         elif self.phase == 'wait_rest_1':
             if not self._last_answer_streamed():
                 return
-            if self._rested(self.final_answer_at or 0.0) and a.no_goal_change:
-                self._event('first_motion_rest')
+            # one reading of the clock: two could disagree (at rest by the second, not by the
+            # first) and change the goal of a run asked not to (a CI failure, 2026-12-08)
+            if not self._rested(self.final_answer_at or 0.0):
+                return
+            self._event('first_motion_rest')
+            if a.no_goal_change:
                 self.phase = 'finish'
-            elif self._rested(self.final_answer_at or 0.0):
-                self._event('first_motion_rest')
+            else:
                 goal = np.asarray(self.prim.goal_y_) + np.asarray(a.goal_offset)
                 msg = JointState(name=self.robot.joint_names,
                                  position=[float(v) for v in goal])
