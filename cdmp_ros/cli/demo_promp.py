@@ -75,10 +75,14 @@ def demo_points(robot, links: Sequence[str], geometry: bool = True) -> List[Avoi
     return avoided_points(robot.model, links, balls)
 
 
+def _by_arm(robot, points: Sequence[AvoidedPoint]) -> List[List[AvoidedPoint]]:
+    return [[p for p in points if p.arm == k] for k in range(robot.n_arms)]
+
+
 def _positions(robot, Y, points: Sequence[AvoidedPoint]) -> NDArray:
-    """Positions ``(..., P, 3)`` of ``points`` (in their order) at joint positions ``Y``."""
-    per_arm = [[p.poi for p in points if p.arm == k] for k in range(robot.n_arms)]
-    return np.concatenate(robot.positions(Y, per_arm), axis=-2)
+    """Positions ``(..., P, 3)`` of ``points`` (listed arm by arm) at joint positions ``Y``."""
+    return np.concatenate(robot.positions(Y, [[p.poi for p in own]
+                                              for own in _by_arm(robot, points)]), axis=-2)
 
 
 def _rates(inside: NDArray, n_samples: int) -> Dict[str, float]:
@@ -112,9 +116,9 @@ def arm_distances(robot, Y, points: Sequence[AvoidedPoint]) -> NDArray:
     """Least distance between two of ``points`` (:func:`demo_points`) of different arms, less
     their radii (between the balls), at joint positions ``Y (..., n_dofs)``: shape
     ``Y.shape[:-1]``."""
-    per_arm = [[p.poi for p in points if p.arm == k] for k in range(robot.n_arms)]
-    pad = [np.array([p.radius for p in points if p.arm == k]) for k in range(robot.n_arms)]
-    X = robot.positions(Y, per_arm)
+    per_arm = _by_arm(robot, points)
+    pad = [np.array([p.radius for p in own]) for own in per_arm]
+    X = robot.positions(Y, [[p.poi for p in own] for own in per_arm])
     best = np.full(np.shape(Y)[:-1], np.inf)
     for a in range(len(X)):
         for b in range(a + 1, len(X)):

@@ -185,8 +185,10 @@ class AdapterNode(Node):
     def _on_params(self, configs) -> None:
         """Validate a parameter change as a whole (raises ValidationError to refuse it)."""
         cfg: AdapterConfig = configs['']
-        self._check_links(configs['adaptation'])
-        self.session.link_balls = self._link_balls(configs['adaptation'])
+        acfg, old = configs['adaptation'], self.params['adaptation']
+        self._check_links(acfg)
+        if (acfg.avoid_links, acfg.link_geometry) != (old.avoid_links, old.link_geometry):
+            self.session.link_balls = self._link_balls(acfg)  # reads the URDF and its meshes
         self.obstacles.max_obstacles = cfg.max_obstacles
         self.obstacles.max_size = cfg.max_obstacle_size
         self.obstacles.max_distance = cfg.max_obstacle_distance

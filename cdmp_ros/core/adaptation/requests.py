@@ -352,8 +352,9 @@ def build_problem(req: AdaptRequest, chain, cfg: AdaptRequestConfig) -> BuiltPro
     points = [ChainPoint(arms[p.arm][0], p.poi, arms[p.arm][1]) for p in avoided]
     grid = np.linspace(0.0, 1.0, int(cfg.n_steps))
     mean = prior.mean(grid)
-    X = np.stack([arms[p.arm][0].forward(mean[:, arms[p.arm][1]], [p.poi])[:, 0]
-                  for p in avoided], axis=1)           # (n_steps, n_points, 3)
+    # one forward pass per arm over its points (avoided_points lists them arm by arm)
+    X = np.concatenate([arm.forward(mean[:, idx], [p.poi for p in avoided if p.arm == k])
+                        for k, (arm, idx) in enumerate(arms)], axis=1)  # (n_steps, points, 3)
     radii = [p.radius for p in avoided]
     constraints: list = []
     if cfg.joint_limits:  # Eq. (12), paper 003

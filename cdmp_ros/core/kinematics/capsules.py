@@ -171,11 +171,9 @@ def _mesh_file(filename: str, mesh_dirs: Sequence[str], where: str) -> str:
         candidates = [filename[len('file://'):]]
     else:
         rel = filename[len('package://'):] if filename.startswith('package://') else filename
-        candidates = [rel] if os.path.isabs(rel) else []
-        for mesh_dir in ([] if os.path.isabs(rel) else mesh_dirs):
-            candidates.append(os.path.join(mesh_dir, rel))
-            if '/' in rel:
-                candidates.append(os.path.join(mesh_dir, rel.split('/', 1)[1]))
+        names = [rel] + ([rel.split('/', 1)[1]] if '/' in rel else [])
+        candidates = [rel] if os.path.isabs(rel) else [os.path.join(d, n) for d in mesh_dirs
+                                                       for n in names]
     for path in candidates:
         if os.path.isfile(path):
             return path
